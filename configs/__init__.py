@@ -1,0 +1,1 @@
+"""Resource package (installed as ``rotcal_configs``): default run configuration and dataset metadata for known recordings."""

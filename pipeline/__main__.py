@@ -1,0 +1,5 @@
+"""``python -m pipeline``: the rotcal command line."""
+
+from pipeline.cli import main
+
+main()

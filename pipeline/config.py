@@ -1,0 +1,73 @@
+"""The run configuration, resolved once from ``configs/defaults.toml`` and an
+optional ``--config`` file into a frozen record."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import jsonschema
+
+from pipeline.errors import ConfigError
+from pipeline.tables import schema_text
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Safety limits on inputs: beyond them a file is refused, in bounded memory."""
+
+    max_line_bytes: int = 1_048_576
+    max_mcap_record_bytes: int = 268_435_456
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    min_samples: int = 10
+    min_span_deg: float = 30.0
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    workers: int = 0
+    fit: FitConfig = field(default_factory=FitConfig)
+    limits: Limits = field(default_factory=Limits)
+    source: str | None = None
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _check(doc: dict, path: str) -> None:
+    errors = list(jsonschema.Draft202012Validator(schema_text("run_config")).iter_errors(doc))
+    if errors:
+        err = errors[0]
+        where = ".".join(str(p) for p in err.absolute_path) or "top level"
+        raise ConfigError(f"invalid configuration at {where}: {err.message}", path=path)
+
+
+def load_config(path: Path | None = None) -> RunConfig:
+    """Defaults from ``configs/defaults.toml``, overridden by ``path``."""
+    doc = tomllib.loads(resources.files("rotcal_configs").joinpath("defaults.toml").read_text())
+    if path is not None:
+        try:
+            over = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ConfigError("configuration file not found", path=path) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"configuration is not valid TOML: {exc}", path=path) from None
+        _check(over, str(path))
+        doc = _merge(doc, over)
+    _check(doc, str(path or "configs/defaults.toml"))
+    run = doc.get("run", {})
+    return RunConfig(
+        workers=run.get("workers", 0),
+        fit=FitConfig(**doc.get("fit", {})),
+        limits=Limits(**doc.get("limits", {})),
+        source=None if path is None else str(path),
+    )

@@ -1,0 +1,93 @@
+"""Ingest: one dispatcher from a dataset (a directory or a single capture
+file, with its ``dataset.toml``) to the canonical sample table. Nothing
+downstream knows which format a sample came from."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import polars as pl
+
+from pipeline.config import Limits
+from pipeline.errors import InputError
+from pipeline.ingest.csv_source import read_csv_capture
+from pipeline.ingest.mcap_source import read_mcap_capture
+from pipeline.meta import CaptureSpec, DatasetMeta, load_meta
+from pipeline.tables import conform
+
+CAPTURE_SUFFIXES = (".csv", ".mcap")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One DUT's calibration data: name, metadata and canonical samples."""
+
+    name: str
+    root: Path
+    meta: DatasetMeta
+    samples: pl.DataFrame
+    notes: tuple[str, ...] = ()
+
+
+def dataset_name(path: Path) -> str:
+    return path.name if path.is_dir() else path.stem
+
+
+def inside(root: Path, relative: str, source: str | None) -> Path:
+    """``root / relative``, refused unless it stays inside ``root`` (no ``..``,
+    absolute paths or symlinks out)."""
+    candidate = Path(relative)
+    resolved = (root / candidate).resolve()
+    if candidate.is_absolute() or not resolved.is_relative_to(root.resolve()):
+        raise InputError(f"[[capture]] file {relative!r} points outside the dataset directory", path=source)
+    return resolved
+
+
+def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec | None]]:
+    """The dataset's captures with their ``[[capture]]`` entries, by file name."""
+    if path.is_file():
+        specs = {c.file: c for c in meta.captures}
+        return [(path, specs.get(path.name))]
+    if meta.captures:
+        files = [(inside(path, c.file, meta.source), c) for c in meta.captures]
+        for file, _ in files:
+            if not file.is_file():
+                raise InputError("capture file named in dataset.toml does not exist", path=file)
+        return files
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
+    return [(f, None) for f in files]
+
+
+def read_capture(file: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
+    """One capture and notes on it, by its suffix (``[[capture]]`` files other
+    than .mcap are CSV)."""
+    if file.suffix.lower() == ".mcap":
+        return read_mcap_capture(file, meta, spec, limits)
+    return read_csv_capture(file, meta.csv_format, spec, limits), ()
+
+
+def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Limits()) -> Dataset:
+    """Read every capture of a dataset into the canonical sample table.
+
+    ``meta_path`` replaces the dataset's own ``dataset.toml`` (``--meta``).
+    Captures share one clock; samples are sorted by time, stably.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("dataset not found", path=path)
+    if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
+        meta_path = path / "dataset.toml"
+    meta = load_meta(meta_path)
+    root = path if path.is_dir() else path.parent
+    frames, notes = [], list(meta.notes)
+    for file, spec in capture_files(path, meta):
+        frame, capture_notes = read_capture(file, spec, meta, limits)
+        notes += capture_notes
+        name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
+        frames.append(frame.with_columns(capture=pl.lit(name)))
+    samples = conform(pl.concat(frames).sort("t_ns", maintain_order=True), "samples")
+    return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes))

@@ -1,0 +1,135 @@
+"""CSV captures (contract section 2, with ``[format]`` for loggers' layouts)."""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from pipeline.config import Limits
+from pipeline.errors import InputError, LimitError
+from pipeline.ingest.labels import label_columns
+from pipeline.meta import CaptureSpec, CsvFormat
+
+NUMERIC = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
+TEXT = ("axis",)
+REQUIRED = ("u", "v", "w")
+_SCAN_BLOCK = 1 << 20
+
+
+def check_line_lengths(path: Path, max_line_bytes: int) -> None:
+    """Refuse a file with a line longer than ``max_line_bytes``, reading it in
+    fixed-size blocks so that a hostile file cannot exhaust memory."""
+    run = 0  # bytes since the last newline
+    with path.open("rb") as fh:
+        while block := fh.read(_SCAN_BLOCK):
+            ends = np.flatnonzero(np.frombuffer(block, np.uint8) == 10)
+            if ends.size:
+                longest = max(run + int(ends[0]), int(np.diff(ends).max(initial=1)) - 1)
+                run = len(block) - 1 - int(ends[-1])
+            else:
+                longest = run = run + len(block)
+            if max(longest, run) > max_line_bytes:
+                raise LimitError(f"a line is longer than the limit of {max_line_bytes} bytes", path=path)
+
+
+def _source_bytes(path: Path, fmt: CsvFormat) -> bytes | Path:
+    if fmt.delimiter != "whitespace":
+        return path
+    data = path.read_bytes()
+    data = re.sub(rb"(?m)^[ \t]+", b"", data)
+    data = re.sub(rb"(?m)[ \t]+$", b"", data)
+    return re.sub(rb"[ \t]+", b",", data)
+
+
+def _locate_bad_value(source: bytes | Path, fmt: CsvFormat, column: str, file_col: str, path: Path) -> InputError:
+    """Re-read one column as text to name the first value that is not a number."""
+    text = _read(source, fmt, {file_col: pl.String}, [file_col])
+    values = text[file_col]
+    parsed = values.cast(pl.Float64, strict=False)
+    bad = (parsed.is_null() & values.is_not_null()).arg_true()
+    row = int(bad[0]) if len(bad) else 0
+    return InputError(f"column {column!r}, row {row + 1}: {values[row]!r} is not a number", path=path)
+
+
+def _read(source: bytes | Path, fmt: CsvFormat, dtypes: dict, columns: list[str]) -> pl.DataFrame:
+    sep = "," if fmt.delimiter == "whitespace" else fmt.delimiter
+    src = io.BytesIO(source) if isinstance(source, bytes) else source
+    if fmt.header:
+        return pl.read_csv(
+            src, separator=sep, comment_prefix="#", columns=columns, schema_overrides=dtypes,
+            infer_schema=False, raise_if_empty=False,
+        )
+    names = list(fmt.names or ())
+    keep = [i for i, n in enumerate(names) if n in columns]
+    frame = pl.read_csv(
+        src, separator=sep, comment_prefix="#", has_header=False, columns=keep,
+        new_columns=[names[i] for i in keep], infer_schema=False, raise_if_empty=False,
+    )
+    return frame.with_columns(pl.col(c).cast(dtypes.get(c, pl.String)) for c in frame.columns)
+
+
+def _header(source: bytes | Path, fmt: CsvFormat, path: Path) -> list[str]:
+    if not fmt.header:
+        return [n for n in fmt.names or () if n]
+    sep = "," if fmt.delimiter == "whitespace" else fmt.delimiter
+    src = io.BytesIO(source) if isinstance(source, bytes) else source
+    try:
+        return pl.read_csv(src, separator=sep, comment_prefix="#", n_rows=0, infer_schema=False).columns
+    except pl.exceptions.NoDataError:
+        raise InputError("the file is empty", path=path) from None
+
+
+def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limits: Limits) -> pl.DataFrame:
+    """One CSV capture as contract columns (``t`` in seconds, labels raw)."""
+    if path.stat().st_size == 0:
+        raise InputError("the file is empty", path=path)
+    check_line_lengths(path, limits.max_line_bytes)
+    source = _source_bytes(path, fmt)
+    present = set(_header(source, fmt, path))
+    wanted = {name: fmt.file_column(name) for name in (*NUMERIC, *TEXT) if fmt.file_column(name) in present}
+    missing = [c for c in REQUIRED if c not in wanted]
+    if "t" not in wanted and fmt.sample_rate_hz is None:
+        missing.insert(0, "t")
+    if missing:
+        raise InputError(
+            f"missing required column{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))}"
+            f" (columns found: {', '.join(sorted(present)) or 'none'})",
+            path=path, hint="map the file's columns in dataset.toml [format] columns" if present else None,
+        )
+    pose_col = fmt.pose_column if fmt.pose_column in present else None
+    dtypes = {wanted[c]: (pl.String if c in TEXT else pl.Float64) for c in wanted}
+    columns = list(dtypes) + ([pose_col] if pose_col else [])
+    try:
+        frame = _read(source, fmt, dtypes, columns)
+    except pl.exceptions.ComputeError as exc:
+        for name, file_col in wanted.items():
+            if name in NUMERIC and file_col in str(exc):
+                raise _locate_bad_value(source, fmt, name, file_col, path) from None
+        for name, file_col in wanted.items():
+            if name in NUMERIC:
+                check = _read(source, fmt, {file_col: pl.String}, [file_col])[file_col]
+                if (check.cast(pl.Float64, strict=False).is_null() & check.is_not_null()).any():
+                    raise _locate_bad_value(source, fmt, name, file_col, path) from None
+        raise InputError(f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path) from None
+    frame = frame.rename({v: k for k, v in wanted.items()})
+    if pose_col:
+        frame = frame.rename({pose_col: "pose"})
+    if frame.height == 0:
+        raise InputError("the file has no samples", path=path)
+    if "t" not in frame.columns:
+        frame = frame.with_columns(t=pl.int_range(frame.height, dtype=pl.Float64) / fmt.sample_rate_hz)
+    for name in REQUIRED + ("t",):
+        _check_finite(frame[name], name, path)
+    return label_columns(frame, spec, path)
+
+
+def _check_finite(values: pl.Series, name: str, path: Path) -> None:
+    bad = (values.is_null() | values.is_nan() | values.is_infinite()).arg_true()
+    if len(bad):
+        row = int(bad[0])
+        what = "is empty" if values[row] is None else f"is {values[row]}"
+        raise InputError(f"column {name!r}, row {row + 1} {what}", path=path)

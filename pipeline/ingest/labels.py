@@ -1,0 +1,79 @@
+"""Turn one capture's raw columns into the canonical sample columns: time in
+int64 nanoseconds, validated labels, ``[[capture]]`` labels filled in.
+
+Every source (CSV, MCAP with CDR or JSON) ends here, so every source obeys
+the same rules.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import polars as pl
+
+from pipeline.errors import InputError
+from pipeline.meta import CaptureSpec
+from pipeline.physics import AXES
+from pipeline.tables import schema
+
+POSES = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
+OPTIONAL_FLOATS = ("rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
+
+
+def canonical_rate(rate: pl.Expr) -> pl.Expr:
+    """Rates to the nearest nanohertz, so one plan rate compares equal whatever
+    path (CSV text, a joint velocity in rad/s) it arrived by."""
+    return (rate * 1e9).round() / 1e9
+
+
+def label_columns(
+    frame: pl.DataFrame, spec: CaptureSpec | None, path: Path, label_source: str = "file"
+) -> pl.DataFrame:
+    """Canonical sample columns of one capture.
+
+    ``frame`` has ``t`` (s) or ``t_ns``, ``u, v, w`` and any optional contract
+    columns, whose labels came from ``label_source``; ``spec`` supplies
+    labels the file lacks.
+    """
+    if "t_ns" not in frame.columns:
+        frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
+    back = frame["t_ns"].diff().lt(0).arg_true()
+    if len(back):
+        row = int(back[0])
+        raise InputError(
+            f"time goes backwards at row {row + 1} "
+            f"({frame['t_ns'][row] / 1e9:.6f} s after {frame['t_ns'][row - 1] / 1e9:.6f} s)",
+            path=path,
+        )
+    labelled_in_file = "axis" in frame.columns or "rate_hz" in frame.columns
+    if "axis" in frame.columns:
+        frame = frame.with_columns(pl.col("axis").str.strip_chars().str.to_lowercase())
+        bad = frame["axis"].is_not_null() & ~frame["axis"].is_in(AXES)
+        if bad.any():
+            row = int(bad.arg_true()[0])
+            raise InputError(
+                f"unknown axis label {frame['axis'][row]!r} at row {row + 1} (expected x, y or z)", path=path
+            )
+    spec = spec or CaptureSpec(file=path.name)
+    fills = {"axis": spec.axis, "rate_hz": spec.rate_hz}
+    frame = frame.with_columns(
+        (pl.lit(value) if name not in frame.columns else pl.col(name).fill_null(value)).alias(name)
+        for name, value in fills.items()
+        if value is not None or name not in frame.columns
+    )
+    frame = frame.with_columns(pl.col("rate_hz").cast(pl.Float64))
+    if "angle_deg" not in frame.columns and spec.theta0_deg is not None and spec.rate_hz is not None:
+        elapsed_s = (pl.col("t_ns") - pl.col("t_ns").first()).cast(pl.Float64) / 1e9
+        frame = frame.with_columns(angle_deg=spec.theta0_deg + 360.0 * spec.rate_hz * elapsed_s)
+    frame = frame.with_columns(
+        pl.lit(None, pl.Float64).alias(c) for c in OPTIONAL_FLOATS if c not in frame.columns
+    ).with_columns(rate_hz=canonical_rate(pl.col("rate_hz")))
+    pose = pl.col("pose").str.strip_chars() if "pose" in frame.columns else pl.lit(None, pl.String)
+    has_labels = pl.col("axis").is_not_null() | pl.col("rate_hz").is_not_null()
+    source = label_source if labelled_in_file else ("toml" if spec.axis or spec.rate_hz is not None else None)
+    frame = frame.with_columns(
+        pose=pl.when(pose.is_in(POSES)).then(pose).otherwise(None),
+        label_source=pl.when(has_labels).then(pl.lit(source, pl.String)).otherwise(None),
+        capture=pl.lit(spec.file),
+    )
+    return frame.select(pl.col(c).cast(t) for c, t in schema("samples").polars_schema.items())

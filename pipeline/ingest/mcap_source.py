@@ -1,0 +1,261 @@
+"""MCAP captures: ``sensor_msgs/msg/Imu`` (CDR) or JSON messages on the DUT
+topic, and an optional table channel (``sensor_msgs/msg/JointState`` or JSON)
+whose labels are mapped onto the DUT's time stamps (contract sections 1, 2)."""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+from mcap.exceptions import McapError
+from mcap.reader import StreamReader
+from mcap.records import Channel, Message, Schema
+from mcap_ros2.decoder import DecoderFactory
+
+from pipeline.config import Limits
+from pipeline.errors import InputError, LimitError
+from pipeline.ingest.labels import label_columns
+from pipeline.meta import CaptureSpec, DatasetMeta
+from pipeline.physics import AXES, JOINT_SIGN
+
+IMU_SCHEMA = "sensor_msgs/msg/Imu"
+JOINT_SCHEMA = "sensor_msgs/msg/JointState"
+JSON_FIELDS = ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
+
+
+@dataclass(frozen=True)
+class TableTrack:
+    """Table-channel messages in time order: the commanded axis, rate and angle."""
+
+    t_ns: np.ndarray
+    axis: np.ndarray  # object array of 'x', 'y', 'z'
+    rate_hz: np.ndarray
+    angle_deg: np.ndarray
+
+
+@dataclass
+class _Topic:
+    schema: Schema | None
+    channel: Channel
+    stamps: list
+    rows: list
+
+
+def _read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, _Topic]:
+    """Every channel by topic, with the raw messages of ``topics`` and of any
+    Imu or JointState channel; refuses damaged files with the reason."""
+    found: dict[str, _Topic] = {}
+    schemas: dict[int, Schema] = {}
+    keep: dict[int, _Topic] = {}
+    try:
+        with path.open("rb") as fh:
+            for record in StreamReader(fh, record_size_limit=limits.max_mcap_record_bytes).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel) and record.topic not in found:
+                    topic = _Topic(schemas.get(record.schema_id), record, [], [])
+                    found[record.topic] = topic
+                    kind = topic.schema.name if topic.schema is not None else ""
+                    if record.topic in topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
+                        keep[record.id] = topic
+                elif isinstance(record, Message) and record.channel_id in keep:
+                    topic = keep[record.channel_id]
+                    topic.stamps.append(record.log_time)
+                    topic.rows.append(record.data)
+    except McapError as exc:
+        if type(exc).__name__ == "RecordLengthLimitExceeded":
+            raise LimitError(
+                f"an MCAP record is larger than the limit of {limits.max_mcap_record_bytes} bytes", path=path
+            ) from None
+        if type(exc).__name__ == "EndOfFile":
+            raise InputError("truncated MCAP: the file ends inside a record", path=path) from None
+        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
+    except (struct.error, ValueError, EOFError, OSError) as exc:
+        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
+    return found
+
+
+def _choose_topic(found: dict[str, _Topic], wanted: str, given: bool, schema_name: str, path: Path) -> str | None:
+    """``wanted`` if present; else, when the topic was a default, the only
+    channel of ``schema_name``; a topic named in dataset.toml must exist."""
+    if wanted in found:
+        return wanted
+    if given:
+        listing = ", ".join(sorted(found)) or "none"
+        raise InputError(f"topic {wanted!r} is not in the file (topics: {listing})", path=path)
+    typed = [t for t, v in found.items() if v.schema is not None and v.schema.name == schema_name]
+    return typed[0] if len(typed) == 1 else None
+
+
+def _decoder(topic: _Topic, path: Path):
+    encoding = topic.channel.message_encoding
+    if encoding == "json":
+        return lambda data: json.loads(data)
+    if encoding == "cdr" and topic.schema is not None:
+        return DecoderFactory().decoder_for(encoding, topic.schema)
+    raise InputError(
+        f"topic {topic.channel.topic!r} has message encoding {encoding!r}; rotcal reads cdr and json", path=path
+    )
+
+
+def _imu_frame(topic: _Topic, path: Path) -> pl.DataFrame:
+    decode = _decoder(topic, path)
+    try:
+        msgs = [decode(data) for data in topic.rows]
+    except Exception as exc:  # a decoder failure is a corrupt message, whatever the library raises
+        raise InputError(f"topic {topic.channel.topic!r}: message cannot be decoded ({exc})", path=path) from None
+    log_ns = np.asarray(topic.stamps, np.int64)
+    if topic.channel.message_encoding == "json":
+        cols = {f: [m.get(f) for m in msgs] for f in JSON_FIELDS if any(f in m for m in msgs)}
+        missing = [f for f in ("u", "v", "w") if f not in cols]
+        if missing:
+            raise InputError(f"topic {topic.channel.topic!r}: JSON messages lack {', '.join(missing)}", path=path)
+        frame = pl.DataFrame(cols, strict=False)
+        t_s = pl.col("t").cast(pl.Float64) if "t" in cols else pl.lit(None, pl.Float64)
+        stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
+        return frame.with_columns(t_ns=stamp).drop("t", strict=False)
+    stamp = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64)
+    return pl.DataFrame(
+        {
+            "t_ns": np.where(stamp == 0, log_ns, stamp),
+            "u": [m.linear_acceleration.x for m in msgs],
+            "v": [m.linear_acceleration.y for m in msgs],
+            "w": [m.linear_acceleration.z for m in msgs],
+        }
+    )
+
+
+def _joint_axis(names: list[str], position: list[float], velocity: list[float], previous: tuple | None) -> int:
+    """Index of the joint the table is working on: the only one, the fastest,
+    or, with all at rest, the one that moved since the last message."""
+    if len(names) == 1:
+        return 0
+    speed = np.abs(np.asarray(velocity if len(velocity) == len(names) else [0.0] * len(names)))
+    if speed.max() > 0:
+        return int(speed.argmax())
+    if previous is not None:
+        prev_names, prev_pos, prev_idx = previous
+        moved = [i for i, n in enumerate(names) if n in prev_names and position[i] != prev_pos[prev_names.index(n)]]
+        if moved:
+            return moved[0]
+        return prev_idx if prev_idx < len(names) else 0
+    return 0
+
+
+def _table_track(topic: _Topic, path: Path) -> TableTrack:
+    decode = _decoder(topic, path)
+    log_ns = np.asarray(topic.stamps, np.int64)
+    t_ns, axis, rate, angle = [], [], [], []
+    previous = None
+    for data, log_t in zip(topic.rows, log_ns):
+        try:
+            m = decode(data)
+        except Exception as exc:  # a decoder failure is a corrupt message, whatever the library raises
+            raise InputError(f"table topic {topic.channel.topic!r}: message cannot be decoded ({exc})", path=path) from None
+        if topic.channel.message_encoding == "json":
+            t_ns.append(int(round(m["t"] * 1e9)) if "t" in m else int(log_t))
+            axis.append(m.get("axis"))
+            rate.append(float(m.get("rate_hz", np.nan)))
+            angle.append(float(m.get("angle_deg", np.nan)))
+            continue
+        stamp = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        names, pos, vel = list(m.name), list(m.position), list(m.velocity)
+        i = _joint_axis(names, pos, vel, previous)
+        previous = (names, pos, i)
+        name = names[i]
+        if name not in AXES:
+            raise InputError(f"table topic joint {name!r} is not x, y or z", path=path)
+        sign = JOINT_SIGN[name]
+        t_ns.append(stamp or int(log_t))
+        axis.append(name)
+        rate.append(sign * (vel[i] if i < len(vel) else 0.0) / (2 * np.pi))
+        angle.append(sign * np.degrees(pos[i]))
+    bad = [a for a in axis if a not in AXES]
+    if bad:
+        raise InputError(f"table topic: unknown axis label {bad[0]!r} (expected x, y or z)", path=path)
+    order = np.argsort(np.asarray(t_ns, np.int64), kind="stable")
+    return TableTrack(
+        np.asarray(t_ns, np.int64)[order],
+        np.asarray(axis, object)[order],
+        np.round(np.asarray(rate, float)[order] * 1e9) / 1e9,
+        np.asarray(angle, float)[order],
+    )
+
+
+def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axis, rate and angle at each DUT stamp (contract section 1).
+
+    Labels hold from the last table message. Angles are linearly interpolated
+    between messages of the same run (same axis and rate) after unwrapping
+    with the commanded rate, extrapolated at that rate past a run's last
+    message, and held during static steps.
+    """
+    n = t_ns.size
+    axis = np.full(n, None, object)
+    rate = np.full(n, np.nan)
+    angle = np.full(n, np.nan)
+    if track.t_ns.size == 0:
+        return axis, rate, angle
+    run_break = np.r_[True, (track.axis[1:] != track.axis[:-1]) | (track.rate_hz[1:] != track.rate_hz[:-1])]
+    run = np.cumsum(run_break) - 1
+    # The increment to the next message, unwrapped with the commanded rate;
+    # only sin and cos of theta are used, so no running sum is needed.
+    expected = 360.0 * track.rate_hz[:-1] * np.diff(track.t_ns) / 1e9
+    increment = expected + (np.diff(track.angle_deg) - expected + 180.0) % 360.0 - 180.0
+    idx = np.searchsorted(track.t_ns, t_ns, side="right") - 1
+    have = idx >= 0
+    i = idx[have]
+    axis[have] = track.axis[i]
+    rate[have] = track.rate_hz[i]
+    nxt = np.minimum(i + 1, track.t_ns.size - 1)
+    same_run = (nxt != i) & (run[nxt] == run[i])
+    dt_ns = t_ns[have] - track.t_ns[i]
+    span_ns = np.where(same_run, track.t_ns[nxt] - track.t_ns[i], 1)
+    step = np.where(same_run, increment[np.minimum(i, increment.size - 1)] if increment.size else 0.0, 0.0)
+    interp = track.angle_deg[i] + dt_ns / span_ns * step
+    extrap = track.angle_deg[i] + 360.0 * track.rate_hz[i] * dt_ns / 1e9
+    moving = track.rate_hz[i] != 0
+    angle[have] = np.where(moving, np.where(same_run, interp, extrap), track.angle_deg[i])
+    return axis, rate, angle
+
+
+def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
+    """One MCAP capture as canonical sample columns, and notes on the topics
+    chosen where the defaults were absent."""
+    if path.stat().st_size == 0:
+        raise InputError("the file is empty", path=path)
+    found = _read_records(path, {meta.imu_topic, meta.table_topic}, limits)
+    imu_key = _choose_topic(found, meta.imu_topic, meta.imu_topic_given, IMU_SCHEMA, path)
+    table_key = _choose_topic(found, meta.table_topic, meta.table_topic_given, JOINT_SCHEMA, path)
+    if imu_key is None:
+        listing = ", ".join(sorted(found)) or "none"
+        raise InputError(f"topic {meta.imu_topic!r} is not in the file (topics: {listing})", path=path,
+                         hint="set [mcap] imu_topic in dataset.toml")
+    notes = tuple(
+        f"{path.name}: topic {meta_topic!r} absent; read the only {kind} topic {key!r}"
+        for key, meta_topic, kind in ((imu_key, meta.imu_topic, "Imu"), (table_key, meta.table_topic, "JointState"))
+        if key is not None and key != meta_topic
+    )
+    frame = _imu_frame(found[imu_key], path)
+    if frame.height == 0:
+        raise InputError(f"topic {found[imu_key].channel.topic!r} has no messages", path=path)
+    frame = frame.sort("t_ns", maintain_order=True)
+    source = "file"
+    if table_key is not None and found[table_key].rows and "axis" not in frame.columns:
+        axis, rate, angle = map_table(frame["t_ns"].to_numpy(), _table_track(found[table_key], path))
+        frame = frame.with_columns(
+            axis=pl.Series(axis, dtype=pl.String),
+            rate_hz=pl.Series(rate).fill_nan(None),
+            angle_deg=pl.Series(angle).fill_nan(None),
+        )
+        source = "table"
+    for name in ("u", "v", "w"):
+        values = frame[name].cast(pl.Float64)
+        bad = (values.is_null() | values.is_nan()).arg_true()
+        if len(bad):
+            raise InputError(f"{name!r} of message {int(bad[0]) + 1} is not a number", path=path)
+    return label_columns(frame, spec, path, label_source=source), notes

@@ -1,0 +1,61 @@
+"""One dataset through every stage: ingest -> segment -> fit -> combine, and
+the result tables written into the output directory. The CLI and the batch
+runner both call ``run_dataset``; neither holds pipeline logic."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
+from pipeline.config import RunConfig
+from pipeline.errors import UndeterminedError
+from pipeline.fit import fit_segments, fits_frame
+from pipeline.ingest import load_dataset
+from pipeline.segment import segment_by_labels
+from pipeline.tables import write_parquet
+
+
+@dataclass(frozen=True, eq=False)
+class RunOutcome:
+    """What a run produced: results per rate, warnings (failed segments or
+    rates), notes (defaults applied) and the files written."""
+
+    dataset: str
+    output_unit: str
+    results: tuple[IntrinsicResult, ...]
+    warnings: tuple[str, ...]
+    notes: tuple[str, ...]
+    written: tuple[Path, ...]
+
+
+def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
+    """Run the pipeline on one dataset and write its tables into ``out``.
+
+    Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
+    what remains after failed segments cannot determine any rate's result
+    (the segment and fit tables, with the failure rows, are written first).
+    """
+    ds = load_dataset(path, meta_path, config.limits)
+    samples, segments = segment_by_labels(ds.samples, ds.name, ds.meta.angle_source)
+    fits = fits_frame(fit_segments(samples, segments, config.fit, config.workers), segments, ds.name)
+    written = [write_parquet(segments, out / "segments.parquet", "segments"),
+               write_parquet(fits, out / "fits.parquet", "fits")]
+    combined = combine(fits, ds.meta.g_local, ds.meta.g_local_uncertainty)
+    results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
+    failed = fits.filter(fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
+    warnings = tuple(
+        [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
+        + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
+    )
+    if not results:
+        if not warnings:
+            raise UndeterminedError("no static or rotation segments: the samples carry no axis and rate labels", path=path)
+        more = f" (and {len(warnings) - 1} more problems)" if len(warnings) > 1 else ""
+        raise UndeterminedError(f"no rate can be determined: {warnings[0]}{more}", path=path)
+    unit = ds.meta.output_unit
+    written += [
+        write_parquet(intrinsic_frame(list(results), ds.name, "baseline", unit), out / "intrinsic.parquet", "intrinsic"),
+        write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"),
+    ]
+    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written))

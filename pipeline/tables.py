@@ -1,0 +1,111 @@
+"""Table contracts: load the JSON schemas of ``schemas/``, conform frames to
+them, and write Parquet files atomically with the schema recorded in the file.
+
+A schema file holds ``name``, ``version``, ``description`` and ``columns``
+(each with ``name``, ``type``, ``description`` and, where it has one,
+``unit``). Types are ``string``, ``bool``, ``int32``, ``int64``,
+``float64`` and ``list[float64]``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import polars as pl
+import pyarrow.parquet as pq
+
+from pipeline import __version__
+
+_DTYPES: dict[str, pl.DataType] = {
+    "string": pl.String(),
+    "bool": pl.Boolean(),
+    "int32": pl.Int32(),
+    "int64": pl.Int64(),
+    "float64": pl.Float64(),
+    "list[float64]": pl.List(pl.Float64()),
+}
+
+
+@dataclass(frozen=True)
+class TableSchema:
+    """One table contract from ``schemas/<name>.json``."""
+
+    name: str
+    version: str
+    columns: tuple[str, ...]
+    dtypes: tuple[pl.DataType, ...]
+
+    @property
+    def polars_schema(self) -> dict[str, pl.DataType]:
+        return dict(zip(self.columns, self.dtypes))
+
+    def empty(self) -> pl.DataFrame:
+        return pl.DataFrame(schema=self.polars_schema)
+
+
+def schema_text(name: str) -> dict:
+    """The parsed JSON document of a schema in ``schemas/``."""
+    return json.loads(resources.files("rotcal_schemas").joinpath(f"{name}.json").read_text())
+
+
+@cache
+def schema(name: str) -> TableSchema:
+    doc = schema_text(name)
+    cols = doc["columns"]
+    return TableSchema(
+        name=doc["name"],
+        version=doc["version"],
+        columns=tuple(c["name"] for c in cols),
+        dtypes=tuple(_DTYPES[c["type"]] for c in cols),
+    )
+
+
+def conform(frame: pl.DataFrame, name: str) -> pl.DataFrame:
+    """Select and cast ``frame``'s columns to the contract ``name``, in its order.
+
+    Raises ``KeyError`` naming the missing columns: a missing column is a
+    programming error, not a user's.
+    """
+    sch = schema(name)
+    missing = [c for c in sch.columns if c not in frame.columns]
+    if missing:
+        raise KeyError(f"table {name!r} lacks columns {missing}")
+    return frame.select(pl.col(c).cast(t, strict=True) for c, t in zip(sch.columns, sch.dtypes))
+
+
+def parquet_metadata(name: str) -> dict[bytes, bytes]:
+    sch = schema(name)
+    return {
+        b"rotcal.schema": sch.name.encode(),
+        b"rotcal.schema_version": sch.version.encode(),
+        b"rotcal.version": __version__.encode(),
+    }
+
+
+def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
+    """Write ``frame`` as contract ``name`` to ``path``, atomically.
+
+    The file is written under a temporary name in the same directory and
+    moved into place, so no reader ever sees a half-written table.
+    """
+    table = conform(frame, name).to_arrow()
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        pq.write_table(table, tmp, compression="zstd")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_schema_name(path: Path) -> tuple[str, str]:
+    """The (schema name, schema version) recorded in a Parquet file rotcal wrote."""
+    meta = pq.read_schema(path).metadata or {}
+    return meta[b"rotcal.schema"].decode(), meta[b"rotcal.schema_version"].decode()
