@@ -121,7 +121,7 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
     if frame.height == 0:
         raise InputError("the file has no samples", path=path)
     if "t" not in frame.columns:
-        frame = frame.with_columns(t=pl.int_range(frame.height, dtype=pl.Float64) / fmt.sample_rate_hz)
+        frame = frame.with_columns(t=pl.int_range(frame.height, dtype=pl.Int64).cast(pl.Float64) / fmt.sample_rate_hz)
     for name in REQUIRED + ("t",):
         _check_finite(frame[name], name, path)
     return label_columns(frame, spec, path)
