@@ -45,14 +45,17 @@ def _source_bytes(path: Path, fmt: CsvFormat) -> bytes | Path:
     return re.sub(rb"[ \t]+", b",", data)
 
 
-def _locate_bad_value(source: bytes | Path, fmt: CsvFormat, column: str, file_col: str, path: Path) -> InputError:
-    """Re-read one column as text to name the first value that is not a number."""
-    text = _read(source, fmt, {file_col: pl.String}, [file_col])
-    values = text[file_col]
-    parsed = values.cast(pl.Float64, strict=False)
-    bad = (parsed.is_null() & values.is_not_null()).arg_true()
-    row = int(bad[0]) if len(bad) else 0
-    return InputError(f"column {column!r}, row {row + 1}: {values[row]!r} is not a number", path=path)
+def _bad_value(source: bytes | Path, fmt: CsvFormat, wanted: dict[str, str], path: Path) -> InputError | None:
+    """Re-read the numeric columns as text to name the first value that is not a number."""
+    for name, file_col in wanted.items():
+        if name not in NUMERIC:
+            continue
+        values = _read(source, fmt, {file_col: pl.String}, [file_col])[file_col]
+        bad = (values.cast(pl.Float64, strict=False).is_null() & values.is_not_null()).arg_true()
+        if len(bad):
+            row = int(bad[0])
+            return InputError(f"column {name!r}, row {row + 1}: {values[row]!r} is not a number", path=path)
+    return None
 
 
 def _read(source: bytes | Path, fmt: CsvFormat, dtypes: dict, columns: list[str]) -> pl.DataFrame:
@@ -106,15 +109,9 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
     try:
         frame = _read(source, fmt, dtypes, columns)
     except pl.exceptions.ComputeError as exc:
-        for name, file_col in wanted.items():
-            if name in NUMERIC and file_col in str(exc):
-                raise _locate_bad_value(source, fmt, name, file_col, path) from None
-        for name, file_col in wanted.items():
-            if name in NUMERIC:
-                check = _read(source, fmt, {file_col: pl.String}, [file_col])[file_col]
-                if (check.cast(pl.Float64, strict=False).is_null() & check.is_not_null()).any():
-                    raise _locate_bad_value(source, fmt, name, file_col, path) from None
-        raise InputError(f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path) from None
+        raise _bad_value(source, fmt, wanted, path) or InputError(
+            f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path
+        ) from None
     frame = frame.rename({v: k for k, v in wanted.items()})
     if pose_col:
         frame = frame.rename({pose_col: "pose"})
@@ -131,5 +128,6 @@ def _check_finite(values: pl.Series, name: str, path: Path) -> None:
     bad = (values.is_null() | values.is_nan() | values.is_infinite()).arg_true()
     if len(bad):
         row = int(bad[0])
-        what = "is empty" if values[row] is None else f"is {values[row]}"
+        value = values[row]
+        what = "is empty" if value is None else ("is NaN" if value != value else f"is {value}")
         raise InputError(f"column {name!r}, row {row + 1} {what}", path=path)

@@ -1,0 +1,184 @@
+"""Every bad input of issue 2: a one-line message naming the file and the
+problem, a non-zero exit, and no traceback."""
+
+import shutil
+from pathlib import Path
+
+import polars as pl
+import pytest
+
+from pipeline.simulate import Plan, SimulationSpec
+
+SMALL = SimulationSpec(plan=Plan(rates_hz=(0.1,), rotation_samples=600, step_samples=10))
+
+
+@pytest.fixture
+def dataset(make_dataset, tmp_path):
+    """A fresh copy of a small CSV dataset the test may damage."""
+    src = make_dataset(1, spec=SMALL)
+    dst = tmp_path / "dut"
+    shutil.copytree(src, dst)
+    return dst
+
+
+@pytest.fixture
+def mcap_dataset(make_dataset, tmp_path):
+    src = make_dataset(1, fmt="mcap-cdr", spec=SMALL)
+    dst = tmp_path / "dut"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def first_csv(directory: Path) -> Path:
+    return sorted(directory.glob("*.csv"))[0]
+
+
+def assert_one_line_error(result, *needles, code=2):
+    status, out, err = result
+    assert status == code, (status, out, err)
+    lines = [line for line in err.strip().splitlines() if line]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def rewrite(path: Path, transform) -> None:
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(transform(lines)) + "\n")
+
+
+def test_missing_required_column(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    pl.read_csv(csv).drop("v").write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "missing required column 'v'")
+
+
+def test_non_numeric_value(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    rewrite(csv, lambda lines: lines[:5] + [lines[5].replace(lines[5].split(",")[1], "12x4", 1)] + lines[6:])
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "column 'u', row 5", "'12x4' is not a number")
+
+
+def test_nan_value(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    frame = pl.read_csv(csv)
+    frame.with_columns(w=pl.when(pl.int_range(pl.len()) == 7).then(float("nan")).otherwise(pl.col("w"))).write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "column 'w', row 8 is NaN")
+
+
+def test_empty_cell(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    pl.read_csv(csv).with_columns(u=pl.when(pl.int_range(pl.len()) == 2).then(None).otherwise(pl.col("u"))).write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "column 'u', row 3 is empty")
+
+
+def test_time_going_backwards(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    frame = pl.read_csv(csv)
+    t = frame["t"].to_list()
+    t[3], t[4] = t[4], t[3]
+    frame.with_columns(t=pl.Series(t)).write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "time goes backwards at row 5")
+
+
+def test_empty_file(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    csv.write_text("")
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "empty")
+
+
+def test_header_only_file(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    rewrite(csv, lambda lines: lines[:1])
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "no samples")
+
+
+def test_unknown_axis_label(cli, dataset, tmp_path):
+    csv = first_csv(dataset)
+    pl.read_csv(csv).with_columns(axis=pl.lit("q")).write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "unknown axis label 'q'")
+
+
+def test_truncated_mcap(cli, mcap_dataset, tmp_path):
+    mcap = mcap_dataset / "capture.mcap"
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    assert_one_line_error(cli("run", mcap_dataset, "--out", tmp_path / "o"), "capture.mcap", "truncated MCAP")
+
+
+def test_corrupt_mcap(cli, mcap_dataset, tmp_path):
+    mcap = mcap_dataset / "capture.mcap"
+    data = bytearray(mcap.read_bytes())
+    data[40:4000] = bytes(3960)
+    mcap.write_bytes(bytes(data))
+    assert_one_line_error(cli("run", mcap_dataset, "--out", tmp_path / "o"), "capture.mcap", "MCAP")
+
+
+def test_not_an_mcap(cli, mcap_dataset, tmp_path):
+    (mcap_dataset / "capture.mcap").write_text("t,u,v,w\n0,1,2,3\n")
+    assert_one_line_error(cli("run", mcap_dataset, "--out", tmp_path / "o"), "capture.mcap", "MCAP")
+
+
+def test_topic_that_is_not_there(cli, mcap_dataset, tmp_path):
+    with (mcap_dataset / "dataset.toml").open("a") as fh:
+        fh.write('\n[mcap]\nimu_topic = "/accel"\n')
+    assert_one_line_error(cli("run", mcap_dataset, "--out", tmp_path / "o"), "capture.mcap", "topic '/accel' is not in the file", "/imu")
+
+
+@pytest.mark.parametrize(
+    "toml, needles",
+    [
+        ('[site]\ng_local = "high"\n', ["dataset.toml", "site.g_local", "not of type 'number'"]),
+        ('[site]\ng_local = 98.1\n', ["dataset.toml", "site.g_local", "98.1"]),
+        ('[format]\ndelimiter = "|"\n', ["dataset.toml", "format.delimiter"]),
+        ('[sitee]\ng_local = 9.8\n', ["dataset.toml", "unknown table or key 'sitee'"]),
+        ('[site\ng_local = 9.8\n', ["dataset.toml", "not valid TOML"]),
+        ('[[capture]]\nfile = "x.csv"\naxis = "q"\n', ["dataset.toml", "capture.0.axis"]),
+    ],
+)
+def test_malformed_dataset_toml(cli, dataset, tmp_path, toml, needles):
+    (dataset / "dataset.toml").write_text(toml)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), *needles)
+
+
+def test_missing_meta_file(cli, dataset, tmp_path):
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o", "--meta", tmp_path / "nope.toml"), "nope.toml", "not found")
+
+
+def test_missing_gravity_uses_standard_gravity_and_says_so(cli, dataset, tmp_path):
+    (dataset / "dataset.toml").write_text('[device]\noutput_unit = "bit"\n')
+    status, out, err = cli("run", dataset, "--out", tmp_path / "o")
+    assert status == 0
+    assert "g_local not given: using standard gravity 9.80665 m/s^2" in err
+
+
+def test_capture_outside_dataset_is_refused(cli, dataset, tmp_path):
+    (dataset / "dataset.toml").write_text('[[capture]]\nfile = "../elsewhere.csv"\n')
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), "points outside the dataset directory")
+
+
+def test_short_segment_is_a_failure_row_not_fatal(cli, dataset, tmp_path):
+    rot = sorted(dataset.glob("*_0.1hz.csv"))[0]
+    rewrite(rot, lambda lines: lines[:6])  # 5 samples
+    status, out, err = cli("run", dataset, "--out", tmp_path / "o")
+    assert status == 0, err
+    assert "warning:" in err and "too short: 5 samples" in err
+    fits = pl.read_parquet(tmp_path / "o" / "fits.parquet")
+    failed = fits.filter(pl.col("status") == "failed")
+    assert failed.height == 3 and failed["reason"][0].startswith("too short")
+    # two remaining axes still determine 0.1 Hz: every component is measured at least once
+    intrinsic = pl.read_parquet(tmp_path / "o" / "intrinsic.parquet")
+    assert sorted(set(intrinsic["rate_hz"])) == [0.0, 0.1]
+
+
+def test_run_fails_only_when_nothing_can_be_determined(cli, dataset, tmp_path):
+    for csv in sorted(dataset.glob("*.csv")):
+        if not csv.name.startswith("00_"):
+            csv.unlink()
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), "no rate can be determined", code=3)
+    assert (tmp_path / "o" / "fits.parquet").exists()
+
+
+def test_missing_dataset(cli, tmp_path):
+    assert_one_line_error(cli("run", tmp_path / "absent", "--out", tmp_path / "o"), "absent", "dataset not found")
