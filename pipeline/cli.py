@@ -13,7 +13,7 @@ from rich.console import Console
 
 from pipeline.config import load_config
 from pipeline.errors import RotcalError
-from pipeline.report import summary_table
+from pipeline.report import findings_table, summary_table
 from pipeline.run import run_dataset
 from pipeline.simulate import SimulationSpec, simulate, spec_from_toml, write_dataset
 
@@ -33,6 +33,15 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
     if not quiet:
         out.print(summary_table(outcome.results, outcome.output_unit,
                                 f"{outcome.dataset}: intrinsic parameters, expanded uncertainty (k = 2)"))
+        diagnosis = outcome.diagnosis
+        if diagnosis is not None:
+            found = int(diagnosis.findings["detected"].sum())
+            if found:
+                out.print(findings_table(diagnosis.findings, f"diagnosis: {found} finding{'s' if found > 1 else ''}"))
+                out.print(summary_table(diagnosis.refined, outcome.output_unit,
+                                        "refined intrinsic parameters (diagnosed effects modelled), k = 2"))
+            else:
+                out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
     folder = outcome.written[0].parent if outcome.written else None
     out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False)
 

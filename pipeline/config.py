@@ -29,10 +29,21 @@ class FitConfig:
 
 
 @dataclass(frozen=True)
+class DiagnosisConfig:
+    """The model-mismatch diagnosis: whether it runs and its false-alarm rates."""
+
+    enabled: bool = True
+    false_alarm: float = 1e-4             # per catalogue extension (per axis or channel) and per scan for a step
+    unexplained_false_alarm: float = 1e-3  # per family of residual scans
+    report: bool = True                   # write report.md with figures
+
+
+@dataclass(frozen=True)
 class RunConfig:
     workers: int = 0
     fit: FitConfig = field(default_factory=FitConfig)
     limits: Limits = field(default_factory=Limits)
+    diagnosis: DiagnosisConfig = field(default_factory=DiagnosisConfig)
     source: str | None = None
 
 
@@ -69,5 +80,6 @@ def load_config(path: Path | None = None) -> RunConfig:
         workers=run.get("workers", 0),
         fit=FitConfig(**doc.get("fit", {})),
         limits=Limits(**doc.get("limits", {})),
+        diagnosis=DiagnosisConfig(**doc.get("diagnosis", {})),
         source=None if path is None else str(path),
     )

@@ -46,6 +46,16 @@ def gravity_direction(axis_idx: np.ndarray, theta_deg: np.ndarray) -> np.ndarray
     return out
 
 
+def gravity_direction_derivative(axis_idx: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+    """d(gravity_direction)/d(theta) per degree of theta, (n, 3)."""
+    theta = np.deg2rad(theta_deg)
+    out = np.zeros((theta.size, 3))
+    rows = np.arange(theta.size)
+    out[rows, SIN_COMPONENT[axis_idx]] = -np.cos(theta) * (np.pi / 180.0)
+    out[rows, COS_COMPONENT[axis_idx]] = -np.sin(theta) * (np.pi / 180.0)
+    return out
+
+
 def unit_vectors_from_angles(phi_uv: float, phi_vw: float, phi_wu: float) -> np.ndarray:
     """Right-handed unit vectors u, v, w (rows) with the given angles in degrees.
 
@@ -144,6 +154,14 @@ class Motion:
     t0_s: float = field(default=0.0)
 
 
+def uniform_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
+    """The rotating samples' angle at the true rate, before ripple:
+    theta0 + 360 rate (1 + e) (t + delay - t_start)."""
+    rot = motion.rotating
+    elapsed = motion.t_s[rot] + delay_s - motion.t_start_s[rot]
+    return motion.theta0_deg[rot] + 360.0 * motion.rate_hz[rot] * (1.0 + effects.rate_error) * elapsed
+
+
 def true_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
     """The true table angle seen by a channel sampled ``delay_s`` after its stamp.
 
@@ -152,8 +170,7 @@ def true_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
     """
     rot = motion.rotating
     theta = motion.theta_cmd_deg.astype(float).copy()
-    elapsed = motion.t_s[rot] + delay_s - motion.t_start_s[rot]
-    base = motion.theta0_deg[rot] + 360.0 * motion.rate_hz[rot] * (1.0 + effects.rate_error) * elapsed
+    base = uniform_angle(motion, effects, delay_s)
     ripple = np.zeros_like(base)
     for ax, (amp, phase) in effects.per_axis("rate_ripple").items():
         on = motion.axis_idx[rot] == ax
@@ -181,20 +198,30 @@ def specific_force(motion: Motion, effects: Effects, g_local: float, delay_s: fl
     return a
 
 
+def channel_forces(motion: Motion, effects: Effects, g_local: float) -> list[np.ndarray]:
+    """The specific force each channel sees (its own sampling instant)."""
+    delays = np.asarray(effects.delay_s, float)
+    if not np.any(delays):
+        return [specific_force(motion, effects, g_local, 0.0)] * 3
+    return [specific_force(motion, effects, g_local, delays[r]) for r in range(3)]
+
+
+def nonlinearity(y: np.ndarray, x1g: np.ndarray, effects: Effects) -> np.ndarray:
+    """The gain errors of effects.md acting on the offset-free output y."""
+    ratio = y / x1g
+    return y * (1.0 + np.asarray(effects.k3) * ratio**2) * (1.0 + np.asarray(effects.k2) * ratio)
+
+
+def drift_term(motion: Motion, effects: Effects) -> np.ndarray:
+    return np.asarray(effects.drift)[None, :] * (motion.t_s - motion.t0_s)[:, None]
+
+
 def noise_free_output(motion: Motion, dut: Dut, effects: Effects, g_local: float) -> np.ndarray:
     """Outputs (n, 3) before noise, rounding and clipping (effects.md order)."""
-    delays = np.asarray(effects.delay_s, float)
-    if np.any(delays):
-        y = np.column_stack(
-            [specific_force(motion, effects, g_local, delays[r]) @ dut.responsivity[r] for r in range(3)]
-        )
-    else:
-        y = specific_force(motion, effects, g_local, 0.0) @ dut.responsivity.T
+    forces = channel_forces(motion, effects, g_local)
+    y = np.column_stack([forces[r] @ dut.responsivity[r] for r in range(3)])
     x1g = np.linalg.norm(dut.responsivity, axis=1) * g_local
-    ratio = y / x1g
-    y = y * (1.0 + np.asarray(effects.k3) * ratio**2) * (1.0 + np.asarray(effects.k2) * ratio)
-    drift = np.asarray(effects.drift)[None, :] * (motion.t_s - motion.t0_s)[:, None]
-    return dut.offsets[None, :] + drift + y
+    return dut.offsets[None, :] + drift_term(motion, effects) + nonlinearity(y, x1g, effects)
 
 
 def observe(clean: np.ndarray, dut: Dut, effects: Effects, rng: np.random.Generator) -> np.ndarray:

@@ -37,3 +37,14 @@ def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title:
             cells.append(f"{res.value[i]:.{d}f} ± {expanded:.{d}f}")
         table.add_row(name, unit, *cells)
     return table
+
+
+def findings_table(findings, title: str) -> Table:
+    """The diagnosis findings (detected rows) with their evidence."""
+    table = Table(title=title, title_justify="left", show_lines=True)
+    for col in ("effect", "where", "evidence", "BIC change"):
+        table.add_column(col, overflow="fold")
+    for effect, where, evidence, dbic in findings.filter(findings["detected"]).select(
+            "effect", "where", "evidence", "delta_bic").iter_rows():
+        table.add_row(effect, where, evidence, f"{dbic:+.0f}")
+    return table

@@ -7,8 +7,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from threadpoolctl import threadpool_limits
+
 from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
 from pipeline.config import RunConfig
+from pipeline.diagnosis import Diagnosis, diagnose
 from pipeline.errors import UndeterminedError
 from pipeline.fit import fit_segments, fits_frame
 from pipeline.ingest import load_dataset
@@ -27,9 +30,18 @@ class RunOutcome:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     written: tuple[Path, ...]
+    diagnosis: Diagnosis | None = None
 
 
 def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
+    """Run the pipeline on one dataset (see ``_run``) with BLAS on one thread:
+    rotcal's parallelism is across segments and datasets, and a threaded BLAS
+    on small matrices competing with it costs more than it gives."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(Path(path), Path(out), meta_path, config)
+
+
+def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> RunOutcome:
     """Run the pipeline on one dataset and write its tables into ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
@@ -54,8 +66,22 @@ def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: Ru
         more = f" (and {len(warnings) - 1} more problems)" if len(warnings) > 1 else ""
         raise UndeterminedError(f"no rate can be determined: {warnings[0]}{more}", path=path)
     unit = ds.meta.output_unit
+    intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
+    diagnosis = None
+    if config.diagnosis.enabled:
+        diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
+                             ds.meta.angle_source == "measured", config.diagnosis)
+    if diagnosis is not None:
+        refined = intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit)
+        intrinsic = intrinsic.vstack(refined)
+        written += [write_parquet(diagnosis.findings, out / "diagnosis.parquet", "diagnosis"),
+                    write_parquet(diagnosis.parameters, out / "effect_parameters.parquet", "effect_parameters")]
+        if config.diagnosis.report:
+            from pipeline.diagnosis.report import write_report  # matplotlib only when a report is wanted
+
+            written.append(write_report(diagnosis, fits, results, ds.name, unit, out))
     written += [
-        write_parquet(intrinsic_frame(list(results), ds.name, "baseline", unit), out / "intrinsic.parquet", "intrinsic"),
+        write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"),
         write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"),
     ]
-    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written))
+    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written), diagnosis)

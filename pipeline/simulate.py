@@ -19,6 +19,10 @@ from pipeline.physics import (
     noise_free_output, observe, rotation_matrix, unit_vectors_from_angles,
 )
 
+# Structures outside the catalogue of effects.md, for testing that rotcal
+# reports them as unexplained instead of forcing them onto a catalogue name.
+FOREIGN_NAMES = ("tone", "offset_step")
+
 EFFECT_NAMES = (
     "centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
     "rate_error", "rate_ripple", "axis_tilt", "offset_drift",
@@ -61,9 +65,13 @@ class SimulationSpec:
     g_local_uncertainty: float = 3e-5
     output_unit: str = "bit"
     effects: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
+    foreign: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
 
     def with_effects(self, *specs: str) -> "SimulationSpec":
         return replace(self, effects=self.effects + tuple(parse_effect(s) for s in specs))
+
+    def with_foreign(self, *specs: str) -> "SimulationSpec":
+        return replace(self, foreign=self.foreign + tuple(parse_effect(s, FOREIGN_NAMES) for s in specs))
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,12 +84,12 @@ class Simulation:
     effects: Effects
 
 
-def parse_effect(text: str) -> tuple[str, tuple[tuple[str, object], ...]]:
+def parse_effect(text: str, known: tuple[str, ...] = EFFECT_NAMES) -> tuple[str, tuple[tuple[str, object], ...]]:
     """``NAME:key=value,key=value`` (the CLI form) -> (name, params)."""
     name, _, rest = text.partition(":")
     name = name.strip()
-    if name not in EFFECT_NAMES:
-        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    if name not in known:
+        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(known)}")
     params = []
     for item in filter(None, (p.strip() for p in rest.split(","))):
         key, eq, value = item.partition("=")
@@ -89,7 +97,7 @@ def parse_effect(text: str) -> tuple[str, tuple[tuple[str, object], ...]]:
             raise ConfigError(f"effect {name}: {item!r} is not key=value")
         key = key.strip()
         value = value.strip()
-        params.append((key, value if key == "axis" else _number(name, key, value)))
+        params.append((key, value if key in ("axis", "channel") else _number(name, key, value)))
     return name, tuple(params)
 
 
@@ -242,6 +250,7 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
     effects, described = build_effects(spec.effects, effect_rng)
     clean = noise_free_output(motion, dut, effects, spec.g_local)
     effects, described = _resolve_clipping(effects, described, clean)
+    clean, foreign = _add_foreign(clean, motion, spec.foreign, effect_rng)
     observed = observe(clean, dut, effects, noise_rng)
     samples = labels.with_columns(
         *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS))
@@ -257,8 +266,34 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
                 "noise_std": dut.noise_std.tolist(), "full_scale": dut.full_scale, **mount},
         "plan": asdict(spec.plan),
         "effects": described,
+        "foreign": foreign,
     }
     return Simulation(samples, truth, dut, effects)
+
+
+def _add_foreign(clean: np.ndarray, motion: Motion, requests: tuple, rng: np.random.Generator) -> tuple[np.ndarray, list]:
+    """Add structures no catalogue effect describes: a tone in one channel
+    (coherent over the recording) or an offset step in all channels."""
+    out, described = clean.copy(), []
+    t = motion.t_s
+    for name, params in requests:
+        p = dict(params)
+        if name == "tone":
+            channel = p.get("channel", "w")
+            if channel not in CHANNELS:
+                raise ConfigError("foreign tone needs channel=u, v or w")
+            p.setdefault("phase_deg", rng.uniform(0, 360))
+            unknown = sorted(set(p) - {"channel", "freq_hz", "amplitude", "phase_deg"})
+            if unknown or "freq_hz" not in p or "amplitude" not in p:
+                raise ConfigError("foreign tone takes channel, freq_hz, amplitude and phase_deg")
+            out[:, CHANNELS.index(channel)] += p["amplitude"] * np.sin(2 * np.pi * p["freq_hz"] * t + np.deg2rad(p["phase_deg"]))
+        else:
+            p.setdefault("t_s", float(rng.uniform(t[0], t[-1])))
+            if sorted(set(p) - {"t_s", "size"}) or "size" not in p:
+                raise ConfigError("foreign offset_step takes t_s and size")
+            out[t >= p["t_s"]] += p["size"]
+        described.append({"structure": name, "parameters": p})
+    return out, described
 
 
 def _resolve_clipping(effects: Effects, described: list[dict], clean: np.ndarray) -> tuple[Effects, list[dict]]:

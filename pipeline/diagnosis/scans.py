@@ -1,0 +1,267 @@
+"""Scans of the final residuals for structure no catalogue effect explains.
+
+Each scan is a test with a stated false-alarm rate (its family-wise p-value
+is compared with ``alpha``) and reports where the structure lies and what it
+looks like, in the output unit, so that a calibration engineer can check it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import gammaln
+from scipy.stats import chi2, gamma, normaltest
+
+from pipeline.physics import AXES, CHANNELS
+
+
+@dataclass(frozen=True)
+class Unexplained:
+    """An unexplained finding: where, what, how sure, and what modelling it
+    would remove (residual sum of squares per channel, parameters used)."""
+
+    kind: str
+    where: str
+    evidence: str
+    p_value: float
+    rss_reduction: np.ndarray
+    n_params: int
+
+
+@dataclass(frozen=True, eq=False)
+class Residuals:
+    """Final residuals with what the scans need to locate them."""
+
+    t_s: np.ndarray
+    resid: np.ndarray        # (n, 3), output units, 0 where unused
+    use: np.ndarray          # (n, 3)
+    sigma: np.ndarray        # (3,)
+    segment: np.ndarray
+    axis_idx: np.ndarray
+    rate_hz: np.ndarray
+    rotating: np.ndarray
+    theta_deg: np.ndarray    # commanded angle
+    output_unit: str
+
+
+def _fmt(p: float) -> str:
+    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
+
+
+def _segments(res: Residuals):
+    """(segment id, sample slice) in time order; segments are contiguous."""
+    edges = np.flatnonzero(np.r_[True, np.diff(res.segment) != 0, True])
+    return [(int(res.segment[a]), slice(a, b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _describe(res: Residuals, part: slice) -> str:
+    rate = res.rate_hz[part.start]
+    return f"axis {AXES[res.axis_idx[part.start]]} {'static' if rate == 0 else f'{rate:g} Hz'}"
+
+
+def step_scan_p(statistic: float, n: int, dof: int = 3) -> float:
+    """False-alarm probability of the largest chi-square(dof) statistic of a
+    single change in mean over n positions (Siegmund 1988 approximation for
+    the supremum of a standardised CUSUM process)."""
+    x = statistic
+    if x <= dof:
+        return 1.0
+    log_density = (dof / 2) * np.log(x) - x / 2 - (dof / 2) * np.log(2) - gammaln(dof / 2)
+    factor = (1 - dof / x) * 2 * np.log(max(n - 1, 2)) + 4 / x
+    return float(min(1.0, np.exp(log_density) * factor))
+
+
+def step_scan(res: Residuals) -> tuple[float, float, float]:
+    """The most likely time of a step in the mean of all channels together:
+    (time in s, statistic, p-value). Positions within 10 samples of the ends
+    are not scanned."""
+    order = np.argsort(res.t_s, kind="stable")
+    both = res.use[order].all(axis=1)
+    e = res.resid[order][both] / res.sigma[None, :]
+    n = e.shape[0]
+    k = np.arange(1, n)
+    s = np.cumsum(e, axis=0)[:-1]
+    centred = s - (k / n)[:, None] * s[-1] if n > 1 else s
+    stat = (centred**2).sum(axis=1) / (k * (n - k) / n)
+    inner = slice(10, max(n - 11, 11))
+    j = int(np.argmax(stat[inner])) + inner.start
+    t = res.t_s[order][both]
+    return float(0.5 * (t[j] + t[j + 1])), float(stat[j]), step_scan_p(float(stat[j]), n)
+
+
+def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplained]:
+    """Tones unrelated to the rotation: the periodograms of the rotation
+    segments' residuals, summed per channel on a common frequency grid
+    (each ordinate ~ Exp(1) for white noise, a sum over m segments ~ Gamma(m)),
+    with rotation harmonics and the lowest frequencies left out."""
+    segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and part.stop - part.start > 64]
+    if not segs:
+        return []
+    dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
+    n_pad = 1 << int(np.ceil(np.log2(max(p.stop - p.start for _, p in segs))))
+    freqs = np.fft.rfftfreq(n_pad, dt)
+    out = []
+    for r, channel in enumerate(CHANNELS):
+        total = np.zeros(freqs.size)
+        count = np.zeros(freqs.size)
+        powers = []
+        for sid, part in segs:
+            use = res.use[part, r]
+            e = np.where(use, res.resid[part, r] / res.sigma[r], 0.0)
+            n = int(use.sum())
+            power = np.abs(np.fft.rfft(e, n_pad)) ** 2 / max(n, 1)
+            duration = n * dt
+            rate = abs(res.rate_hz[part.start])
+            valid = freqs > 5.0 / duration
+            valid &= freqs < 0.95 / (2 * dt)
+            for h in range(harmonics + 1):
+                valid &= np.abs(freqs - h * rate) > 3.0 / duration
+            total += np.where(valid, power, 0.0)
+            count += valid
+            powers.append((sid, part, power, n))
+        ok = count > 0
+        if not ok.any():
+            continue
+        p_bins = np.where(ok, gamma.sf(total, np.maximum(count, 1)), 1.0)
+        j = int(np.argmin(p_bins))
+        independent = max(p.stop - p.start for _, p in segs) / 2
+        p_family = min(1.0, p_bins[j] * independent * 3)
+        if p_family >= alpha:
+            continue
+        f = freqs[j]
+        amps = np.array([2 * res.sigma[r] * np.sqrt(pw[j] / n) for _, _, pw, n in powers])
+        present = [sid for (sid, part, pw, n) in powers if gamma.sf(pw[j], 1) < 0.01]
+        reduction = np.zeros(3)
+        reduction[r] = sum(pw[j] for _, _, pw, _ in powers) * res.sigma[r] ** 2
+        where = f"channel {channel}, {len(present)} of {len(segs)} rotation segments"
+        out.append(Unexplained(
+            "tone", where,
+            f"tone at {f:.3g} Hz, {np.median(amps):.2g} {res.output_unit} in channel {channel}, "
+            f"in {len(present)} of {len(segs)} rotation segments (not a harmonic of any rotation rate; p = {_fmt(p_family)})",
+            p_family, reduction, 2 * len(segs),
+        ))
+    return out
+
+
+def _regress(e: np.ndarray, basis: np.ndarray) -> tuple[float, np.ndarray]:
+    """Chi-square explained by regressing standardised residuals on ``basis``."""
+    coef = np.linalg.lstsq(basis, e, rcond=None)[0]
+    fitted = basis @ coef
+    return float(fitted @ fitted), coef
+
+
+def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
+    """Harmonics k theta of the rotation in the residuals of each axis's
+    rotation segments, per channel (chi-square with 2 per segment)."""
+    tests = []
+    for r, channel in enumerate(CHANNELS):
+        for ax in range(3):
+            segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and res.axis_idx[part.start] == ax]
+            for k in orders:
+                stat, amps = 0.0, []
+                for sid, part in segs:
+                    use = res.use[part, r]
+                    th = np.deg2rad(res.theta_deg[part][use]) * k
+                    x2, coef = _regress(res.resid[part, r][use] / res.sigma[r], np.column_stack([np.sin(th), np.cos(th)]))
+                    stat += x2
+                    amps.append(np.hypot(*coef) * res.sigma[r])
+                if segs:
+                    tests.append((chi2.sf(stat, 2 * len(segs)), r, channel, ax, k, stat, amps, len(segs)))
+    out = []
+    for p, r, channel, ax, k, stat, amps, m in tests:
+        p_family = min(1.0, p * len(tests))
+        if p_family < alpha:
+            reduction = np.zeros(3)
+            reduction[r] = stat * res.sigma[r] ** 2
+            out.append(Unexplained(
+                "harmonic", f"channel {channel}, axis {AXES[ax]} rotation segments",
+                f"harmonic {k} of the rotation, {np.median(amps):.2g} {res.output_unit} in channel {channel} "
+                f"during rotation about {AXES[ax]} (chi-square {stat:.0f} on {2 * m}; p = {_fmt(p_family)})",
+                p_family, reduction, 2 * m,
+            ))
+    return out
+
+
+def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
+    """Per segment and channel, what is left in a constant, the first
+    harmonic and a linear trend: the segments disagreeing with the combined
+    model (Geist 2017 section 3 consistency) or drifting within themselves."""
+    out = []
+    checks = {"inconsistent": lambda th, t: np.column_stack([np.ones_like(th), np.sin(th), np.cos(th)]),
+              "trend": lambda th, t: (t - t.mean())[:, None]}
+    for kind, basis_of in checks.items():
+        stats = []
+        for sid, part in _segments(res):
+            for r in range(3):
+                use = res.use[part, r]
+                if use.sum() < 10:
+                    continue
+                th = np.deg2rad(res.theta_deg[part][use])
+                basis = basis_of(th, res.t_s[part][use])
+                x2, coef = _regress(res.resid[part, r][use] / res.sigma[r], basis)
+                stats.append((x2, basis.shape[1], sid, part, r, coef))
+        if not stats:
+            continue
+        total = sum(s[0] for s in stats)
+        dof = sum(s[1] for s in stats)
+        if kind == "inconsistent":
+            dof -= 12 * len(np.unique(res.rate_hz))  # the combined model already spent these
+        p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
+        if p >= alpha:
+            continue
+        x2, k, sid, part, r, coef = max(stats, key=lambda s: s[0])
+        reduction = np.zeros(3)
+        for s in stats:
+            reduction[s[4]] += s[0] * res.sigma[s[4]] ** 2
+        size = np.abs(coef).max() * res.sigma[r]
+        what = ("a constant or first-harmonic misfit" if kind == "inconsistent"
+                else f"a trend of {coef[0] * res.sigma[r]:.2g} {res.output_unit} per s")
+        out.append(Unexplained(
+            kind, f"segment {sid} ({_describe(res, part)}), channel {CHANNELS[r]} most",
+            f"segments depart from the combined model by {what} (largest: {size:.2g} {res.output_unit} in segment {sid}, "
+            f"channel {CHANNELS[r]}; chi-square {total:.0f} on {dof}; p = {_fmt(p)})",
+            p, reduction, dof,
+        ))
+    return out
+
+
+def static_step_scan(res: Residuals, step_id: np.ndarray, alpha: float) -> list[Unexplained]:
+    """Geist 2017 Appendix B on each static step's samples before averaging:
+    no correlation (lag-1 autocorrelation, z = r1 sqrt(n)) and normality
+    (D'Agostino-Pearson), combined over steps (chi-square and Fisher)."""
+    out = []
+    static = ~res.rotating & (step_id >= 0)
+    ids, first, size = np.unique(step_id[static], return_index=True, return_counts=True)
+    rows = np.flatnonzero(static)
+    n_steps = ids.size
+    z2, fisher, lag = np.zeros(3), np.zeros(3), np.zeros(3)
+    for n in np.unique(size[size >= 20]):
+        # steps of equal length as one (steps, n) array: one vectorised test for all
+        idx = rows[first[size == n]][:, None] + np.arange(n)[None, :]
+        for r in range(3):
+            ok = res.use[idx, r].all(axis=1)
+            x = res.resid[idx[ok], r]
+            if x.shape[0] == 0:
+                continue
+            x = x - x.mean(axis=1, keepdims=True)
+            ss = np.einsum("ij,ij->i", x, x)
+            r1 = np.einsum("ij,ij->i", x[:, 1:], x[:, :-1]) / np.where(ss > 0, ss, 1.0)
+            z2[r] += np.sum(r1 * r1 * n)
+            lag[r] += r1.sum()
+            fisher[r] += np.sum(-2 * np.log(np.maximum(normaltest(x, axis=1).pvalue, 1e-300)))
+    if n_steps == 0:
+        return out
+    for r, channel in enumerate(CHANNELS):
+        for kind, stat, dof, what in (
+            ("correlated", z2[r], n_steps, f"mean lag-1 autocorrelation {lag[r] / n_steps:.2f}"),
+            ("non_normal", fisher[r], 2 * n_steps, "non-normal scatter"),
+        ):
+            p = min(1.0, float(chi2.sf(stat, dof)) * 6)
+            if p < alpha:
+                out.append(Unexplained(
+                    kind, f"static steps, channel {channel}",
+                    f"static-step samples of channel {channel} show {what} (Geist 2017 Appendix B; "
+                    f"{n_steps} steps, p = {_fmt(p)})", p, np.zeros(3), 0,
+                ))
+    return out
