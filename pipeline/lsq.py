@@ -46,14 +46,16 @@ def excess_is_significant(chi2: float, dof: int, level: float = EXCESS_LEVEL) ->
 class LinearFit:
     """Coefficients ``coef`` (p, m) of m right-hand sides sharing one design,
     their covariance (m p, m p), right-hand side major (all p coefficients of
-    column 0 first), residuals (n, m), excess covariance T (m, m) and the
-    residual degrees of freedom per right-hand side."""
+    column 0 first), residuals (n, m), excess covariance T (m, m), the
+    residual degrees of freedom per right-hand side and the chi-square of
+    the residuals against the known noise (NaN when none is known)."""
 
     coef: np.ndarray
     cov: np.ndarray
     residuals: np.ndarray
     excess_cov: np.ndarray
     dof: int
+    chi2: float
 
     @property
     def sum_sq_residual(self) -> np.ndarray:
@@ -101,9 +103,10 @@ def ols(x: np.ndarray, y: np.ndarray, noise_cov: np.ndarray | None = None) -> Li
     resid = y2 - x @ coef
     dof = n - p
     noise = np.zeros((n, m, m)) if noise_cov is None else noise_cov.reshape(n, m, m)
+    chi2 = float("nan") if noise_cov is None else _chi2(resid, noise)
     if noise_cov is None and dof > 0:
         excess = resid.T @ resid / dof
-    elif dof > 0 and excess_is_significant(_chi2(resid, noise), m * dof):
+    elif dof > 0 and excess_is_significant(chi2, m * dof):
         leverage = np.einsum("ij,ij->i", q, q)
         excess = psd_part((resid.T @ resid - np.einsum("k,kij->ij", 1.0 - leverage, noise)) / dof)
     elif dof > 0:
@@ -112,4 +115,4 @@ def ols(x: np.ndarray, y: np.ndarray, noise_cov: np.ndarray | None = None) -> Li
         excess = np.full((m, m), np.nan) if noise_cov is None else np.zeros((m, m))
     total = noise + excess[None]
     cov = np.einsum("ik,krs,jk->risj", a, total, a).reshape(m * p, m * p)
-    return LinearFit(coef, cov, resid, excess, dof)
+    return LinearFit(coef, cov, resid, excess, dof, chi2)

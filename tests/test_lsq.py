@@ -44,7 +44,7 @@ def test_refuses_a_design_that_does_not_determine_the_coefficients():
 def test_covariance_matches_the_scatter_of_repeated_fits(excess):
     """Known noise that differs between observations, with and without an
     excess scatter the fit must find: the mean reported variance of each
-    coefficient matches the scatter of 2000 fits. (With the excess
+    coefficient matches the scatter of 1200 fits. (With the excess
     estimated from 6 degrees of freedom the normalised errors follow
     Student's t, RMS sqrt(6/4); with known noise alone, RMS 1.)"""
     rng = np.random.default_rng(2)
@@ -52,7 +52,7 @@ def test_covariance_matches_the_scatter_of_repeated_fits(excess):
     truth = np.array([1.0, -0.5, 0.2, 40.0])
     sigma = rng.uniform(0.5, 2.0, 10)
     est, var = [], []
-    for _ in range(2000):
+    for _ in range(1200):
         y = x @ truth + rng.normal(0, 1, 10) * np.sqrt(sigma**2 + excess**2)
         fit = ols(x, y, (sigma**2)[:, None, None])
         est.append(fit.coef[:, 0])
@@ -61,9 +61,9 @@ def test_covariance_matches_the_scatter_of_repeated_fits(excess):
     ratio = var.mean(axis=0) / est.var(axis=0)
     z_rms = np.sqrt(np.mean((est - truth) ** 2 / var, axis=0))
     print(f"excess {excess}: reported / observed variance {np.round(ratio, 3)}, z RMS {np.round(z_rms, 3)}")
-    assert np.all((ratio > 0.88) & (ratio < 1.15)), ratio
+    assert np.all((ratio > 0.85) & (ratio < 1.18)), ratio
     if excess == 0:
-        assert np.all((z_rms > 0.93) & (z_rms < 1.07)), z_rms
+        assert np.all((z_rms > 0.92) & (z_rms < 1.08)), z_rms
 
 
 def test_excess_significance_and_psd_part():
