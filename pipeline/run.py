@@ -7,12 +7,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
 from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
 from pipeline.config import RunConfig
+from pipeline.crosssens import cross_sensitivity_frame
 from pipeline.errors import UndeterminedError
 from pipeline.fit import fit_segments, fits_frame
 from pipeline.ingest import load_dataset
+from pipeline.multiposition import PoseFailure
+from pipeline.poses import table_step_poses
 from pipeline.segment import segment_by_labels
+from pipeline.static import StaticReduction, reduce_static
 from pipeline.tables import write_parquet
 
 
@@ -27,6 +32,7 @@ class RunOutcome:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     written: tuple[Path, ...]
+    static: StaticReduction | None = None
 
 
 def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
@@ -48,14 +54,34 @@ def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: Ru
         [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
         + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
     )
+    static = None
+    if not results and segments.filter(segments["kind"].is_in(["static", "rotation"])).is_empty():
+        static = reduce_static(samples, segments, ds.name, ds.meta.g_local, ds.meta.g_local_uncertainty)
+        if isinstance(static, PoseFailure):
+            raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {static.reason}", path=path)
+        results = (static.result,)
     if not results:
         if not warnings:
             raise UndeterminedError("no static or rotation segments: the samples carry no axis and rate labels", path=path)
         more = f" (and {len(warnings) - 1} more problems)" if len(warnings) > 1 else ""
         raise UndeterminedError(f"no rate can be determined: {warnings[0]}{more}", path=path)
     unit = ds.meta.output_unit
-    written += [
-        write_parquet(intrinsic_frame(list(results), ds.name, "baseline", unit), out / "intrinsic.parquet", "intrinsic"),
-        write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"),
-    ]
-    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written))
+    written.append(write_parquet(intrinsic_frame(list(results), ds.name, "baseline", unit), out / "intrinsic.parquet", "intrinsic"))
+    if static is None:
+        written.append(write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"))
+    frame = "table" if static is None else static.frame
+    written.append(write_parquet(
+        cross_sensitivity_frame([(r, frame) for r in results], ds.name, "baseline", unit, ds.meta.g_local_uncertainty),
+        out / "cross_sensitivity.parquet", "cross_sensitivity"))
+    corrections, correction_warnings = corrections_from_poses(table_step_poses(samples, segments) if static is None else static.positions)
+    warnings += tuple(correction_warnings)
+    if corrections:
+        written += [write_parquet(correction_frame(corrections, ds.name, unit), out / "correction.parquet", "correction"),
+                    write_parquet(correction_uncertainty_frame(corrections, ds.name, unit),
+                                  out / "correction_uncertainty.parquet", "correction_uncertainty")]
+        by_temperature = temperature_frame(corrections, ds.name, unit)
+        if not by_temperature.is_empty():
+            written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
+    if static is not None:
+        written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
+    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written), static)

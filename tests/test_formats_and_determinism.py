@@ -37,7 +37,7 @@ def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
         assert cli("run", tmp_path / k / "data", "--out", tmp_path / k / "out", "--quiet")[0] == 0
     assert _digest(tmp_path / "a" / "data") == _digest(tmp_path / "b" / "data")
     assert _digest(tmp_path / "a" / "out") == _digest(tmp_path / "b" / "out")
-    assert len(_digest(tmp_path / "a" / "out")) == 4
+    assert {"intrinsic.parquet", "fits.parquet", "segments.parquet", "components.parquet"} <= set(_digest(tmp_path / "a" / "out"))
 
 
 def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
