@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2 as chi2_distribution
 
 from pipeline.errors import UndeterminedError
 
@@ -38,8 +37,12 @@ EXCESS_LEVEL = 0.99
 
 def excess_is_significant(chi2: float, dof: int, level: float = EXCESS_LEVEL) -> bool:
     """Whether residuals with this chi-square (against the known noise) show
-    scatter beyond the noise: chi2 above the ``level`` quantile for ``dof``."""
-    return dof > 0 and chi2 > chi2_distribution.ppf(level, dof)
+    scatter beyond the noise: chi2 above the ``level`` quantile for ``dof``
+    (the chi-square quantile as 2 P^-1(dof / 2, level), P the regularised
+    lower incomplete gamma function)."""
+    from scipy.special import gammaincinv  # here, not at the top: scipy's import would slow every CLI start
+
+    return dof > 0 and chi2 > 2.0 * gammaincinv(dof / 2.0, level)
 
 
 @dataclass(frozen=True, eq=False)

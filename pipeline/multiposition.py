@@ -33,7 +33,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.optimize import brentq, least_squares
 
 from pipeline.combine import IntrinsicResult, intrinsic_jacobian
 from pipeline.lsq import excess_is_significant
@@ -145,6 +144,8 @@ def magnitude_and_gradient(params: np.ndarray, m: np.ndarray) -> tuple[np.ndarra
 
 def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray) -> np.ndarray:
     """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights."""
+    from scipy.optimize import least_squares  # here: scipy's import would slow every CLI start
+
     fit = least_squares(
         lambda p: (magnitude_and_gradient(p, m)[0] - g) / sigma,
         start, jac=lambda p: magnitude_and_gradient(p, m)[2] / sigma[:, None], method="lm", x_scale="jac",
@@ -155,6 +156,8 @@ def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray) -> np.
 def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> float:
     """tau^2 >= 0 with sum r^2 / (v + tau^2) = dof (Paule and Mandel), or 0
     when the noise alone explains the residuals (``excess_is_significant``)."""
+    from scipy.optimize import brentq  # here: scipy's import would slow every CLI start
+
     chi2 = lambda tau2: float(np.sum(residuals**2 / (noise_var + tau2))) - dof
     if not excess_is_significant(chi2(0.0) + dof, dof):
         return 0.0
