@@ -125,3 +125,27 @@ def test_too_few_poses_is_refused_with_the_reason(cli, tmp_path):
     status, _, stderr = cli("run", data, "--out", tmp_path / "out")
     assert status == 3
     assert "no table segments, and the static poses cannot be reduced: 8 static poses" in stderr
+
+
+def test_jig_positions_at_two_temperatures_give_corrections_per_temperature(tmp_path):
+    """The same eight jig positions at 20 and 60 degC (temperature_c): one
+    set of corrections per temperature, and the AN4399 section 9 line
+    through them."""
+    directions = np.vstack([np.eye(3), -np.eye(3), [[1, 1, 1], [-1, 1, -1]] / np.sqrt(3)])
+    frames = []
+    for k, t_c in enumerate((20.0, 60.0)):
+        sim = hand_placed(80, samples=100, directions=directions)
+        ref = directions[sim.pose]
+        frames.append(samples_frame(sim).with_columns(
+            t=pl.col("t") + 100.0 * k, gx=ref[:, 0], gy=ref[:, 1], gz=ref[:, 2],
+            temperature_c=t_c + 0.1 * np.sin(np.arange(len(ref)))))
+    run_dataset(_write(tmp_path / "data", pl.concat(frames)), tmp_path / "out")
+    correction = pl.read_parquet(tmp_path / "out" / "correction.parquet")
+    assert sorted(set(np.round(correction["temperature_c"].to_numpy(), 1))) == [20.0, 60.0]
+    assert correction.height == 2 * 9
+    line = pl.read_parquet(tmp_path / "out" / "correction_temperature.parquet")
+    assert set(line["n_temperatures"]) == {2} and (line["gamma_t"] == 0).all()
+    w20 = correction.filter((pl.col("parameters") == 12) & (pl.col("temperature_c") < 40)).sort("channel")["W_x"].to_numpy()
+    fitted = line.filter((pl.col("parameters") == 12) & (pl.col("coefficient") == "W_x")).sort("channel")
+    t20 = correction.filter(pl.col("temperature_c") < 40)["temperature_c"][0]
+    np.testing.assert_allclose(fitted["alpha"].to_numpy() + fitted["beta"].to_numpy() * t20, w20, rtol=1e-9)
