@@ -12,8 +12,9 @@ import typer
 from rich.console import Console
 
 from pipeline.config import load_config
+from pipeline.crosssens import matrix_intrinsic
 from pipeline.errors import RotcalError
-from pipeline.report import findings_table, summary_table
+from pipeline.report import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
 from pipeline.run import run_dataset
 from pipeline.simulate import SimulationSpec, simulate, spec_from_toml, write_dataset
 
@@ -25,6 +26,15 @@ err = Console(stderr=True)
 FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
 
 
+def _print_diagnosis(diagnosis, output_unit: str) -> None:
+    found = int(diagnosis.findings["detected"].sum())
+    if not found:
+        out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
+        return
+    out.print(findings_table(diagnosis.findings, f"diagnosis: {found} finding{'s' if found > 1 else ''}"))
+    out.print(summary_table(diagnosis.refined, output_unit, "refined intrinsic parameters (diagnosed effects modelled), k = 2"))
+
+
 def _print_outcome(outcome, quiet: bool = False) -> None:
     for note in outcome.notes:
         err.print(f"[yellow]note:[/] {note}", highlight=False)
@@ -33,15 +43,12 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
     if not quiet:
         out.print(summary_table(outcome.results, outcome.output_unit,
                                 f"{outcome.dataset}: intrinsic parameters, expanded uncertainty (k = 2)"))
-        diagnosis = outcome.diagnosis
-        if diagnosis is not None:
-            found = int(diagnosis.findings["detected"].sum())
-            if found:
-                out.print(findings_table(diagnosis.findings, f"diagnosis: {found} finding{'s' if found > 1 else ''}"))
-                out.print(summary_table(diagnosis.refined, outcome.output_unit,
-                                        "refined intrinsic parameters (diagnosed effects modelled), k = 2"))
-            else:
-                out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
+        if outcome.diagnosis is not None:
+            _print_diagnosis(outcome.diagnosis, outcome.output_unit)
+        if outcome.static is not None:
+            out.print(static_fit_summary(outcome.static, outcome.output_unit), highlight=False)
+            out.print(pose_check_table(outcome.static.check, outcome.static.result.g_local,
+                                       f"{outcome.dataset}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
     folder = outcome.written[0].parent if outcome.written else None
     out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False)
 
@@ -88,6 +95,18 @@ def demo(
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False)
     _print_outcome(run_dataset(data, directory / "results", None, load_config(None)))
+
+
+@app.command()
+def intrinsic(
+    matrix: Annotated[Path, typer.Option(help="CSV of P: rows x, y, z, columns u, v, w, optionally 3 rows of standard uncertainties")],
+    out_dir: Annotated[Path, typer.Option("--out", help="directory for FILESTEM_intrinsic.parquet")] = Path("."),
+    unit: Annotated[str, typer.Option(help="the DUT's output unit (P is in m/s^2 per output unit)")] = "output unit",
+) -> None:
+    """Intrinsic sensitivities and angles of a cross-sensitivity matrix another lab reports."""
+    frame, path = matrix_intrinsic(matrix, out_dir, unit)
+    out.print(matrix_table(frame, f"{matrix.name}: intrinsic parameters, expanded uncertainty (k = 2)"))
+    out.print(f"written to {path}", highlight=False)
 
 
 def main() -> None:

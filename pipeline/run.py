@@ -9,13 +9,18 @@ from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
+from pipeline.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
 from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
 from pipeline.config import RunConfig
+from pipeline.crosssens import cross_sensitivity_frame
 from pipeline.diagnosis import Diagnosis, diagnose
 from pipeline.errors import UndeterminedError
 from pipeline.fit import fit_segments, fits_frame
 from pipeline.ingest import load_dataset
+from pipeline.multiposition import PoseFailure
+from pipeline.poses import table_step_poses
 from pipeline.segment import segment_by_labels
+from pipeline.static import StaticReduction, reduce_static
 from pipeline.tables import write_parquet
 
 
@@ -31,6 +36,7 @@ class RunOutcome:
     notes: tuple[str, ...]
     written: tuple[Path, ...]
     diagnosis: Diagnosis | None = None
+    static: StaticReduction | None = None
 
 
 def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
@@ -60,6 +66,12 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
         + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
     )
+    static = None
+    if not results and segments.filter(segments["kind"].is_in(["static", "rotation"])).is_empty():
+        static = reduce_static(samples, segments, ds.name, ds.meta.g_local, ds.meta.g_local_uncertainty)
+        if isinstance(static, PoseFailure):
+            raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {static.reason}", path=path)
+        results = (static.result,)
     if not results:
         if not warnings:
             raise UndeterminedError("no static or rotation segments: the samples carry no axis and rate labels", path=path)
@@ -68,20 +80,33 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     unit = ds.meta.output_unit
     intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
     diagnosis = None
-    if config.diagnosis.enabled:
+    if config.diagnosis.enabled and static is None:
         diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
                              ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None:
-        refined = intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit)
-        intrinsic = intrinsic.vstack(refined)
+        intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
         written += [write_parquet(diagnosis.findings, out / "diagnosis.parquet", "diagnosis"),
                     write_parquet(diagnosis.parameters, out / "effect_parameters.parquet", "effect_parameters")]
         if config.diagnosis.report:
             from pipeline.diagnosis.report import write_report  # matplotlib only when a report is wanted
 
             written.append(write_report(diagnosis, fits, results, ds.name, unit, out))
-    written += [
-        write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"),
-        write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"),
-    ]
-    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written), diagnosis)
+    written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
+    if static is None:
+        written.append(write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"))
+    frame = "table" if static is None else static.frame
+    written.append(write_parquet(
+        cross_sensitivity_frame([(r, frame) for r in results], ds.name, "baseline", unit, ds.meta.g_local_uncertainty),
+        out / "cross_sensitivity.parquet", "cross_sensitivity"))
+    corrections, correction_warnings = corrections_from_poses(table_step_poses(samples, segments) if static is None else static.positions)
+    warnings += tuple(correction_warnings)
+    if corrections:
+        written += [write_parquet(correction_frame(corrections, ds.name, unit), out / "correction.parquet", "correction"),
+                    write_parquet(correction_uncertainty_frame(corrections, ds.name, unit),
+                                  out / "correction_uncertainty.parquet", "correction_uncertainty")]
+        by_temperature = temperature_frame(corrections, ds.name, unit)
+        if not by_temperature.is_empty():
+            written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
+    if static is not None:
+        written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
+    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written), diagnosis, static)

@@ -58,3 +58,13 @@ def cli(monkeypatch, capsys):
         return code, captured.out, captured.err
 
     return invoke
+
+
+def pytest_collection_modifyitems(config, items):
+    """``@pytest.mark.slow`` tests run only with ROTCAL_SLOW=1."""
+    if os.environ.get("ROTCAL_SLOW") == "1":
+        return
+    skip = pytest.mark.skip(reason="long statistical run: set ROTCAL_SLOW=1")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

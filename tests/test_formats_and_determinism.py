@@ -39,7 +39,8 @@ def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
     assert _digest(tmp_path / "a" / "data") == _digest(tmp_path / "b" / "data")
     assert _digest(tmp_path / "a" / "out") == _digest(tmp_path / "b" / "out")
     produced = _digest(tmp_path / "a" / "out")
-    assert {"intrinsic.parquet", "fits.parquet", "diagnosis.parquet", "report.md"} <= set(produced)
+    assert {"intrinsic.parquet", "fits.parquet", "segments.parquet", "components.parquet",
+            "diagnosis.parquet", "report.md"} <= set(produced)
     assert any(name.startswith("figures/") for name in produced)
 
 

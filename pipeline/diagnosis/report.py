@@ -105,7 +105,9 @@ def offsets_figure(diag: Diagnosis, fits: pl.DataFrame, path: Path, output_unit:
         ax.set_title(f"rotation about {axis}", fontsize=9)
         ax.set_xlabel("w^2 (rad^2/s^2)")
     axes[0].set_ylabel(f"offset change from static ({output_unit})")
-    axes[0].legend(fontsize=7, ncol=2)
+    labelled = next((ax for ax in axes if ax.get_legend_handles_labels()[0]), None)
+    if labelled is not None:
+        labelled.legend(fontsize=7, ncol=2)
     fig.suptitle("offsets against w^2, before and after modelling the centripetal acceleration", fontsize=10)
     fig.tight_layout()
     _save(fig, path)
