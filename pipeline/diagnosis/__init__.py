@@ -31,7 +31,7 @@ from pipeline.combine import IntrinsicResult, intrinsic_jacobian
 from pipeline.config import DiagnosisConfig
 from pipeline.diagnosis.candidates import STEP, Candidate, catalogue, report_parameters
 from pipeline.diagnosis.clipping import StuckValue, clip_limits, quantum, stuck_values
-from pipeline.diagnosis.fitting import ModelFit, Score, fit_model, score, without
+from pipeline.diagnosis.fitting import ModelFit, Score, fit_model, score, swap_bic, without
 from pipeline.diagnosis.model import Layout, Observations, Structure, predict, with_columns
 from pipeline.diagnosis.scans import (
     Residuals, Unexplained, harmonic_scan, segment_scan, static_step_scan, step_scan, tone_scan,
@@ -137,9 +137,35 @@ def _step_score(fit: ModelFit) -> StepScore:
     return StepScore(s.candidate, s.chi2, s.p_value, s.delta_bic, s.rss, t)
 
 
+def _exchange(fit: ModelFit, candidates: tuple[Candidate, ...]) -> ModelFit:
+    """Replace a selected extension by an unselected catalogue one wherever
+    that lowers BIC: forward selection is greedy, and a structure chosen
+    early (an offset step where axis tilt and drift overlap) can shadow the
+    physics that explains the data better once everything is modelled."""
+    while True:
+        best = None
+        for drop in fit.active:
+            for add in candidates:
+                if add in fit.active:
+                    continue
+                bic = swap_bic(fit, drop, add)
+                if bic < fit.bic - 1.0 and (best is None or bic < best[0]):
+                    best = (bic, drop, add)
+        if best is None:
+            return fit
+        _, drop, add = best
+        active = tuple(c for c in fit.active if c is not drop) + (add,)
+        structure = fit.structure if STEP in active else Structure()
+        trial = fit_model(fit.obs, fit.layout, fit.beta, active, fit.clip, structure, fit.use)
+        if trial.bic >= fit.bic:
+            return fit
+        fit = trial
+
+
 def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> ModelFit:
     """Forward selection by BIC among extensions significant at ``alpha``,
-    then backward elimination (Wald) of any the others made redundant."""
+    an exchange pass (``_exchange``), then backward elimination (Wald) of any
+    extension the others made redundant."""
     while True:
         scores: list[Score] = [score(fit, (c,)) for c in candidates if c not in fit.active]
         if STEP not in fit.active:
@@ -150,6 +176,7 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
         best = min(eligible, key=lambda s: (s.delta_bic, s.candidate.key))
         structure = Structure(step_t_s=best.step_t_s) if isinstance(best, StepScore) else fit.structure
         fit = fit_model(fit.obs, fit.layout, fit.beta, fit.active + (best.candidate,), fit.clip, structure, fit.use)
+    fit = _exchange(fit, candidates)
     while fit.active:
         wald = []
         for c in fit.active:

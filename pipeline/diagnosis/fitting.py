@@ -129,6 +129,24 @@ def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = N
     return Score(cands[0], dchi, p, dbic, rss)
 
 
+def swap_bic(fit: ModelFit, drop: Candidate, add: Candidate) -> float:
+    """Linearised BIC of the model with ``drop`` replaced by ``add``: from
+    the optimum, set ``drop``'s parameters to zero and refit the rest with
+    ``add`` (one Gauss-Newton step on the same Jacobian)."""
+    layout = fit.layout
+    out = layout.params(drop)
+    keep = np.setdiff1d(fit.idx, out)
+    idx = np.union1d(keep, layout.params(add))
+    beta_out = fit.beta[out]
+    grad = fit.b.copy()
+    grad[idx] += fit.G[np.ix_(idx, out)] @ beta_out  # the gradient once drop's parameters are zero
+    step, _ = solve(fit.G, grad, idx)
+    full = np.concatenate([step, -beta_out])
+    order = np.concatenate([idx, out])
+    rss = np.maximum(rss_after(fit.ev, full, order), 1e-300)
+    return bic(rss, fit.ev.n_used, fit.n_params - out.size + layout.params(add).size, fit.n_total)
+
+
 def without(fit: ModelFit, drop: tuple[Candidate, ...]) -> ModelFit:
     """The same model refitted without the extensions ``drop``."""
     keys = {c.key for c in drop}
