@@ -189,3 +189,36 @@ def test_demo_with_an_effect_shows_the_finding(cli, tmp_path):
     status, out, err = cli("demo", "--dir", tmp_path, "--effect", "cubic_nonlinearity:k3_v=8e-4")
     assert status == 0, err
     assert "cubic_nonlinearity" in out and "refined intrinsic parameters" in out
+
+
+def _white_residuals(rng, rotating: bool, n_segments: int = 6, n: int = 1200):
+    from pipeline.diagnosis.scans import Residuals
+
+    t = np.concatenate([1000.0 * k + 0.06 * np.arange(n) for k in range(n_segments)])
+    seg = np.repeat(np.arange(n_segments), n)
+    rate = np.full(t.size, 0.1 if rotating else 0.0)
+    theta = 360 * 0.1 * (t % 1000) if rotating else np.repeat(np.arange(n_segments * n // 50) * 15.0, 50) % 360
+    resid = np.round(rng.normal(0, 8, (t.size, 3)))
+    return Residuals(t, resid, np.ones_like(resid, bool), np.full(3, 8.0), seg, seg % 3, rate,
+                     np.full(t.size, rotating), theta, "bit")
+
+
+@pytest.mark.parametrize("scan", ["static_steps", "tone", "harmonic"])
+def test_residual_scans_keep_their_false_alarm_rate(scan):
+    """On white, integer-rounded noise each scan's family-wise p-value is
+    (at worst slightly conservatively) uniform: at alpha = 0.1 it fires in
+    about 10 % of 60 trials, not more."""
+    from pipeline.diagnosis.scans import harmonic_scan, static_step_scan, tone_scan
+
+    rng = np.random.default_rng({"static_steps": 1, "tone": 2, "harmonic": 3}[scan])
+    fired = 0
+    for _ in range(60):
+        res = _white_residuals(rng, rotating=scan != "static_steps")
+        if scan == "static_steps":
+            found = static_step_scan(res, np.arange(res.t_s.size) // 50, 0.1)
+        elif scan == "tone":
+            found = tone_scan(res, 0.1)
+        else:
+            found = harmonic_scan(res, 0.1)
+        fired += bool(found)
+    assert fired <= 6 + 2 * np.sqrt(60 * 0.1 * 0.9)
