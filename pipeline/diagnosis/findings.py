@@ -83,11 +83,12 @@ def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, a
                   dataset: str, output_unit: str) -> tuple[dict, list[dict]]:
     """Clipping's row: the model with and without the limits, on every sample."""
     obs = final.obs
-    unclipped = obs.y - predict(obs, final.beta, final.layout, final.active, (None, None), final.structure)
-    clipped = obs.y - predict(obs, final.beta, final.layout, final.active, clip, final.structure)
+    k = sum(v is not None for v in clip)
+    clipped = obs.y - final.ev.pred
+    unclipped = (obs.y - predict(obs, final.beta, final.layout, final.active, (None, None), final.structure)
+                 if k else clipped)
     n = np.full(3, obs.n)
     rss_before, rss_after = (unclipped**2).sum(axis=0), (clipped**2).sum(axis=0)
-    k = sum(v is not None for v in clip)
     dbic = bic(rss_after, n, k, 3 * obs.n) - bic(rss_before, n, 0, 3 * obs.n)
     rms = lambda rss: float(np.sqrt(rss.sum() / (3 * obs.n)))  # noqa: E731
     strongest = min(evidence, key=lambda e: e.p_value)

@@ -144,11 +144,28 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
     return out
 
 
-def _regress(e: np.ndarray, basis: np.ndarray) -> tuple[float, np.ndarray]:
-    """Chi-square explained by regressing standardised residuals on ``basis``."""
-    coef = np.linalg.lstsq(basis, e, rcond=None)[0]
-    fitted = basis @ coef
-    return float(fitted @ fitted), coef
+def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment (rows ``starts[k]:starts[k+1]``), the chi-square of the
+    standardised residuals ``e`` explained by regressing them on ``basis``
+    (n, q), and the coefficients: normal equations summed per segment."""
+    q = basis.shape[1]
+    gram = np.add.reduceat(basis[:, :, None] * basis[:, None, :], starts, axis=0)
+    rhs = np.add.reduceat(basis * e[:, None], starts, axis=0)
+    coef = np.linalg.solve(gram + np.eye(q)[None] * 1e-12, rhs[..., None])[..., 0]
+    return np.einsum("ki,ki->k", coef, rhs), coef
+
+
+def _used_segments(res: Residuals, r: int, keep) -> tuple[np.ndarray, np.ndarray, list]:
+    """Rows used for channel r in the segments ``keep`` accepts, with the
+    start of each segment's block in them and the segment slices."""
+    segs = [(sid, part) for sid, part in _segments(res) if keep(part)]
+    rows = [np.arange(part.start, part.stop)[res.use[part, r]] for _, part in segs]
+    segs = [sp for sp, rw in zip(segs, rows) if rw.size >= 10]
+    rows = [rw for rw in rows if rw.size >= 10]
+    if not rows:
+        return np.zeros(0, int), np.zeros(0, int), []
+    starts = np.cumsum([0] + [rw.size for rw in rows[:-1]])
+    return np.concatenate(rows), starts, segs
 
 
 def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
@@ -156,18 +173,19 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
     rotation segments, per channel (chi-square with 2 per segment)."""
     tests = []
     for r, channel in enumerate(CHANNELS):
-        for ax in range(3):
-            segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and res.axis_idx[part.start] == ax]
-            for k in orders:
-                stat, amps = 0.0, []
-                for sid, part in segs:
-                    use = res.use[part, r]
-                    th = np.deg2rad(res.theta_deg[part][use]) * k
-                    x2, coef = _regress(res.resid[part, r][use] / res.sigma[r], np.column_stack([np.sin(th), np.cos(th)]))
-                    stat += x2
-                    amps.append(np.hypot(*coef) * res.sigma[r])
-                if segs:
-                    tests.append((chi2.sf(stat, 2 * len(segs)), r, channel, ax, k, stat, amps, len(segs)))
+        rows, starts, segs = _used_segments(res, r, lambda part: res.rotating[part.start])
+        if not segs:
+            continue
+        e = res.resid[rows, r] / res.sigma[r]
+        theta = np.deg2rad(res.theta_deg[rows])
+        seg_axis = np.array([res.axis_idx[part.start] for _, part in segs])
+        for k in orders:
+            x2, coef = _segment_chi2(e, np.column_stack([np.sin(k * theta), np.cos(k * theta)]), starts)
+            for ax in np.unique(seg_axis):
+                on = seg_axis == ax
+                stat = float(x2[on].sum())
+                amps = np.hypot(coef[on, 0], coef[on, 1]) * res.sigma[r]
+                tests.append((chi2.sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
     out = []
     for p, r, channel, ax, k, stat, amps, m in tests:
         p_family = min(1.0, p * len(tests))
@@ -188,32 +206,35 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
     harmonic and a linear trend: the segments disagreeing with the combined
     model (Geist 2017 section 3 consistency) or drifting within themselves."""
     out = []
-    checks = {"inconsistent": lambda th, t: np.column_stack([np.ones_like(th), np.sin(th), np.cos(th)]),
-              "trend": lambda th, t: (t - t.mean())[:, None]}
-    for kind, basis_of in checks.items():
-        stats = []
-        for sid, part in _segments(res):
-            for r in range(3):
-                use = res.use[part, r]
-                if use.sum() < 10:
-                    continue
-                th = np.deg2rad(res.theta_deg[part][use])
-                basis = basis_of(th, res.t_s[part][use])
-                x2, coef = _regress(res.resid[part, r][use] / res.sigma[r], basis)
-                stats.append((x2, basis.shape[1], sid, part, r, coef))
+    n_rates = len(np.unique(res.rate_hz))
+    for kind in ("inconsistent", "trend"):
+        stats = []  # (chi2, dof, segment id, slice, channel, coefficient of interest)
+        for r in range(3):
+            rows, starts, segs = _used_segments(res, r, lambda part: True)
+            if not segs:
+                continue
+            e = res.resid[rows, r] / res.sigma[r]
+            if kind == "inconsistent":
+                theta = np.deg2rad(res.theta_deg[rows])
+                basis = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
+            else:
+                t = res.t_s[rows]
+                mean_t = np.add.reduceat(t, starts) / np.diff(np.r_[starts, t.size])
+                basis = (t - np.repeat(mean_t, np.diff(np.r_[starts, t.size])))[:, None]
+            x2, coef = _segment_chi2(e, basis, starts)
+            for k, (sid, part) in enumerate(segs):
+                stats.append((float(x2[k]), basis.shape[1], sid, part, r, coef[k]))
         if not stats:
             continue
-        total = sum(s[0] for s in stats)
-        dof = sum(s[1] for s in stats)
-        if kind == "inconsistent":
-            dof -= 12 * len(np.unique(res.rate_hz))  # the combined model already spent these
+        total = sum(st[0] for st in stats)
+        dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
         p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
         if p >= alpha:
             continue
-        x2, k, sid, part, r, coef = max(stats, key=lambda s: s[0])
+        x2, _, sid, part, r, coef = max(stats, key=lambda st: st[0])
         reduction = np.zeros(3)
-        for s in stats:
-            reduction[s[4]] += s[0] * res.sigma[s[4]] ** 2
+        for st in stats:
+            reduction[st[4]] += st[0] * res.sigma[st[4]] ** 2
         size = np.abs(coef).max() * res.sigma[r]
         what = ("a constant or first-harmonic misfit" if kind == "inconsistent"
                 else f"a trend of {coef[0] * res.sigma[r]:.2g} {res.output_unit} per s")
