@@ -116,3 +116,30 @@ def main() -> None:
     except RotcalError as exc:
         err.print(f"rotcal: error: {exc}", highlight=False, soft_wrap=True)
         sys.exit(exc.exit_code)
+
+
+@app.command()
+def batch(
+    root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
+    out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
+    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml ([batch] among others)")] = None,
+    workers: Annotated[Optional[int], typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
+    executor: Annotated[Optional[str], typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
+    json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
+) -> None:
+    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
+    import dataclasses
+    import json
+
+    from pipeline.batch import Reporter, run_batch
+
+    cfg = load_config(config)
+    cfg = dataclasses.replace(cfg, batch=dataclasses.replace(
+        cfg.batch, workers=cfg.batch.workers if workers is None else workers, executor=executor or cfg.batch.executor))
+    with Reporter(err) as reporter:
+        summary = run_batch(root, out_dir, cfg, reporter)
+    if json_summary:
+        print(json.dumps(summary.as_dict(), indent=2))
+    else:
+        out.print(summary.text(), highlight=False, markup=False, soft_wrap=True)
+    raise typer.Exit(summary.exit_status)
