@@ -69,6 +69,9 @@ class Manifest:
     def __init__(self, path: Path):
         self.path = path
         self.db = sqlite3.connect(path, isolation_level=None)
+        # Each commit reaches the OS before it returns (a killed run loses none);
+        # only a power cut could lose the last ones, which are then redone.
+        self.db.execute("PRAGMA synchronous = NORMAL")
         version = self.db.execute("PRAGMA user_version").fetchone()[0]
         if version not in (0, MANIFEST_VERSION):
             raise RotcalError(f"manifest format {version} is not {MANIFEST_VERSION}: written by another rotcal", path=path)
