@@ -1,7 +1,7 @@
 """The same jobs on a Dask cluster (a LocalCluster reached through its
-address, from a configuration file) give the local process pool's outputs,
-and both give the in-process run's: results do not depend on the executor
-or the worker count."""
+address, from a configuration file) give the local process pool's outputs:
+results do not depend on the executor. (The crash test compares the pool
+with a single in-process worker.)"""
 
 from distributed import LocalCluster
 from batch_support import assert_same_tables, make_root, manifest_rows, result_tables
@@ -14,20 +14,19 @@ TIMING = {"run_id", "started_at", "finished_at", "duration_s"}
 
 def test_dask_cluster_gives_the_process_pool_outputs(tmp_path):
     root = tmp_path / "root"
-    make_root(root, range(1, 7))
+    make_root(root, range(1, 5))
     (root / "bad.csv").write_text("t,u,v,w\n0,1,2\n")
-    serial = run_batch(root, tmp_path / "serial", RunConfig(batch=BatchConfig(workers=1)))
     pool = run_batch(root, tmp_path / "pool", RunConfig(batch=BatchConfig(workers=2)))
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         config = tmp_path / "dask.toml"
         config.write_text(f'[batch]\nexecutor = "dask://{cluster.scheduler_address.removeprefix("tcp://")}"\n')
         dask = run_batch(root, tmp_path / "dask", load_config(config))
-    assert (serial.workers, pool.workers, dask.workers) == (1, 2, 2)
-    for summary in (serial, pool, dask):
-        assert (summary.ok, summary.quarantined, summary.errors) == (6, 1, 0)
-    reference = result_tables(tmp_path / "pool")
-    for other in ("serial", "dask"):
-        assert_same_tables(reference, result_tables(tmp_path / other))
-        rows = manifest_rows(tmp_path / other)
-        assert {k: {c: v for c, v in r.items() if c not in TIMING} for k, r in rows.items()} == \
-               {k: {c: v for c, v in r.items() if c not in TIMING} for k, r in manifest_rows(tmp_path / "pool").items()}
+    assert (pool.workers, dask.workers) == (2, 2)
+    for summary in (pool, dask):
+        assert (summary.ok, summary.quarantined, summary.errors) == (4, 1, 0)
+    assert_same_tables(result_tables(tmp_path / "pool"), result_tables(tmp_path / "dask"))
+
+    def rows(out):
+        return {k: {c: v for c, v in r.items() if c not in TIMING} for k, r in manifest_rows(out).items()}
+
+    assert rows(tmp_path / "dask") == rows(tmp_path / "pool")
