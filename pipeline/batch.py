@@ -1,20 +1,10 @@
 """``rotcal batch``: every new or changed dataset under ROOT through
 ``run.run_dataset``, on a local process pool or a Dask cluster, with results
-published atomically into DIR and a manifest saying what was done.
-
-DIR holds
-    manifest.sqlite     the run manifest (``manifest.Manifest``)
-    batch.lock          the run lock (``manifest.run_lock``)
-    datasets/<id>       link to one dataset's tables, replaced atomically
-    combined            link to the combined dataset: combined/<table>/<id>.parquet
-    .store/             what the links point to; nothing else is kept there
-    .work/              jobs' and builds' temporary folders, emptied at every start and end
+published atomically into DIR (``manifest.Layout``) and a manifest saying
+what was done (``manifest.Manifest``). Batch holds no pipeline logic.
 
 A dataset is re-processed when the SHA-256 of any input, the configuration
-or the rotcal version changes (its fingerprint). Output folders are written
-under ``.work`` and renamed into ``.store``; links are swapped with
-``rename``, so a reader, or a run killed at any moment, sees a dataset's old
-tables or its new ones, never a mixture. Batch holds no pipeline logic.
+or the rotcal version changes (its fingerprint); docs/batch.md has the rules.
 """
 
 from __future__ import annotations
@@ -29,7 +19,6 @@ import shutil
 import signal
 import sys
 import time
-import uuid
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -48,7 +37,7 @@ from pipeline import __version__
 from pipeline.config import BatchConfig, Limits, RunConfig
 from pipeline.errors import ConfigError, InputError, LimitError, RotcalError
 from pipeline.ingest import CAPTURE_SUFFIXES, capture_files
-from pipeline.manifest import DatasetRecord, Manifest, run_lock
+from pipeline.manifest import DatasetRecord, Layout, Manifest, run_lock
 from pipeline.meta import load_meta
 from pipeline.run import run_dataset
 
@@ -65,10 +54,15 @@ def _now() -> str:
 
 @dataclass(frozen=True)
 class Found:
-    """A dataset under ROOT: its path relative to ROOT and where it is."""
+    """A dataset under ROOT: its path relative to ROOT (bytes that are not
+    UTF-8 shown as ``\\xNN``) and where it is."""
 
     dataset_path: str
     source: Path
+
+
+def _printable(text: str) -> str:
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def dataset_id(dataset_path: str) -> str:
@@ -104,7 +98,7 @@ def discover(root: Path, out: Path) -> list[Found]:
             entries = [e for e in it if not e.name.startswith(".")]
         for entry in entries:
             path = Path(entry.path)
-            rel = path.relative_to(root).as_posix()
+            rel = _printable(path.relative_to(root).as_posix())
             if entry.is_dir(follow_symlinks=False):
                 if path == out:
                     continue
@@ -181,12 +175,20 @@ class Plan:
 
 
 def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest) -> Plan:
+    """Hash the dataset's inputs (``manifest.digest``), or say why it is refused."""
     try:
+        if found.dataset_path != found.source.relative_to(root).as_posix():
+            raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
         files = dataset_inputs(found.source, config.limits)
-        inputs = [[f.relative_to(root).as_posix(), manifest.digest(f)] for f in files]
+        inputs = [[_printable(f.relative_to(root).as_posix()), manifest.digest(f)] for f in files]
         refusal = None
-    except RotcalError as exc:
-        inputs, refusal = [["listing", _listing(found.source)]], str(exc)
+    except (RotcalError, OSError) as exc:  # OSError: unreadable, or gone since it was found
+        refusal = str(exc) if isinstance(exc, RotcalError) else \
+            str(InputError(f"cannot be read: {exc.strerror or exc}", path=_printable(str(exc.filename or found.source))))
+        try:
+            inputs = [["listing", _listing(found.source)]]
+        except OSError:
+            inputs = [["listing", None]]
     identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_json(config), "rotcal": __version__}
     fingerprint = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
     return Plan(found, dataset_id(found.dataset_path), fingerprint, json.dumps(inputs), refusal)
@@ -238,93 +240,6 @@ def run_job(job: Job) -> JobResult:
         status, reason = "error", f"unexpected {type(exc).__name__} (a bug: please report it): {exc}"
     shutil.rmtree(work, ignore_errors=True)
     return JobResult(status, " ".join(reason.split()), (), started, time.perf_counter() - clock)
-
-
-# -- the output directory --------------------------------------------------------
-
-class Layout:
-    """DIR's folders, and the only code that changes them (see the module doc)."""
-
-    def __init__(self, out: Path):
-        self.out, self.datasets, self.store, self.work = out, out / "datasets", out / ".store", out / ".work"
-        for folder in (self.datasets, self.store, self.work):
-            folder.mkdir(parents=True, exist_ok=True)
-
-    def _link(self, link: Path, target: str) -> None:
-        tmp = link.with_name(f".{link.name}.{os.getpid()}.tmp")
-        tmp.unlink(missing_ok=True)
-        os.symlink(target, tmp)
-        os.replace(tmp, link)
-
-    def _trash(self, path: Path) -> None:
-        """Remove a folder atomically as far as readers see: rename, then delete."""
-        doomed = self.work / f"trash.{uuid.uuid4().hex}"
-        os.rename(path, doomed)
-        shutil.rmtree(doomed)
-
-    def published(self, dataset_id: str) -> str | None:
-        """The ``.store`` folder ``datasets/<dataset_id>`` points to."""
-        try:
-            target = Path(os.readlink(self.datasets / dataset_id))
-        except (FileNotFoundError, OSError):
-            return None
-        return target.parent.name if (self.store / target.parent.name).is_dir() else None
-
-    def publish(self, dataset_id: str, fingerprint: str, work: Path) -> str:
-        """Move a finished job's folder into the store and point the dataset's link at it."""
-        name = f"{dataset_id}.{fingerprint[:16]}"
-        if (self.store / name).is_dir():  # the same inputs, published before a crash
-            shutil.rmtree(work)
-        else:
-            os.rename(work, self.store / name)
-        self._link(self.datasets / dataset_id, f"../.store/{name}/tables")
-        return name
-
-    def withdraw(self, dataset_id: str) -> None:
-        (self.datasets / dataset_id).unlink(missing_ok=True)
-
-    def publish_combined(self, published: dict[str, str]) -> Path:
-        """``combined/<table>/<dataset_id>.parquet`` for every published dataset
-        (hard links to the stored parts), built aside and swapped in whole."""
-        signature = hashlib.sha256(json.dumps(sorted(published.items())).encode()).hexdigest()[:16]
-        name = f"combined.{signature}"
-        if not (self.store / name).is_dir():
-            build = self.work / name
-            build.mkdir()
-            for did, stored in sorted(published.items()):
-                for part in sorted((self.store / stored / "parts").glob("*.parquet")):
-                    (build / part.stem).mkdir(exist_ok=True)
-                    try:
-                        os.link(part, build / part.stem / f"{did}.parquet")
-                    except OSError:  # a file system without hard links
-                        shutil.copyfile(part, build / part.stem / f"{did}.parquet")
-            os.rename(build, self.store / name)
-        link = self.out / "combined"
-        if not link.is_symlink() or os.readlink(link) != f".store/{name}":
-            self._link(link, f".store/{name}")
-        return link
-
-    def sweep(self) -> None:
-        """Delete what a killed run left: job folders, half-made links, and
-        stored folders no link points to."""
-        for path in self.work.iterdir():
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path)
-            else:
-                path.unlink()
-        live = set()
-        for link in self.datasets.iterdir():
-            stored = self.published(link.name)
-            if link.name.startswith(".") or stored is None:
-                link.unlink()
-            else:
-                live.add(stored)
-        combined = self.out / "combined"
-        if combined.is_symlink():
-            live.add(Path(os.readlink(combined)).name)
-        for path in self.store.iterdir():
-            if path.name not in live:
-                self._trash(path)
 
 
 # -- executors --------------------------------------------------------------------
@@ -578,6 +493,8 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             layout.withdraw(plan.dataset_id)
             if work is not None:
                 shutil.rmtree(work, ignore_errors=True)
+        if result.reason is not None:
+            result = replace(result, reason=_printable(result.reason))
         manifest.put(DatasetRecord(
             plan.found.dataset_path, plan.dataset_id, result.status, plan.fingerprint, plan.inputs, config_json(config),
             __version__, result.reason, output, json.dumps(result.tables), run_id, result.started_at, _now(), result.duration_s))

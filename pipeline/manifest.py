@@ -1,20 +1,34 @@
-"""What a batch run keeps in its output directory besides results: the run
-manifest (SQLite: per dataset its input hashes, configuration, version,
-status, reason and timings), the cache of input content hashes, and the lock
-that stops two runs from overlapping.
+"""A batch run's output directory DIR and its bookkeeping: the run manifest
+(SQLite: per dataset its input hashes, configuration, version, status,
+reason and timings), the cache of input content hashes, the lock that stops
+two runs from overlapping, and the layout results are published in.
 
-The SQLite tables are created from their contracts in ``schemas/``
-(``batch_datasets``, ``batch_runs``, ``batch_file_hashes``).
+DIR holds
+    manifest.sqlite     the run manifest (``Manifest``)
+    batch.lock          the run lock (``run_lock``)
+    datasets/<id>       link to one dataset's tables, replaced atomically
+    combined            link to the combined dataset: combined/<table>/<id>.parquet
+    .store/             what the links point to; nothing else is kept there
+    .work/              jobs' and builds' temporary folders, emptied at every start and end
+
+Folders are written under ``.work`` and renamed into ``.store``; links are
+swapped with ``rename``, so a reader, or a run killed at any moment, sees a
+dataset's old tables or its new ones, never a mixture. The SQLite tables
+are created from their contracts in ``schemas/`` (``batch_datasets``,
+``batch_runs``, ``batch_file_hashes``).
 """
 
 from __future__ import annotations
 
 import fcntl
 import hashlib
+import json
 import os
+import shutil
 import socket
 import sqlite3
 import time
+import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -164,3 +178,88 @@ def run_lock(out: Path) -> Iterator[str | None]:
         os.ftruncate(fd, 0)
     finally:
         os.close(fd)
+
+
+class Layout:
+    """DIR's folders, and the only code that changes them (see the module doc)."""
+
+    def __init__(self, out: Path):
+        self.out, self.datasets, self.store, self.work = out, out / "datasets", out / ".store", out / ".work"
+        for folder in (self.datasets, self.store, self.work):
+            folder.mkdir(parents=True, exist_ok=True)
+
+    def _link(self, link: Path, target: str) -> None:
+        tmp = link.with_name(f".{link.name}.{os.getpid()}.tmp")
+        tmp.unlink(missing_ok=True)
+        os.symlink(target, tmp)
+        os.replace(tmp, link)
+
+    def _trash(self, path: Path) -> None:
+        """Remove a folder atomically as far as readers see: rename, then delete."""
+        doomed = self.work / f"trash.{uuid.uuid4().hex}"
+        os.rename(path, doomed)
+        shutil.rmtree(doomed)
+
+    def published(self, dataset_id: str) -> str | None:
+        """The ``.store`` folder ``datasets/<dataset_id>`` points to."""
+        try:
+            target = Path(os.readlink(self.datasets / dataset_id))
+        except (FileNotFoundError, OSError):
+            return None
+        return target.parent.name if (self.store / target.parent.name).is_dir() else None
+
+    def publish(self, dataset_id: str, fingerprint: str, work: Path) -> str:
+        """Move a finished job's folder into the store and point the dataset's link at it."""
+        name = f"{dataset_id}.{fingerprint[:16]}"
+        if (self.store / name).is_dir():  # the same inputs, published before a crash
+            shutil.rmtree(work)
+        else:
+            os.rename(work, self.store / name)
+        self._link(self.datasets / dataset_id, f"../.store/{name}/tables")
+        return name
+
+    def withdraw(self, dataset_id: str) -> None:
+        (self.datasets / dataset_id).unlink(missing_ok=True)
+
+    def publish_combined(self, published: dict[str, str]) -> Path:
+        """``combined/<table>/<dataset_id>.parquet`` for every published dataset
+        (hard links to the stored parts), built aside and swapped in whole."""
+        signature = hashlib.sha256(json.dumps(sorted(published.items())).encode()).hexdigest()[:16]
+        name = f"combined.{signature}"
+        if not (self.store / name).is_dir():
+            build = self.work / name
+            build.mkdir()
+            for did, stored in sorted(published.items()):
+                for part in sorted((self.store / stored / "parts").glob("*.parquet")):
+                    (build / part.stem).mkdir(exist_ok=True)
+                    try:
+                        os.link(part, build / part.stem / f"{did}.parquet")
+                    except OSError:  # a file system without hard links
+                        shutil.copyfile(part, build / part.stem / f"{did}.parquet")
+            os.rename(build, self.store / name)
+        link = self.out / "combined"
+        if not link.is_symlink() or os.readlink(link) != f".store/{name}":
+            self._link(link, f".store/{name}")
+        return link
+
+    def sweep(self) -> None:
+        """Delete what a killed run left: job folders, half-made links, and
+        stored folders no link points to."""
+        for path in self.work.iterdir():
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+        live = set()
+        for link in self.datasets.iterdir():
+            stored = self.published(link.name)
+            if link.name.startswith(".") or stored is None:
+                link.unlink()
+            else:
+                live.add(stored)
+        combined = self.out / "combined"
+        if combined.is_symlink():
+            live.add(Path(os.readlink(combined)).name)
+        for path in self.store.iterdir():
+            if path.name not in live:
+                self._trash(path)

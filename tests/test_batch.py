@@ -157,14 +157,19 @@ def test_manifest_tables_follow_their_contracts(tmp_path):
     root, out = tmp_path / "root", tmp_path / "out"
     make_root(root, [1])
     (root / "broken.csv").write_text("t,u\n0,1\n")
+    (root / "gone.csv").symlink_to(root / "nowhere.csv")
+    (root / os.fsdecode(b"caf\xe9.csv")).write_text("t,u,v,w\n")
     summary = run_batch(root, out, SERIAL)
+    reasons = {p["dataset_path"]: p["reason"] for p in summary.problems}
+    assert reasons["gone.csv"].endswith("gone.csv: cannot be read: No such file or directory")
+    assert reasons["caf\\xe9.csv"] == "caf\\xe9.csv: the path is not valid UTF-8 (rename it)"
     jsonschema.validate(summary.as_dict(), schema_text("batch_summary"))
     with sqlite3.connect(out / "manifest.sqlite") as db:
         for table in ("batch_datasets", "batch_runs", "batch_file_hashes"):
             columns = [r[1] for r in db.execute(f"PRAGMA table_info({table})")]
             assert columns == [c["name"] for c in schema_text(table)["columns"]]
         run = db.execute("SELECT finished_at, summary FROM batch_runs").fetchone()
-    assert run[0] and json.loads(run[1])["quarantined"] == 1
+    assert run[0] and json.loads(run[1])["quarantined"] == 3
     rows = manifest_rows(out)
     assert rows["broken.csv"]["status"] == "quarantined" and "missing required column" in rows["broken.csv"]["reason"]
     ok = rows["lot1/dut001"]
