@@ -246,7 +246,8 @@ def run_job(job: Job) -> JobResult:
 
 def _die_with_parent(parent_pid: int) -> None:
     """Pool worker start: end with the batch process (SIGKILL included), so
-    no orphan goes on writing after it."""
+    no orphan goes on writing after it; leave Ctrl-C to the batch process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent_pid:
