@@ -24,16 +24,17 @@ from pathlib import Path
 from pipeline.simulate import SimulationSpec, simulate, write_dataset
 
 
-def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int]:
-    """Wall time, JSON summary and peak RSS (MB, the batch process itself,
-    not its pool workers) of one ``rotcal batch``."""
+def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
+    """Wall time, JSON summary, peak RSS (MB) and CPU time (user + system, s)
+    of one ``rotcal batch``: the batch process itself, not its pool workers."""
     start = time.perf_counter()
-    run = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, "-m", "pipeline", "batch", str(root),
+    run = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, "-m", "pipeline", "batch", str(root),
                           "--out", str(out), "--json", *args], capture_output=True, text=True)
     wall = time.perf_counter() - start
     if run.returncode not in (0, 4):
         raise SystemExit(run.stderr)
-    return wall, json.loads(run.stdout), int(run.stderr.strip().splitlines()[-1]) // 1024
+    rss, user, system = run.stderr.strip().splitlines()[-1].split()
+    return wall, json.loads(run.stdout), int(rss) // 1024, float(user) + float(system)
 
 
 def main() -> None:
@@ -47,27 +48,29 @@ def main() -> None:
     for seed in range(1, opts.datasets + 1):
         write_dataset(simulate(spec, seed), spec, root / f"lot{seed % 4}" / f"dut{seed:04d}")
     size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
-    print(f"{opts.datasets} default-plan datasets, {size / 1e6:.0f} MB, {os.cpu_count()} cores")
+    print(f"{opts.datasets} default-plan datasets, {size / 1e6:.0f} MB, {os.cpu_count()} cores, "
+          f"load average {os.getloadavg()[0]:.1f}")
 
     rates = {}
     for workers in ("1", "2"):
-        wall, summary, _ = batch(root, opts.dir / f"out{workers}", "--workers", workers)
+        wall, summary, _, _ = batch(root, opts.dir / f"out{workers}", "--workers", workers)
         assert summary["ok"] == opts.datasets, summary
         rates[workers] = opts.datasets / wall * 60
         print(f"first run, --workers {workers}: {wall:.1f} s wall, {rates[workers]:.0f} datasets/min")
     print(f"speed-up of 2 workers over 1: {rates['2'] / rates['1']:.2f}")
 
     out = opts.dir / "out2"
-    noop = []
+    noop, cpu = [], []
     for _ in range(5):
-        wall, summary, _ = batch(root, out)
+        wall, summary, _, seconds = batch(root, out)
         assert summary["processed"] == 0, summary
         noop.append(wall)
-    print(f"no-op run ({opts.datasets} datasets unchanged): median {statistics.median(noop):.2f} s wall "
-          f"(min {min(noop):.2f}, max {max(noop):.2f}; `rotcal --help` alone: ", end="")
+        cpu.append(seconds)
     start = time.perf_counter()
     subprocess.run([sys.executable, "-m", "pipeline", "--help"], capture_output=True)
-    print(f"{time.perf_counter() - start:.2f} s)")
+    print(f"no-op run ({opts.datasets} datasets unchanged): median {statistics.median(noop):.2f} s wall "
+          f"(min {min(noop):.2f}, max {max(noop):.2f}), median CPU {statistics.median(cpu):.2f} s; "
+          f"`rotcal --help` alone: {time.perf_counter() - start:.2f} s wall")
 
     victim = sorted((root / "lot1" / "dut0001").glob("*.csv"))[0]
     lines = victim.read_text().split("\n")
@@ -75,7 +78,7 @@ def main() -> None:
     fields[1] = str(int(fields[1]) + 1)
     lines[1] = ",".join(fields)
     victim.write_text("\n".join(lines))
-    wall, summary, _ = batch(root, out)
+    wall, summary, _, _ = batch(root, out)
     print(f"one file changed: {summary['processed']} dataset processed, {wall:.2f} s wall")
 
     hostile = opts.dir / "hostile"
@@ -83,8 +86,8 @@ def main() -> None:
     with (hostile / "long_line.csv").open("wb") as fh:
         fh.write(b"t,u,v,w\n")
         fh.truncate(4 << 30)  # a 4 GiB line (sparse)
-    wall, summary, peak = batch(hostile, opts.dir / "out_hostile", "--workers", "1")
-    _, _, noop_peak = batch(root, out)
+    wall, summary, peak, _ = batch(hostile, opts.dir / "out_hostile", "--workers", "1")
+    _, _, noop_peak, _ = batch(root, out)
     print(f"4 GiB CSV line: {summary['problems'][0]['reason'].split(': ', 1)[1]}; {wall:.1f} s wall, "
           f"peak RSS {peak} MB (a no-op run: {noop_peak} MB)")
 
