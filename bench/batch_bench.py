@@ -25,8 +25,9 @@ from pipeline.simulate import SimulationSpec, simulate, write_dataset
 
 
 def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
-    """Wall time, JSON summary, peak RSS (MB) and CPU time (user + system, s)
-    of one ``rotcal batch``: the batch process itself, not its pool workers."""
+    """Wall time, JSON summary, peak RSS (MB; the batch process itself, not
+    its pool workers) and CPU time (user + system, s; with its workers) of
+    one ``rotcal batch``."""
     start = time.perf_counter()
     run = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, "-m", "pipeline", "batch", str(root),
                           "--out", str(out), "--json", *args], capture_output=True, text=True)
@@ -53,10 +54,11 @@ def main() -> None:
 
     rates = {}
     for workers in ("1", "2"):
-        wall, summary, _, _ = batch(root, opts.dir / f"out{workers}", "--workers", workers)
+        wall, summary, _, seconds = batch(root, opts.dir / f"out{workers}", "--workers", workers)
         assert summary["ok"] == opts.datasets, summary
         rates[workers] = opts.datasets / wall * 60
-        print(f"first run, --workers {workers}: {wall:.1f} s wall, {rates[workers]:.0f} datasets/min")
+        print(f"first run, --workers {workers}: {wall:.1f} s wall, {rates[workers]:.0f} datasets/min; "
+              f"CPU {seconds:.1f} s = {seconds / opts.datasets:.2f} s per dataset")
     print(f"speed-up of 2 workers over 1: {rates['2'] / rates['1']:.2f}")
 
     out = opts.dir / "out2"

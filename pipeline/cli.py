@@ -122,7 +122,7 @@ def main() -> None:
 def batch(
     root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
     out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
-    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml ([batch] among others)")] = None,
+    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
     workers: Annotated[Optional[int], typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
     executor: Annotated[Optional[str], typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
