@@ -17,7 +17,9 @@ def test_dask_cluster_gives_the_process_pool_outputs(tmp_path):
     make_root(root, range(1, 5))
     (root / "bad.csv").write_text("t,u,v,w\n0,1,2\n")
     pool = run_batch(root, tmp_path / "pool", RunConfig(batch=BatchConfig(workers=2)))
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    # Worker threads in this process, reached over TCP like a remote cluster
+    # (jobs and results are serialised): worker processes would only add start-up time.
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None) as cluster:
         config = tmp_path / "dask.toml"
         config.write_text(f'[batch]\nexecutor = "dask://{cluster.scheduler_address.removeprefix("tcp://")}"\n')
         dask = run_batch(root, tmp_path / "dask", load_config(config))
