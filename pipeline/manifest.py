@@ -83,16 +83,21 @@ class Manifest:
     def __init__(self, path: Path):
         self.path = path
         self.db = sqlite3.connect(path, isolation_level=None)
-        # Each commit reaches the OS before it returns (a killed run loses none);
-        # only a power cut could lose the last ones, which are then redone.
-        self.db.execute("PRAGMA synchronous = NORMAL")
-        version = self.db.execute("PRAGMA user_version").fetchone()[0]
-        if version not in (0, MANIFEST_VERSION):
-            raise RotcalError(f"manifest format {version} is not {MANIFEST_VERSION}: written by another rotcal", path=path)
-        with self.transaction():
-            for name in ("batch_datasets", "batch_runs", "batch_file_hashes"):
-                self.db.execute(_create_table(name))
-            self.db.execute(f"PRAGMA user_version = {MANIFEST_VERSION}")
+        try:
+            # Each commit reaches the OS before it returns (a killed run loses
+            # none); only a power cut could lose the last ones, then redone.
+            self.db.execute("PRAGMA synchronous = NORMAL")
+            version = self.db.execute("PRAGMA user_version").fetchone()[0]
+            if version not in (0, MANIFEST_VERSION):
+                raise RotcalError(f"manifest format {version} is not {MANIFEST_VERSION}: written by another rotcal", path=path)
+            with self.transaction():
+                for name in ("batch_datasets", "batch_runs", "batch_file_hashes"):
+                    self.db.execute(_create_table(name))
+                self.db.execute(f"PRAGMA user_version = {MANIFEST_VERSION}")
+        except sqlite3.DatabaseError as exc:
+            self.db.close()
+            raise RotcalError(f"the manifest cannot be read: {exc}", path=path,
+                              hint="move it away: the next run then processes every dataset again") from None
 
     def close(self) -> None:
         self.db.close()
@@ -174,8 +179,10 @@ def run_lock(out: Path) -> Iterator[str | None]:
         stale = os.pread(fd, 4096, 0).decode(errors="replace").strip() or None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n".encode(), 0)
-        yield stale
-        os.ftruncate(fd, 0)
+        try:
+            yield stale
+        finally:  # a run that ends, even with an error, is not a dead run
+            os.ftruncate(fd, 0)
     finally:
         os.close(fd)
 

@@ -7,7 +7,7 @@ import sqlite3
 from dataclasses import replace
 
 import jsonschema
-from batch_support import SMALL, assert_clean, make_root, manifest_rows, result_tables
+from batch_support import SMALL, assert_clean, assert_same_tables, make_root, manifest_rows, result_tables
 
 from pipeline.batch import dataset_id, discover, run_batch
 from pipeline.config import BatchConfig, RunConfig
@@ -151,6 +151,21 @@ def test_a_live_lock_stops_a_second_run_and_a_stale_one_is_taken_over(cli, tmp_p
     summary = json.loads(stdout)
     assert summary["ok"] == 1 and "stale lock" in summary["notes"][0] and "pid 999999" in summary["notes"][0]
     assert (out / "batch.lock").read_text() == ""
+
+
+def test_an_unreadable_manifest_is_a_one_line_error_and_moving_it_away_recovers(cli, tmp_path):
+    root, out = tmp_path / "root", tmp_path / "out"
+    make_root(root, [1])
+    run_batch(root, out, SERIAL)
+    before = result_tables(out)
+    (out / "manifest.sqlite").write_bytes(b"not a database" * 100)
+    status, _, err = cli("batch", root, "--out", out)
+    assert status == 1 and len(err.strip().splitlines()) == 1 and "the manifest cannot be read" in err
+    assert (out / "batch.lock").read_text() == ""  # an error is not a dead run
+    (out / "manifest.sqlite").unlink()
+    assert run_batch(root, out, SERIAL).ok == 1
+    assert_same_tables(before, result_tables(out))
+    assert_clean(out)
 
 
 def test_manifest_tables_follow_their_contracts(tmp_path):
