@@ -159,8 +159,12 @@ def _listing(source: Path) -> list[list]:
 
 
 def config_json(config: RunConfig) -> str:
-    """The configuration results depend on (not worker counts or executors)."""
-    return json.dumps({"fit": asdict(config.fit), "limits": asdict(config.limits)}, sort_keys=True)
+    """The configuration results depend on: every section but worker counts,
+    executors and where it was read from."""
+    doc = asdict(config)
+    for key in ("workers", "batch", "source"):
+        doc.pop(key)
+    return json.dumps(doc, sort_keys=True)
 
 
 @dataclass(frozen=True)
@@ -231,9 +235,10 @@ def run_job(job: Job) -> JobResult:
     try:
         dataset_inputs(Path(job.source), job.config.limits)  # again: the worker reads the files now
         outcome = run_dataset(Path(job.source), work / "tables", None, job.config)
-        for path in outcome.written:
+        tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
+        for path in tables:
             _write_part(path, work / "parts" / path.name, job.dataset_path)
-        return JobResult("ok", None, tuple(p.stem for p in outcome.written), started, time.perf_counter() - clock)
+        return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
     except RotcalError as exc:
         status, reason = "quarantined", str(exc)
     except Exception as exc:  # a bug or the machine, not the data: retried on the next run

@@ -12,11 +12,24 @@ from pathlib import Path
 
 import polars as pl
 
+from pipeline.config import BatchConfig, DiagnosisConfig, RunConfig
 from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
 
-# One rate and short segments: a dataset of 8 small CSVs that fits in ~0.1 s.
+# One rate and short segments: a dataset of 8 small CSVs.
 SMALL = SimulationSpec(plan=Plan(step_samples=10, rates_hz=(0.5,), rotation_samples=200))
 REPO = Path(__file__).resolve().parents[1]
+# Batch does not care which stages run_dataset runs; the diagnosis and its
+# report take 7 times as long as the rest on a small dataset, so most batch
+# tests switch it off (test_batch.py keeps one test with the defaults).
+NO_DIAGNOSIS = "[diagnosis]\nenabled = false\n"
+SERIAL = RunConfig(diagnosis=DiagnosisConfig(enabled=False), batch=BatchConfig(workers=1))
+
+
+def config_file(directory: Path, text: str = "") -> Path:
+    """A ``--config`` file without the diagnosis, plus ``text``."""
+    path = directory / "batch.toml"
+    path.write_text(NO_DIAGNOSIS + text)
+    return path
 
 
 def make_root(root: Path, seeds, spec: SimulationSpec = SMALL) -> list[str]:

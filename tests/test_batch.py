@@ -7,15 +7,13 @@ import sqlite3
 from dataclasses import replace
 
 import jsonschema
-from batch_support import SMALL, assert_clean, assert_same_tables, make_root, manifest_rows, result_tables
+from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
 from pipeline.batch import dataset_id, discover, run_batch
 from pipeline.config import BatchConfig, RunConfig
 from pipeline.manifest import run_lock
 from pipeline.simulate import simulate, write_dataset
 from pipeline.tables import schema_text
-
-SERIAL = RunConfig(batch=BatchConfig(workers=1))
 
 
 def test_dataset_ids_are_unique_safe_and_readable():
@@ -146,7 +144,7 @@ def test_a_live_lock_stops_a_second_run_and_a_stale_one_is_taken_over(cli, tmp_p
     assert status == 5
     assert len(err.strip().splitlines()) == 1 and "another batch run holds the lock (pid" in err
     (out / "batch.lock").write_text("pid 999999 on somewhere since 2026-01-01T00:00:00Z\n")  # left by a killed run
-    status, stdout, err = cli("batch", root, "--out", out, "--workers", "1", "--json")
+    status, stdout, err = cli("batch", root, "--out", out, "--workers", "1", "--json", "--config", config_file(tmp_path))
     assert status == 0, err
     summary = json.loads(stdout)
     assert summary["ok"] == 1 and "stale lock" in summary["notes"][0] and "pid 999999" in summary["notes"][0]
@@ -174,7 +172,7 @@ def test_manifest_tables_follow_their_contracts(tmp_path):
     (root / "broken.csv").write_text("t,u\n0,1\n")
     (root / "gone.csv").symlink_to(root / "nowhere.csv")
     (root / os.fsdecode(b"caf\xe9.csv")).write_text("t,u,v,w\n")
-    summary = run_batch(root, out, SERIAL)
+    summary = run_batch(root, out, RunConfig(batch=BatchConfig(workers=1)))  # every default stage, the report too
     reasons = {p["dataset_path"]: p["reason"] for p in summary.problems}
     assert reasons["gone.csv"].endswith("gone.csv: cannot be read: No such file or directory")
     assert reasons["caf\\xe9.csv"] == "caf\\xe9.csv: the path is not valid UTF-8 (rename it)"
@@ -192,6 +190,13 @@ def test_manifest_tables_follow_their_contracts(tmp_path):
     inputs = dict(json.loads(ok["inputs"]))
     assert set(inputs) == {f"lot1/dut001/{p.name}" for p in (root / "lot1/dut001").iterdir() if p.name != "truth.json"}
     assert json.loads(ok["config"])["limits"]["max_line_bytes"] == SERIAL.limits.max_line_bytes
+    # Whatever run_dataset writes is published; every Parquet table is combined.
+    published = out / "datasets" / ok["dataset_id"]
+    tables = json.loads(ok["tables"])
+    assert {"intrinsic", "fits", "diagnosis"} <= set(tables) and (published / "report.md").is_file()
+    assert sorted(p.name for p in (out / "combined").iterdir()) == sorted(tables)
+    assert sorted(p.stem for p in published.glob("*.parquet")) == sorted(tables)
+    assert_clean(out)
 
 
 def test_bad_root_and_executor_are_one_line_errors(cli, tmp_path):
@@ -207,7 +212,7 @@ def test_plain_log_lines_when_not_on_a_terminal(cli, tmp_path):
     root, out = tmp_path / "root", tmp_path / "out"
     make_root(root, [1, 2])
     (root / "bad.csv").write_text("nothing useful\n")
-    status, stdout, err = cli("batch", root, "--out", out, "--workers", "1")
+    status, stdout, err = cli("batch", root, "--out", out, "--workers", "1", "--config", config_file(tmp_path))
     assert status == 4
     lines = err.strip().splitlines()
     assert "rotcal batch: 3 datasets found: 0 unchanged, 3 to process" in lines[0]

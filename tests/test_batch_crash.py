@@ -11,10 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from batch_support import REPO, assert_clean, assert_same_tables, make_root, manifest_rows, result_tables, run_cli, summary_of
+from batch_support import (REPO, SERIAL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables,
+                           run_cli, summary_of)
 
 from pipeline.batch import run_batch
-from pipeline.config import BatchConfig, RunConfig
 
 
 def published(out: Path) -> int:
@@ -54,9 +54,10 @@ def wait_for(proc, condition, seconds: float = 90) -> None:
 def test_killed_worker_and_sigkilled_run_then_restart_give_the_uninterrupted_tables(tmp_path):
     root, ref, out = tmp_path / "root", tmp_path / "ref", tmp_path / "out"
     make_root(root, range(1, 13))
-    run_batch(root, ref, RunConfig(batch=BatchConfig(workers=1)))  # one process, fit threads on every core
+    run_batch(root, ref, SERIAL)  # one process, fit threads on every core
+    config = config_file(tmp_path)
 
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "batch", root, "--out", out, "--workers", "2"],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "batch", root, "--out", out, "--workers", "2", "--config", config],
                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: set[int] = set()
 
@@ -78,7 +79,7 @@ def test_killed_worker_and_sigkilled_run_then_restart_give_the_uninterrupted_tab
     assert 0 < len(recorded) < 12
     errors = [r["reason"] for r in recorded.values() if r["status"] == "error"]
     assert errors and all(e.startswith("the worker failed: BrokenProcessPool") for e in errors), errors
-    result = run_cli("batch", root, "--out", out, "--workers", "1", "--json")
+    result = run_cli("batch", root, "--out", out, "--workers", "1", "--json", "--config", config)
     assert result.returncode == 0, result.stderr
     summary = summary_of(result.stdout)
     done = sum(r["status"] == "ok" for r in recorded.values())

@@ -13,7 +13,7 @@ import subprocess
 import sys
 
 import zstandard
-from batch_support import REPO, SMALL, make_root
+from batch_support import NO_DIAGNOSIS, REPO, SMALL, make_root
 from mcap.data_stream import RecordBuilder
 from mcap.records import Chunk, Header
 
@@ -102,7 +102,7 @@ def test_hostile_inputs_are_refused_in_bounded_memory(tmp_path):
     (root / "chunk_liar.mcap").write_bytes(mcap_bytes(Chunk("zstd", bomb, 0, 0, 0, LIMIT // 2)))
     (root / "chunk_absurd.mcap").write_bytes(mcap_bytes(Chunk("zstd", bomb, 0, 0, 0, 1 << 60)))
     config = tmp_path / "limits.toml"
-    config.write_text(f"[limits]\nmax_line_bytes = {LIMIT}\nmax_mcap_record_bytes = {LIMIT}\n"
+    config.write_text(NO_DIAGNOSIS + f"[limits]\nmax_line_bytes = {LIMIT}\nmax_mcap_record_bytes = {LIMIT}\n"
                       f"max_dataset_toml_bytes = {LIMIT}\n[batch]\nworkers = 1\n")
 
     run = subprocess.run([sys.executable, "-c", SCRIPT, warm, root, out, config, str(outside)],

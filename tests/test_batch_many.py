@@ -6,7 +6,7 @@ import duckdb
 import jsonschema
 import polars as pl
 import pyarrow.dataset as pads
-from batch_support import assert_clean, make_root, manifest_rows
+from batch_support import assert_clean, config_file, make_root, manifest_rows
 
 from pipeline.batch import dataset_id
 from pipeline.tables import schema_text
@@ -21,7 +21,7 @@ def test_one_corrupt_dataset_among_fifty(cli, tmp_path):
     lines[40] = lines[40].replace(",", ",oops", 1)
     victim.write_text("\n".join(lines) + "\n")
 
-    status, stdout, err = cli("batch", root, "--out", out, "--workers", "2", "--json")
+    status, stdout, err = cli("batch", root, "--out", out, "--workers", "2", "--json", "--config", config_file(tmp_path))
     summary = __import__("json").loads(stdout)
     jsonschema.validate(summary, schema_text("batch_summary"))
     assert status == 4, err
@@ -49,4 +49,7 @@ def test_one_corrupt_dataset_among_fifty(cli, tmp_path):
     own = pl.read_parquet(out / "datasets" / dataset_id(paths[3]) / "intrinsic.parquet")
     mine = by_polars.filter(pl.col("dataset_path") == paths[3]).drop("dataset_path")
     assert mine.sort(key[1:]).equals(own.sort(key[1:]))
-    assert set(p.name for p in (out / "combined").iterdir()) == {"components", "fits", "intrinsic", "segments"}
+    tables = {p.stem for p in (out / "datasets" / dataset_id(paths[3])).glob("*.parquet")}
+    assert {p.name for p in (out / "combined").iterdir()} == tables >= {"components", "fits", "intrinsic", "segments"}
+    for table in tables:
+        assert len(list((out / "combined" / table).glob("*.parquet"))) == 49
