@@ -39,7 +39,6 @@ from pipeline.errors import ConfigError, InputError, LimitError, RotcalError
 from pipeline.ingest import CAPTURE_SUFFIXES, capture_files
 from pipeline.manifest import DatasetRecord, Layout, Manifest, run_lock
 from pipeline.meta import load_meta
-from pipeline.run import run_dataset
 
 EXIT_QUARANTINE = 4
 _CLEAN_PART = re.compile(r"[A-Za-z0-9.-]+(?:_[A-Za-z0-9.-]+)*")
@@ -230,6 +229,8 @@ def _write_part(table_path: Path, part_path: Path, dataset_path: str) -> None:
 def run_job(job: Job) -> JobResult:
     """One dataset into ``job.work`` (``tables/`` and ``parts/``), on whatever
     worker runs it; the folder is removed unless the result is ok."""
+    from pipeline.run import run_dataset  # the stages (scipy, the diagnosis) load on workers only
+
     started, clock = _now(), time.perf_counter()
     work = Path(job.work)
     try:

@@ -15,7 +15,6 @@ from pipeline.config import load_config
 from pipeline.crosssens import matrix_intrinsic
 from pipeline.errors import RotcalError
 from pipeline.report import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
-from pipeline.run import run_dataset
 from pipeline.simulate import SimulationSpec, simulate, spec_from_toml, write_dataset
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -62,6 +61,8 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
+    from pipeline.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
+
     _print_outcome(run_dataset(dataset, out_dir, meta, load_config(config)), quiet)
 
 
@@ -94,6 +95,8 @@ def demo(
     spec = _spec(None, effect)
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False)
+    from pipeline.run import run_dataset
+
     _print_outcome(run_dataset(data, directory / "results", None, load_config(None)))
 
 
