@@ -15,7 +15,6 @@ from pipeline.config import load_config
 from pipeline.crosssens import matrix_intrinsic
 from pipeline.errors import RotcalError
 from pipeline.report import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
-from pipeline.run import run_dataset
 from pipeline.simulate import SimulationSpec, simulate, spec_from_toml, write_dataset
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -62,6 +61,8 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
+    from pipeline.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
+
     _print_outcome(run_dataset(dataset, out_dir, meta, load_config(config)), quiet)
 
 
@@ -94,6 +95,8 @@ def demo(
     spec = _spec(None, effect)
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False)
+    from pipeline.run import run_dataset
+
     _print_outcome(run_dataset(data, directory / "results", None, load_config(None)))
 
 
@@ -116,3 +119,30 @@ def main() -> None:
     except RotcalError as exc:
         err.print(f"rotcal: error: {exc}", highlight=False, soft_wrap=True)
         sys.exit(exc.exit_code)
+
+
+@app.command()
+def batch(
+    root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
+    out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
+    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
+    workers: Annotated[Optional[int], typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
+    executor: Annotated[Optional[str], typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
+    json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
+) -> None:
+    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
+    import dataclasses
+    import json
+
+    from pipeline.batch import Reporter, run_batch
+
+    cfg = load_config(config)
+    cfg = dataclasses.replace(cfg, batch=dataclasses.replace(
+        cfg.batch, workers=cfg.batch.workers if workers is None else workers, executor=executor or cfg.batch.executor))
+    with Reporter(err) as reporter:
+        summary = run_batch(root, out_dir, cfg, reporter)
+    if json_summary:
+        print(json.dumps(summary.as_dict(), indent=2))
+    else:
+        out.print(summary.text(), highlight=False, markup=False, soft_wrap=True)
+    raise typer.Exit(summary.exit_status)

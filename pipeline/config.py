@@ -20,6 +20,15 @@ class Limits:
 
     max_line_bytes: int = 1_048_576
     max_mcap_record_bytes: int = 268_435_456
+    max_dataset_toml_bytes: int = 1_048_576
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """``rotcal batch``: how many datasets run at once, and where."""
+
+    workers: int = 0  # local worker processes; 0 = one per core
+    executor: str = "local"  # or dask://HOST:PORT, an existing Dask scheduler
 
 
 @dataclass(frozen=True)
@@ -44,6 +53,7 @@ class RunConfig:
     fit: FitConfig = field(default_factory=FitConfig)
     limits: Limits = field(default_factory=Limits)
     diagnosis: DiagnosisConfig = field(default_factory=DiagnosisConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
     source: str | None = None
 
 
@@ -81,5 +91,6 @@ def load_config(path: Path | None = None) -> RunConfig:
         fit=FitConfig(**doc.get("fit", {})),
         limits=Limits(**doc.get("limits", {})),
         diagnosis=DiagnosisConfig(**doc.get("diagnosis", {})),
+        batch=BatchConfig(**doc.get("batch", {})),
         source=None if path is None else str(path),
     )

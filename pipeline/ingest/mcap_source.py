@@ -6,14 +6,17 @@ from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import lz4.frame
 import numpy as np
 import polars as pl
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import StreamReader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 
 from pipeline.config import Limits
@@ -45,6 +48,26 @@ class _Topic:
     rows: list
 
 
+def _chunk_records(chunk: Chunk, limit: int, path: Path) -> list:
+    """A chunk's records, never decompressing more than ``limit`` bytes: a
+    chunk of a few kilobytes can expand a million-fold, and the mcap library
+    would allocate whatever its header claims."""
+    size = chunk.uncompressed_size
+    if size > limit:
+        raise LimitError(f"an MCAP chunk expands to {size} bytes, above the limit of {limit} bytes", path=path)
+    if chunk.compression == "zstd":
+        reader, data = zstandard.ZstdDecompressor().stream_reader(chunk.data), b""
+        while len(data) <= size and (block := reader.read(size + 1 - len(data))):
+            data += block
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    else:
+        data = chunk.data
+    if len(data) != size:
+        raise InputError(f"corrupt MCAP: a chunk holds {len(data)} bytes where it declares {size}", path=path)
+    return breakup_chunk(replace(chunk, compression="", data=data))
+
+
 def _read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, _Topic]:
     """Every channel by topic, with the raw messages of ``topics`` and of any
     Imu or JointState channel; refuses damaged files with the reason."""
@@ -53,7 +76,9 @@ def _read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, _To
     keep: dict[int, _Topic] = {}
     try:
         with path.open("rb") as fh:
-            for record in StreamReader(fh, record_size_limit=limits.max_mcap_record_bytes).records:
+            limit = limits.max_mcap_record_bytes
+            for record in (r for outer in StreamReader(fh, record_size_limit=limit, emit_chunks=True).records
+                           for r in (_chunk_records(outer, limit, path) if isinstance(outer, Chunk) else [outer])):
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel) and record.topic not in found:
@@ -74,7 +99,7 @@ def _read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, _To
         if type(exc).__name__ == "EndOfFile":
             raise InputError("truncated MCAP: the file ends inside a record", path=path) from None
         raise InputError(f"corrupt MCAP: {exc}", path=path) from None
-    except (struct.error, ValueError, EOFError, OSError) as exc:
+    except (struct.error, ValueError, EOFError, OSError, zstandard.ZstdError, RuntimeError) as exc:
         raise InputError(f"corrupt MCAP: {exc}", path=path) from None
     return found
 
