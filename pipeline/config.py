@@ -26,6 +26,16 @@ class Limits:
 class FitConfig:
     min_samples: int = 10
     min_span_deg: float = 30.0
+    sine_fit: str = "three_parameter"
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """GUM Supplement 1 Monte Carlo propagation beside the first-order one."""
+
+    monte_carlo: bool = False
+    monte_carlo_max_draws: int = 1_000_000
+    monte_carlo_seed: int = 1
 
 
 @dataclass(frozen=True)
@@ -44,6 +54,7 @@ class RunConfig:
     fit: FitConfig = field(default_factory=FitConfig)
     limits: Limits = field(default_factory=Limits)
     diagnosis: DiagnosisConfig = field(default_factory=DiagnosisConfig)
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     source: str | None = None
 
 
@@ -81,5 +92,6 @@ def load_config(path: Path | None = None) -> RunConfig:
         fit=FitConfig(**doc.get("fit", {})),
         limits=Limits(**doc.get("limits", {})),
         diagnosis=DiagnosisConfig(**doc.get("diagnosis", {})),
+        uncertainty=UncertaintyConfig(**doc.get("uncertainty", {})),
         source=None if path is None else str(path),
     )
