@@ -11,12 +11,16 @@ four-parameter sine fit keep their rate as a parameter here too
 (theta = theta_0 + kappa_k (theta_cmd - theta_0)), so its uncertainty is
 carried.
 
-The fit is generalised least squares on the samples: within a segment the
-three channels' noise has the covariance Sigma_k, estimated from that
-segment's residuals and re-estimated until the solution is stable. Its
-covariance is N^-1 (N the normal matrix); since N is a sum over the
-independent segments, N^-1 N_k N^-1 is each segment's contribution, which
-gives the budget. The offset O_r is the inverse-variance weighted mean of
+The fit is generalised least squares on the samples in two stages
+(feasible GLS): ordinary least squares first, then each segment's samples
+weighted by the inverse of its channels' residual covariance Sigma_k from
+the first stage (held fixed, so that a model that does not fit cannot make
+the weights chase the residuals). Its covariance is N^-1 (N the normal
+matrix); since N is a sum over the independent segments, N^-1 N_k N^-1 is
+each segment's contribution, which gives the budget. When the model is
+wrong (a rate error fitted with the commanded rate, say) the two solutions
+weight the misfit differently and disagree far beyond their uncertainties:
+a finding, as in the consistency checks. The offset O_r is the inverse-variance weighted mean of
 the O_rk (Eq. 12), with the full covariance propagated.
 
 This is an independent route to the intrinsic parameters (it reads the
@@ -68,10 +72,9 @@ def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, f
 
 
 def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
-                    weighted: bool) -> tuple[np.ndarray, np.ndarray]:
-    """One segment's normal equations at ``beta`` (``sinemodel``): unit
-    weights in the first pass, then the inverse of its channels' residual
-    covariance."""
+                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One segment's normal equations at ``beta`` with the channel weight
+    matrix ``weight`` (``sinemodel``), and its residuals."""
     a = axis_index(seg.axis)
     theta_unw = np.unwrap(seg.theta_deg, period=360.0)
     psi = np.deg2rad(theta_unw - theta_unw[0])
@@ -85,8 +88,7 @@ def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: 
         if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
             design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
     resid = residuals(z, seg.y, coef)
-    weight = precision(resid, seg.y, 3) if weighted else None
-    return normal_equations(z, resid, design, np.eye(3) if weight is None else weight)
+    return (*normal_equations(z, resid, design, weight), resid)
 
 
 def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float, g_uncertainty: float) -> IntrinsicResult | CombineFailure:
@@ -105,20 +107,23 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
     for s, j in zip(segs, kappa_index):
         if j is not None:
             beta[j] = s.kappa
-    for iteration in range(MAX_ITERATIONS):
-        # first pass: ordinary least squares, then each segment's own channel noise covariance
-        blocks = [_segment_system(s, k, j, beta, p, iteration > 0) for k, (s, j) in enumerate(zip(segs, kappa_index))]
-        normal, rhs = sum(b[0] for b in blocks), sum(b[1] for b in blocks)
-        step = np.zeros(p)
-        # the rate scales stay fixed in the first pass: with the components still zero they are not identified
-        free = slice(None) if iteration > 0 else slice(0, 9 + 3 * n_seg)
-        step[free], cov = solve(normal[free, free], rhs[free])
-        beta += step
-        # converged: the step is negligible against the uncertainty (its chi^2 is tiny)
-        if iteration > 0 and step @ rhs < 1e-8:
-            break
-    else:
-        return CombineFailure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
+    # two stages (feasible GLS): ordinary least squares, then each segment weighted by the inverse of
+    # its channels' residual covariance from the first stage, held fixed while the rates converge
+    weights = [np.eye(3)] * n_seg
+    for stage in range(2):
+        for iteration in range(MAX_ITERATIONS):
+            blocks = [_segment_system(s, k, j, beta, p, weights[k]) for k, (s, j) in enumerate(zip(segs, kappa_index))]
+            normal, rhs = sum(b[0] for b in blocks), sum(b[1] for b in blocks)
+            step = np.zeros(p)
+            # the very first step leaves the rate scales alone: with the components still zero they are not identified
+            free = slice(0, 9 + 3 * n_seg) if stage == iteration == 0 else slice(None)
+            step[free], cov = solve(normal[free, free], rhs[free])
+            beta += step
+            if iteration > 0 and step @ rhs < 1e-8:  # the step's chi^2 is negligible
+                break
+        else:
+            return CombineFailure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
+        weights = [w if (w := precision(b[2], s.y, 3)) is not None else np.eye(3) for b, s in zip(blocks, segs)]
     transform = np.zeros((12, p))
     transform[:9, :9] = np.eye(9)
     var = np.diag(cov)
@@ -128,7 +133,7 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
         transform[9 + r, idx] = w / w.sum()
     state, state_cov = transform @ beta, transform @ cov @ transform.T
     parts = []
-    for s, (block, _) in zip(segs, blocks):
+    for s, (block, _, _) in zip(segs, blocks):
         share = transform @ cov @ block @ cov @ transform.T
         parts.append((segment_input(SegmentCoefficients(s.segment, s.axis, np.empty(0), np.empty(0), s.y.shape[0] - 3)), share))
     return result_from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)

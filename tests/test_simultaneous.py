@@ -74,3 +74,14 @@ def test_missing_axes_give_a_failure_not_a_crash(make_dataset, axes):
         assert not isinstance(out, CombineFailure)
     else:
         assert isinstance(out, CombineFailure) and "unmeasured" in out.reason
+
+
+def test_a_wrong_model_makes_the_two_solutions_disagree(make_dataset):
+    """A rate error fitted with the commanded rate: each route weights the
+    misfit its own way, and at 0.5 Hz they part far beyond the uncertainties."""
+    path = make_dataset(33, effects=("rate_error:rate_error=2e-4",))
+    red, sim = _both(path)
+    frame = simultaneous_frame(sim, red.results, "ds", "bit")
+    fast = frame.filter(frame["rate_hz"] == 0.5)
+    assert np.abs(fast["difference_over_u"].to_numpy()).max() > 20
+    assert np.abs(frame.filter(frame["rate_hz"] == 0.0)["difference_over_u"].to_numpy()).max() < 0.5  # static steps: exact angles
