@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 import polars as pl
-from scipy.stats import chi2 as chi2_dist
 
+from pipeline.consistency import chi2_sf
 from pipeline.combine import CombineFailure, IntrinsicResult, intrinsic_jacobian, linear_stage, rate_segments
 from pipeline.physics import AXES, CHANNELS, INTRINSIC
 from pipeline.tables import conform, schema
@@ -104,7 +104,7 @@ def _slope_rows(axis: str, r: int, omega: np.ndarray, offset: np.ndarray, u: np.
     weights = (cov @ np.column_stack([np.ones_like(omega), omega**2]).T / u**2)[1]  # k = weights . offset
     u_q = np.sqrt((u_k**2 + q**2 * res_0.cov[r, r] - 2 * q * np.sum(weights * cov_s0)) / s0**2)
     base = {"parameter": INTRINSIC[6 + r], "axis": axis, "rate_hz": None, "omega_rad_s": None,
-            "chi2": chi2, "dof": dof, "p_value": float(chi2_dist.sf(chi2, dof)) if dof > 0 else np.nan}
+            "chi2": chi2, "dof": dof, "p_value": chi2_sf(chi2, dof) if dof > 0 else np.nan}
     return [
         {**base, "quantity": "offset_omega2_slope", "value": k, "std_uncertainty": u_k,
          "unit": f"{output_unit}/(rad/s)^2", "z": k / u_k},

@@ -10,18 +10,18 @@ degrees of freedom follow from Welch-Satterthwaite (GUM G.4.1).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.stats import norm
 
 from pipeline.combine import CombineFailure, IntrinsicResult, LinearStage, linear_stage, rate_segments, units
 from pipeline.config import UncertaintyConfig
 from pipeline.physics import INTRINSIC, intrinsic_from_vectors
 from pipeline.tables import conform, schema
 
-COVERAGE_PROBABILITY = float(norm.cdf(2.0) - norm.cdf(-2.0))  # k = 2 for a normal distribution: 95.45 %
+COVERAGE_PROBABILITY = math.erf(2.0 / math.sqrt(2.0))  # k = 2 for a normal distribution: 95.45 %
 BATCH_DRAWS = 10_000  # GUM S1 7.9.4 b): max(100 / (1 - p), 10^4)
 
 
@@ -176,5 +176,6 @@ def monte_carlo_note(frame: pl.DataFrame) -> str:
     if failed.height:
         excess = failed.select(pl.max_horizontal("d_low", "d_high") - pl.col("tolerance")).to_series()
         noise = int((excess <= 2 * failed["endpoint_numerical_u"]).sum())
-        text += f"; {noise} of the other {failed.height} miss the tolerance by less than twice the Monte Carlo's own numerical uncertainty"
+        which = "the other" if noise == failed.height else f"{noise} of the other"
+        text += f"; {which} {failed.height} miss the tolerance by less than twice the Monte Carlo's own numerical uncertainty"
     return text + " (monte_carlo.parquet)"
