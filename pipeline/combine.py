@@ -237,8 +237,9 @@ def result_from_state(rate_hz: float, state: np.ndarray, state_cov: np.ndarray, 
     return IntrinsicResult(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs)
 
 
-def segment_input(seg: SegmentCoefficients) -> BudgetInput:
-    return BudgetInput(f"segment {seg.segment} ({seg.axis})", "noise", seg.segment, seg.axis, float(seg.dof or np.inf))
+def segment_input(segment: int, axis: str, dof: int) -> BudgetInput:
+    """The budget input group of one segment's noise (dof 0: treated as known)."""
+    return BudgetInput(f"segment {segment} ({axis})", "noise", segment, axis, float(dof or np.inf))
 
 
 def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: float,
@@ -250,7 +251,7 @@ def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: f
     parts = []
     for k, seg in enumerate(segments):
         Lk = stage.L[:, 9 * k : 9 * k + 9]
-        parts.append((segment_input(seg), Lk @ seg.cov @ Lk.T))
+        parts.append((segment_input(seg.segment, seg.axis, seg.dof), Lk @ seg.cov @ Lk.T))
     return result_from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
 
 

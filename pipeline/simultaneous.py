@@ -36,7 +36,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.combine import (
-    CombineFailure, IntrinsicResult, STATE, result_from_state, segment_input, SegmentCoefficients, units,
+    CombineFailure, IntrinsicResult, STATE, result_from_state, segment_input, units,
 )
 from pipeline.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from pipeline.sinemodel import basis, normal_equations, precision, residuals, solve
@@ -135,7 +135,7 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
     parts = []
     for s, (block, _, _) in zip(segs, blocks):
         share = transform @ cov @ block @ cov @ transform.T
-        parts.append((segment_input(SegmentCoefficients(s.segment, s.axis, np.empty(0), np.empty(0), s.y.shape[0] - 3)), share))
+        parts.append((segment_input(s.segment, s.axis, s.y.shape[0] - 3), share))
     return result_from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)
 
 

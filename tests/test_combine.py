@@ -7,7 +7,6 @@ import pytest
 
 from pipeline.combine import combine_rate, intrinsic_jacobian, SegmentCoefficients
 from pipeline.coverage import simulate_errors
-from pipeline.physics import INTRINSIC
 from pipeline.run import run_dataset
 from pipeline.simulate import DutSpec, SimulationSpec
 from tests.conftest import truth_of
