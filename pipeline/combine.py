@@ -42,13 +42,27 @@ class Estimate:
     sign: float
 
 
+@dataclass(frozen=True)
+class BudgetInput:
+    """One input group of an uncertainty budget: the noise of one segment's
+    fit (``segment``, ``axis``, with the fit's residual degrees of freedom)
+    or ``g_local`` (a Type B input, infinite degrees of freedom)."""
+
+    label: str
+    source: str
+    segment: int | None
+    axis: str
+    dof: float
+
+
 @dataclass(frozen=True, eq=False)
 class IntrinsicResult:
     """The nine intrinsic parameters of one rate with their covariance.
 
     ``state`` is (g r_u, g r_v, g r_w, O) in output units with covariance
     ``state_cov``; ``budget`` maps each input group (a segment, or
-    ``g_local``) to its variance contribution to each parameter.
+    ``g_local``) to its variance contribution to each parameter, and
+    ``inputs`` describes those groups in the same order.
     """
 
     rate_hz: float
@@ -58,6 +72,8 @@ class IntrinsicResult:
     state_cov: np.ndarray
     budget: dict[str, np.ndarray]
     g_local: float
+    g_uncertainty: float = 0.0
+    inputs: tuple[BudgetInput, ...] = ()
 
     @property
     def std_uncertainty(self) -> np.ndarray:
@@ -67,6 +83,17 @@ class IntrinsicResult:
     def responsivity(self) -> np.ndarray:
         """Rows r_u, r_v, r_w in the table frame, output unit per m/s^2."""
         return self.state[:9].reshape(3, 3) / self.g_local
+
+    @property
+    def g_sensitivity(self) -> np.ndarray:
+        """d(parameters)/d(g_local): nonzero for the sensitivities only."""
+        return intrinsic_jacobian(self.state, self.g_local)[2]
+
+    @property
+    def noise_cov(self) -> np.ndarray:
+        """The covariance without the g_local part (the fits' noise only)."""
+        jac = intrinsic_jacobian(self.state, self.g_local)[1]
+        return jac @ self.state_cov @ jac.T
 
 
 @dataclass(frozen=True)
@@ -83,6 +110,7 @@ class SegmentCoefficients:
     axis: str
     coef: np.ndarray
     cov: np.ndarray
+    dof: int = 0
 
 
 def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
@@ -96,8 +124,16 @@ def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
             np.hstack([np.asarray(row[f"cov_{c}"]).reshape(3, 3) for c in CHANNELS])
             for row in part.iter_rows(named=True)
         ])
-        out.append(SegmentCoefficients(int(segment), part["axis"][0], coef, cov))
+        out.append(SegmentCoefficients(int(segment), part["axis"][0], coef, cov, int(part["dof"][0])))
     return out
+
+
+def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:
+    """The ok static and rotation segments of every rate, rates ordered by
+    magnitude (rate 0, the static result, first)."""
+    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]))
+    rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
+    return [(rate, segment_coefficients(fitted.filter(pl.col("rate_hz") == rate))) for rate in rates]
 
 
 def estimates_for(segments: list[SegmentCoefficients]) -> list[Estimate]:
@@ -149,9 +185,31 @@ def intrinsic_jacobian(state: np.ndarray, g_local: float) -> tuple[np.ndarray, n
     return value, jac, jac_g
 
 
-def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: float,
-                 g_uncertainty: float) -> IntrinsicResult | CombineFailure:
-    """The intrinsic parameters of one rate from its segments."""
+@dataclass(frozen=True, eq=False)
+class LinearStage:
+    """The linear part of a rate's combination: every segment's coefficient
+    vector stacked (``coef``), their block-diagonal covariance (``cov``;
+    segments are independent) and the combination matrix ``L``, so that
+    state = L coef."""
+
+    rate_hz: float
+    segments: tuple[SegmentCoefficients, ...]
+    coef: np.ndarray
+    cov: np.ndarray
+    L: np.ndarray
+
+    @property
+    def state(self) -> np.ndarray:
+        return self.L @ self.coef
+
+    @property
+    def state_cov(self) -> np.ndarray:
+        return self.L @ self.cov @ self.L.T
+
+
+def linear_stage(rate_hz: float, segments: list[SegmentCoefficients]) -> LinearStage | CombineFailure:
+    """Stack a rate's segments and build L; a failure when some state element
+    is measured by no segment."""
     estimates = estimates_for(segments)
     counts = np.bincount([e.target for e in estimates], minlength=len(STATE))
     if np.any(counts == 0):
@@ -159,31 +217,47 @@ def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: f
         axes = sorted({s.axis for s in segments}) or ["none"]
         return CombineFailure(rate_hz, f"segments about axes {', '.join(axes)} leave {', '.join(missing)} unmeasured")
     coef = np.concatenate([s.coef for s in segments])
-    blocks = [s.cov for s in segments]
-    cov_obs = np.zeros((coef.size, coef.size))
-    for k, block in enumerate(blocks):
-        cov_obs[9 * k : 9 * k + 9, 9 * k : 9 * k + 9] = block
-    L = combination_matrix(estimates, np.diag(cov_obs), coef.size)
-    state = L @ coef
-    state_cov = L @ cov_obs @ L.T
-    value, jac, jac_g = intrinsic_jacobian(state, g_local)
-    budget = {}
+    cov = np.zeros((coef.size, coef.size))
     for k, seg in enumerate(segments):
-        part = jac @ L[:, 9 * k : 9 * k + 9]
-        budget[f"segment {seg.segment} ({seg.axis})"] = np.einsum("ij,jk,ik->i", part, blocks[k], part)
-    budget["g_local"] = (jac_g * g_uncertainty) ** 2
+        cov[9 * k : 9 * k + 9, 9 * k : 9 * k + 9] = seg.cov
+    return LinearStage(rate_hz, tuple(segments), coef, cov, combination_matrix(estimates, np.diag(cov), coef.size))
+
+
+def result_from_state(rate_hz: float, state: np.ndarray, state_cov: np.ndarray, g_local: float, g_uncertainty: float,
+                      noise_parts: list[tuple[BudgetInput, np.ndarray]]) -> IntrinsicResult:
+    """The intrinsic parameters of a state (Eqs. 14, 16) with first-order
+    propagation; ``noise_parts`` are independent input groups, each with its
+    contribution to ``state_cov`` (they add up to it), for the budget."""
+    value, jac, jac_g = intrinsic_jacobian(state, g_local)
+    budget = {inp.label: np.einsum("ij,jk,ik->i", jac, part, jac) for inp, part in noise_parts}
+    g_input = BudgetInput("g_local", "g_local", None, "", float("inf"))
+    budget[g_input.label] = (jac_g * g_uncertainty) ** 2
     cov = jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2
-    return IntrinsicResult(rate_hz, value, cov, state, state_cov, budget, g_local)
+    inputs = tuple(inp for inp, _ in noise_parts) + (g_input,)
+    return IntrinsicResult(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs)
+
+
+def segment_input(segment: int, axis: str, dof: int) -> BudgetInput:
+    """The budget input group of one segment's noise (dof 0: treated as known)."""
+    return BudgetInput(f"segment {segment} ({axis})", "noise", segment, axis, float(dof or np.inf))
+
+
+def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: float,
+                 g_uncertainty: float) -> IntrinsicResult | CombineFailure:
+    """The intrinsic parameters of one rate from its segments."""
+    stage = linear_stage(rate_hz, segments)
+    if isinstance(stage, CombineFailure):
+        return stage
+    parts = []
+    for k, seg in enumerate(segments):
+        Lk = stage.L[:, 9 * k : 9 * k + 9]
+        parts.append((segment_input(seg.segment, seg.axis, seg.dof), Lk @ seg.cov @ Lk.T))
+    return result_from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
 
 
 def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float) -> list[IntrinsicResult | CombineFailure]:
     """Every rate's intrinsic parameters (rate 0 is the static result)."""
-    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]))
-    results = []
-    for rate in sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r)):
-        segs = segment_coefficients(fitted.filter(pl.col("rate_hz") == rate))
-        results.append(combine_rate(rate, segs, g_local, g_uncertainty))
-    return results
+    return [combine_rate(rate, segs, g_local, g_uncertainty) for rate, segs in rate_segments(fits)]
 
 
 def units(output_unit: str) -> tuple[str, ...]:
@@ -204,8 +278,9 @@ def intrinsic_frame(results: list[IntrinsicResult], dataset: str, model: str, ou
 def components_frame(fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str) -> pl.DataFrame:
     """Each responsivity component's per-segment estimates and combination."""
     rows = []
+    by_rate = dict(rate_segments(fits))
     for res in results:
-        segs = segment_coefficients(fits.filter((pl.col("rate_hz") == res.rate_hz) & pl.col("kind").is_in(["static", "rotation"])))
+        segs = by_rate[res.rate_hz]
         coef = np.concatenate([s.coef for s in segs])
         var = np.concatenate([np.diag(s.cov) for s in segs])
         for e in estimates_for(segs):

@@ -35,6 +35,16 @@ class BatchConfig:
 class FitConfig:
     min_samples: int = 10
     min_span_deg: float = 30.0
+    sine_fit: str = "three_parameter"
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """GUM Supplement 1 Monte Carlo propagation beside the first-order one."""
+
+    monte_carlo: bool = False
+    monte_carlo_max_draws: int = 1_000_000
+    monte_carlo_seed: int = 1
 
 
 @dataclass(frozen=True)
@@ -54,6 +64,7 @@ class RunConfig:
     limits: Limits = field(default_factory=Limits)
     diagnosis: DiagnosisConfig = field(default_factory=DiagnosisConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     source: str | None = None
 
 
@@ -92,5 +103,6 @@ def load_config(path: Path | None = None) -> RunConfig:
         limits=Limits(**doc.get("limits", {})),
         diagnosis=DiagnosisConfig(**doc.get("diagnosis", {})),
         batch=BatchConfig(**doc.get("batch", {})),
+        uncertainty=UncertaintyConfig(**doc.get("uncertainty", {})),
         source=None if path is None else str(path),
     )

@@ -25,6 +25,7 @@ import polars as pl
 
 from pipeline.config import FitConfig
 from pipeline.physics import CHANNELS
+from pipeline.sinefit4 import four_parameter_fit
 from pipeline.tables import conform, schema
 
 PARAMS = ("C", "A", "B")
@@ -47,6 +48,7 @@ class SegmentFit:
     max_abs: np.ndarray
     lag1: np.ndarray
     rate_fit_hz: float
+    u_rate_fit_hz: float = 0.0
 
     @property
     def dof(self) -> int:
@@ -111,9 +113,16 @@ def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, thet
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)
     coef, cov, resid = linear_fit(design(theta_deg), y)
+    rate_fit_hz, u_rate_fit_hz = rate_hz, 0.0
+    if kind == "rotation" and config.sine_fit == "four_parameter":
+        four = four_parameter_fit(theta_deg, y, coef)
+        if four is None:
+            return SegmentFit.failed(segment, theta_deg.size, "four-parameter sine fit did not converge to a rate within 5 % of the commanded one", rate_hz)
+        coef, cov, resid = four.coef, four.cov, four.resid
+        rate_fit_hz, u_rate_fit_hz = rate_hz * four.scale, abs(rate_hz) * four.u_scale
     rms, max_abs, lag1 = residual_stats(resid)
     sigma = np.sqrt(np.einsum("ij,ij->j", resid, resid) / (theta_deg.size - 3))
-    return SegmentFit(segment, "ok", None, theta_deg.size, coef, cov, sigma, rms, max_abs, lag1, rate_hz)
+    return SegmentFit(segment, "ok", None, theta_deg.size, coef, cov, sigma, rms, max_abs, lag1, rate_fit_hz, u_rate_fit_hz)
 
 
 def _workers(requested: int) -> int:
@@ -157,7 +166,7 @@ def fits_frame(fits: list[SegmentFit], segments: pl.DataFrame, dataset: str) -> 
                 "n_samples": f.n_samples, "dof": f.dof,
                 **dict(zip(PARAMS, f.coef[r])), **{f"u_{p}": u[i] for i, p in enumerate(PARAMS)},
                 **{f"cov_{c}": block[:, 3 * k : 3 * k + 3].ravel().tolist() for k, c in enumerate(CHANNELS)},
-                "rate_fit_hz": f.rate_fit_hz, "sigma": f.sigma[r], "rms": f.rms[r],
+                "rate_fit_hz": f.rate_fit_hz, "u_rate_fit_hz": f.u_rate_fit_hz, "sigma": f.sigma[r], "rms": f.rms[r],
                 "max_abs_residual": f.max_abs[r], "lag1_autocorr": f.lag1[r],
             })
     if not rows:

@@ -81,12 +81,15 @@ def rotation_matrix(axis_vector: np.ndarray, angle_deg: float) -> np.ndarray:
 def intrinsic_from_vectors(responsivity: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """The nine intrinsic parameters (order ``INTRINSIC``) of responsivity rows.
 
-    Geist 2017 Eq. 14 (lengths) and Eq. 16 (angles, in degrees).
+    Geist 2017 Eq. 14 (lengths) and Eq. 16 (angles, in degrees). Leading
+    dimensions broadcast: (..., 3, 3) rows and (..., 3) offsets give (..., 9),
+    so a Monte Carlo sample is evaluated in one call.
     """
-    s = np.linalg.norm(responsivity, axis=1)
-    unit = responsivity / s[:, None]
-    phi = [np.degrees(np.arccos(np.clip(unit[i] @ unit[j], -1.0, 1.0))) for i, j in ANGLE_PAIRS]
-    return np.concatenate([s, phi, offsets])
+    s = np.sqrt(np.einsum("...ij,...ij->...i", responsivity, responsivity))
+    unit = responsivity / s[..., None]
+    first, second = (list(k) for k in zip(*ANGLE_PAIRS))
+    cos = np.einsum("...ij,...ij->...i", unit[..., first, :], unit[..., second, :])
+    return np.concatenate([s, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), offsets], axis=-1)
 
 
 @dataclass(frozen=True)

@@ -7,21 +7,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import polars as pl
 from threadpoolctl import threadpool_limits
 
 from pipeline.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
 from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
 from pipeline.config import RunConfig
+from pipeline.consistency import consistency_frame, consistency_note
 from pipeline.crosssens import cross_sensitivity_frame
 from pipeline.diagnosis import Diagnosis, diagnose
 from pipeline.errors import UndeterminedError
 from pipeline.fit import fit_segments, fits_frame
+from pipeline.gaitan import gaitan_frame
 from pipeline.ingest import load_dataset
 from pipeline.multiposition import PoseFailure
 from pipeline.poses import table_step_poses
+from pipeline.response import frequency_response_frame
 from pipeline.segment import segment_by_labels
+from pipeline.simultaneous import simultaneous, simultaneous_frame
 from pipeline.static import StaticReduction, reduce_static
 from pipeline.tables import write_parquet
+from pipeline.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,6 +113,40 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         by_temperature = temperature_frame(corrections, ds.name, unit)
         if not by_temperature.is_empty():
             written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
-    if static is not None:
+    notes = list(ds.notes)
+    if static is None:
+        more, extra = _metrology_tables(samples, fits, list(results), ds.name, unit, ds.meta.g_local,
+                                        ds.meta.g_local_uncertainty, out, config)
+        written += more
+        notes += extra
+    else:
         written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
-    return RunOutcome(ds.name, unit, results, warnings, ds.notes, tuple(written), diagnosis, static)
+    return RunOutcome(ds.name, unit, results, warnings, tuple(notes), tuple(written), diagnosis, static)
+
+
+def _metrology_tables(samples: pl.DataFrame, fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str,
+                      unit: str, g: float, u_g: float, out: Path, config: RunConfig) -> tuple[list[Path], list[str]]:
+    """Issue 3's tables of a table (step or rotation) dataset: uncertainty
+    budget, Geist's simultaneous solution and consistency checks, Gaitan's
+    estimators, the frequency response with its plot, and the optional Monte
+    Carlo; with the notes they give."""
+    consistency = consistency_frame(fits, g, dataset, unit)
+    response = frequency_response_frame(results, fits, dataset, unit)
+    both = [r for r in simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if isinstance(r, IntrinsicResult)]
+    written = [
+        write_parquet(budget_frame(results, dataset, unit), out / "uncertainty_budget.parquet", "uncertainty_budget"),
+        write_parquet(simultaneous_frame(both, results, dataset, unit), out / "simultaneous.parquet", "simultaneous"),
+        write_parquet(consistency, out / "consistency.parquet", "consistency"),
+        write_parquet(gaitan_frame(fits, g, u_g, dataset, unit), out / "gaitan_estimators.parquet", "gaitan_estimators"),
+        write_parquet(response, out / "frequency_response.parquet", "frequency_response"),
+    ]
+    from pipeline.plot import frequency_response_png  # matplotlib only when there is a plot to draw
+
+    png = frequency_response_png(response, out / "frequency_response.png", dataset)
+    written += [png] if png else []
+    notes = [n for n in [consistency_note(consistency)] if n]
+    if config.uncertainty.monte_carlo:
+        mc = monte_carlo_frame(monte_carlo(fits, g, u_g, config.uncertainty), results, dataset, unit)
+        written.append(write_parquet(mc, out / "monte_carlo.parquet", "monte_carlo"))
+        notes.append(monte_carlo_note(mc))
+    return written, notes

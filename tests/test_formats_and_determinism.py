@@ -53,11 +53,11 @@ def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
 
 
 def test_parquet_files_record_their_schema(make_dataset, tmp_path):
-    from pipeline.tables import read_schema_name
+    from pipeline.tables import read_schema_name, schema
 
     run_dataset(make_dataset(22), tmp_path)
     for name in ("intrinsic", "fits", "segments", "components"):
-        assert read_schema_name(tmp_path / f"{name}.parquet") == (name, "1.0")
+        assert read_schema_name(tmp_path / f"{name}.parquet") == (name, schema(name).version)
 
 
 def test_demo_prints_the_summary(cli, tmp_path):
