@@ -1,6 +1,10 @@
 """MCAP captures: ``sensor_msgs/msg/Imu`` (CDR) or JSON messages on the DUT
 topic, and an optional table channel (``sensor_msgs/msg/JointState`` or JSON)
-whose labels are mapped onto the DUT's time stamps (contract sections 1, 2)."""
+whose labels are mapped onto the DUT's time stamps (contract sections 1, 2).
+
+Files are decoded by ``mcap_fast`` (whole chunks into columns) where it knows
+the layouts, else message by message here; both feed the same steps.
+"""
 
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from pipeline.config import Limits
 from pipeline.errors import InputError, LimitError
+from pipeline.ingest import mcap_fast
 from pipeline.ingest.labels import label_columns
 from pipeline.meta import CaptureSpec, DatasetMeta
 from pipeline.physics import AXES, JOINT_SIGN
@@ -43,6 +48,10 @@ class _Topic:
     channel: Channel
     stamps: list
     rows: list
+
+    @property
+    def count(self) -> int:
+        return len(self.rows)
 
 
 def _read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, _Topic]:
@@ -111,13 +120,7 @@ def _imu_frame(topic: _Topic, path: Path) -> pl.DataFrame:
     log_ns = np.asarray(topic.stamps, np.int64)
     if topic.channel.message_encoding == "json":
         cols = {f: [m.get(f) for m in msgs] for f in JSON_FIELDS if any(f in m for m in msgs)}
-        missing = [f for f in ("u", "v", "w") if f not in cols]
-        if missing:
-            raise InputError(f"topic {topic.channel.topic!r}: JSON messages lack {', '.join(missing)}", path=path)
-        frame = pl.DataFrame(cols, strict=False)
-        t_s = pl.col("t").cast(pl.Float64) if "t" in cols else pl.lit(None, pl.Float64)
-        stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
-        return frame.with_columns(t_ns=stamp).drop("t", strict=False)
+        return _json_frame(pl.DataFrame(cols, strict=False), log_ns, topic.channel.topic, path)
     stamp = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64)
     return pl.DataFrame(
         {
@@ -127,6 +130,16 @@ def _imu_frame(topic: _Topic, path: Path) -> pl.DataFrame:
             "w": [m.linear_acceleration.z for m in msgs],
         }
     )
+
+
+def _json_frame(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path) -> pl.DataFrame:
+    """DUT samples from JSON fields: ``t`` (s) where given, else the log time."""
+    missing = [f for f in ("u", "v", "w") if f not in frame.columns]
+    if missing:
+        raise InputError(f"topic {topic!r}: JSON messages lack {', '.join(missing)}", path=path)
+    t_s = pl.col("t").cast(pl.Float64) if "t" in frame.columns else pl.lit(None, pl.Float64)
+    stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
+    return frame.with_columns(t_ns=stamp).drop("t", strict=False)
 
 
 def _joint_axis(names: list[str], position: list[float], velocity: list[float], previous: tuple | None) -> int:
@@ -177,13 +190,69 @@ def _table_track(topic: _Topic, path: Path) -> TableTrack:
     bad = [a for a in axis if a not in AXES]
     if bad:
         raise InputError(f"table topic: unknown axis label {bad[0]!r} (expected x, y or z)", path=path)
-    order = np.argsort(np.asarray(t_ns, np.int64), kind="stable")
-    return TableTrack(
-        np.asarray(t_ns, np.int64)[order],
-        np.asarray(axis, object)[order],
-        np.round(np.asarray(rate, float)[order] * 1e9) / 1e9,
-        np.asarray(angle, float)[order],
-    )
+    return _track(np.asarray(t_ns, np.int64), np.asarray(axis, object), np.asarray(rate, float), np.asarray(angle, float))
+
+
+def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray) -> TableTrack:
+    """Table messages in time order (stable), rates to the nearest nanohertz."""
+    order = np.argsort(t_ns, kind="stable")
+    return TableTrack(t_ns[order], axis[order], np.round(rate_hz[order] * 1e9) / 1e9, angle_deg[order])
+
+
+def _fast_imu_frame(topic: mcap_fast.DecodedTopic, path: Path) -> pl.DataFrame:
+    if topic.kind == "json":
+        fields = [f for f in JSON_FIELDS if f in topic.frame.columns]
+        return _json_frame(topic.frame.select(fields), topic.columns["log_ns"], topic.channel.topic, path)
+    if topic.kind != "imu":
+        raise mcap_fast.Unsupported(f"DUT topic of schema {topic.schema.name if topic.schema else None}")
+    c = topic.columns
+    return pl.DataFrame({"t_ns": c["t_ns"], "u": c["x"], "v": c["y"], "w": c["z"]})
+
+
+def _fast_joint_index(names: np.ndarray, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """``_joint_axis`` for every message at once (joints named alike in all)."""
+    n_msgs, n_joints = position.shape
+    if n_joints == 1:
+        return np.zeros(n_msgs, np.int64)
+    if np.any(names != names[:1]):
+        raise mcap_fast.Unsupported("JointState joints renamed between messages")
+    speed = np.abs(velocity) if velocity.shape[1] == n_joints else np.zeros_like(position)
+    moving = speed.max(axis=1) > 0
+    index = np.where(moving, speed.argmax(axis=1), -1)
+    moved = position[1:] != position[:-1]
+    index[1:] = np.where(~moving[1:] & moved.any(axis=1), moved.argmax(axis=1), index[1:])
+    index[0] = max(index[0], 0)
+    held = np.maximum.accumulate(np.where(index >= 0, np.arange(n_msgs), 0))  # at rest, unmoved: the previous joint
+    return index[held]
+
+
+def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
+    if topic.kind == "json":
+        frame, log_ns = topic.frame, topic.columns["log_ns"]
+        def column(name: str) -> np.ndarray:
+            values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
+            return values.fill_null(np.nan).to_numpy()
+        t_s = column("t")
+        t_ns = np.where(np.isnan(t_s), log_ns, np.round(np.nan_to_num(t_s) * 1e9).astype(np.int64))
+        axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
+        rate, angle = column("rate_hz"), column("angle_deg")
+    elif topic.kind == "joint":
+        c = topic.columns
+        index = _fast_joint_index(c["name"], c["position"], c["velocity"])
+        rows = np.arange(index.size)
+        code = np.select([c["name"][rows, index] == a.encode() for a in AXES], [0, 1, 2], -1)
+        if np.any(code < 0):
+            raise mcap_fast.Unsupported("table joint other than x, y or z")
+        sign = np.array([JOINT_SIGN[a] for a in AXES])[code]
+        velocity = c["velocity"][rows, index] if c["velocity"].shape[1] else np.zeros(index.size)
+        t_ns, axis = c["t_ns"], np.array(AXES, object)[code]
+        rate = sign * velocity / (2 * np.pi)
+        angle = sign * np.degrees(c["position"][rows, index])
+    else:
+        raise mcap_fast.Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
+    if not np.isin(axis, AXES).all():
+        raise mcap_fast.Unsupported("table axis other than x, y or z")
+    return _track(t_ns, axis, rate, angle)
 
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -228,7 +297,14 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     chosen where the defaults were absent."""
     if path.stat().st_size == 0:
         raise InputError("the file is empty", path=path)
-    found = _read_records(path, {meta.imu_topic, meta.table_topic}, limits)
+    topics = {meta.imu_topic, meta.table_topic}
+    try:
+        return _capture(mcap_fast.read_topics(path, topics, limits), path, meta, spec, fast=True)
+    except mcap_fast.Unsupported:
+        return _capture(_read_records(path, topics, limits), path, meta, spec, fast=False)
+
+
+def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
     imu_key = _choose_topic(found, meta.imu_topic, meta.imu_topic_given, IMU_SCHEMA, path)
     table_key = _choose_topic(found, meta.table_topic, meta.table_topic_given, JOINT_SCHEMA, path)
     if imu_key is None:
@@ -240,13 +316,14 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
         for key, meta_topic, kind in ((imu_key, meta.imu_topic, "Imu"), (table_key, meta.table_topic, "JointState"))
         if key is not None and key != meta_topic
     )
-    frame = _imu_frame(found[imu_key], path)
+    frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
     if frame.height == 0:
         raise InputError(f"topic {found[imu_key].channel.topic!r} has no messages", path=path)
     frame = frame.sort("t_ns", maintain_order=True)
     source = "file"
-    if table_key is not None and found[table_key].rows and "axis" not in frame.columns:
-        axis, rate, angle = map_table(frame["t_ns"].to_numpy(), _table_track(found[table_key], path))
+    if table_key is not None and found[table_key].count and "axis" not in frame.columns:
+        track = (_fast_table_track if fast else _table_track)(found[table_key], path)
+        axis, rate, angle = map_table(frame["t_ns"].to_numpy(), track)
         frame = frame.with_columns(
             axis=pl.Series(axis, dtype=pl.String),
             rate_hz=pl.Series(rate).fill_nan(None),

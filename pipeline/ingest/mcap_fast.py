@@ -1,0 +1,339 @@
+"""MCAP decoding without a Python call per message.
+
+A chunk is decompressed once; its message index records (which every
+indexed MCAP writer puts after each chunk) give each channel's message
+offsets, so the records are located with array arithmetic and checked to
+tile the chunk exactly; the few other records in a chunk (schemas, channels)
+are read one by one in the gaps. Messages of fixed layout become columns by
+strided gathers:
+
+- ``sensor_msgs/msg/Imu`` in CDR whose ``frame_id`` keeps one length within
+  a chunk (``ros2_cdr.imu_layout``);
+- ``sensor_msgs/msg/JointState`` in CDR whose joint count and name lengths
+  keep one layout within a chunk (``ros2_cdr.joint_layout``);
+- JSON messages, one object each, parsed together as JSON lines by polars.
+
+Anything else (no message index, messages outside chunks, other layouts,
+damaged files) raises ``Unsupported``: the caller then reads the file with
+the per-message path, which is also the one that words every error, so both
+paths give the same samples and the same messages.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import lz4.frame
+import numpy as np
+import polars as pl
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Schema
+
+from pipeline.config import Limits
+from pipeline.ros2_cdr import CDR_LE, imu_layout, joint_layout
+
+IMU_SCHEMA = "sensor_msgs/msg/Imu"
+JOINT_SCHEMA = "sensor_msgs/msg/JointState"
+MAGIC = b"\x89MCAP0\r\n"
+_MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
+_CDR_LE = np.frombuffer(CDR_LE, np.uint8)
+
+
+class Unsupported(Exception):
+    """The file holds something this path does not decode."""
+
+
+@dataclass
+class DecodedTopic:
+    """One channel's messages as columns, in file order.
+
+    CDR channels have ``t_ns`` (header stamp, or log time where the stamp is
+    zero, contract section 2) and their fields; JSON channels ``log_ns`` and
+    ``frame``, the messages' fields as parsed.
+    """
+
+    schema: Schema | None
+    channel: Channel
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    frame: pl.DataFrame | None = None
+    _parts: list = field(default_factory=list, repr=False)
+
+    @property
+    def count(self) -> int:
+        return len(self.frame) if self.frame is not None else len(self.columns.get("t_ns", ()))
+
+    @property
+    def kind(self) -> str:
+        if self.channel.message_encoding == "json":
+            return "json"
+        if self.channel.message_encoding == "cdr" and self.schema is not None:
+            return {IMU_SCHEMA: "imu", JOINT_SCHEMA: "joint"}.get(self.schema.name, "other")
+        return "other"
+
+    def finish(self) -> None:
+        """Join the per-chunk parts, one column at a time (bounded peak)."""
+        parts, self._parts = self._parts, []
+        if self.kind == "json":
+            log_ns = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+            self.frame = _parse_json_lines(b"".join(p[1] for p in parts), log_ns.size)
+            self.columns = {"log_ns": log_ns}
+            return
+        names = list(parts[0]) if parts else ["t_ns"]
+        for name in names:
+            self.columns[name] = np.concatenate([p.pop(name) for p in parts]) if parts else np.zeros(0, np.int64)
+
+
+def _u32(raw: np.ndarray, at: np.ndarray) -> np.ndarray:
+    return _gather(raw, at, 4).view("<u4").ravel()
+
+
+def _gather(raw: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """The ``width`` bytes from each start, as an (n, width) array."""
+    return raw[starts[:, None] + np.arange(width)]
+
+
+def _stamp_or_log(raw: np.ndarray, data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
+    stamp = _gather(raw, data + stamp_offset, 8)
+    sec = stamp[:, :4].copy().view("<i4").ravel().astype(np.int64)
+    nanosec = stamp[:, 4:].copy().view("<u4").ravel().astype(np.int64)
+    t_ns = sec * 1_000_000_000 + nanosec
+    return np.where(t_ns == 0, log_ns, t_ns)
+
+
+def _check_cdr(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, size: int) -> None:
+    if np.any(sizes != size) or np.any(_gather(raw, data, 4) != _CDR_LE):
+        raise Unsupported("CDR messages of varying layout or byte order")
+
+
+def _decode_imu(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    lay = imu_layout(int(_u32(raw, data[:1] + 12)[0]))
+    _check_cdr(raw, data, sizes, lay.size)
+    if np.any(_u32(raw, data + 12) != lay.frame_id_len):
+        raise Unsupported("Imu frame_id of varying length")
+    acc = _gather(raw, data + lay.linear_acceleration, 24).view("<f8")
+    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+
+
+def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
+    """(frame_id length, name lengths, velocity count, effort count) of one
+    JointState message, read field by field (once per chunk)."""
+    body = memoryview(message)[4:]
+    frame_len = struct.unpack_from("<I", body, 8)[0]
+    off = (12 + frame_len + 3) // 4 * 4
+    n = struct.unpack_from("<I", body, off)[0]
+    off += 4
+    lens = []
+    for _ in range(n):
+        lens.append(struct.unpack_from("<I", body, off)[0])
+        off = (off + 4 + lens[-1] + 3) // 4 * 4
+    counts = []
+    for _ in range(3):
+        counts.append(struct.unpack_from("<I", body, off)[0])
+        start = (off + 4 + 7) // 8 * 8 if counts[-1] else off + 4
+        off = start + 8 * counts[-1]
+    if counts[0] != n or counts[1] not in (0, n) or min(lens, default=0) < 2:
+        raise Unsupported("JointState with unnamed joints, or position or velocity counts other than its joint count")
+    return frame_len, tuple(lens), counts[1], counts[2]
+
+
+def _decode_joint(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    try:
+        shape = _joint_shape(raw[data[0] : data[0] + sizes[0]].tobytes())
+    except struct.error:
+        raise Unsupported("JointState message shorter than its fields") from None
+    lay = joint_layout(*shape)
+    _check_cdr(raw, data, sizes, lay.size)
+    for offset, value in lay.counts:
+        if np.any(_u32(raw, data + offset) != value):
+            raise Unsupported("JointState messages of varying layout")
+    n, n_vel = len(lay.names), shape[2]
+    names = np.column_stack([_gather(raw, data + o, k - 1).view(f"S{k - 1}").ravel() for o, k in zip(lay.names, lay.name_lens)])
+    position = _gather(raw, data + lay.position, 8 * n).view("<f8")
+    velocity = _gather(raw, data + lay.velocity, 8 * n_vel).view("<f8").reshape(-1, n_vel)
+    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "name": names,
+            "position": position, "velocity": velocity}
+
+
+def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
+    """The messages' bytes, one per line."""
+    total = int(sizes.sum())
+    out_start = np.cumsum(sizes + 1) - (sizes + 1)
+    src = np.repeat(data - out_start, sizes + 1) + np.arange(total + sizes.size)
+    newline = out_start + sizes
+    src[newline] = 0
+    out = raw[src]
+    if np.count_nonzero(out == 10):  # a message spans lines: not one object per line
+        raise Unsupported("JSON message with a line break")
+    out[newline] = 10
+    return out.tobytes()
+
+
+def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
+    if n == 0:
+        return pl.DataFrame()
+    try:
+        frame = pl.read_ndjson(io.BytesIO(text), infer_schema_length=None)
+    except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
+        raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
+    if frame.height != n or any(not (d.is_numeric() or d in (pl.Null, pl.String)) for d in frame.dtypes):
+        raise Unsupported("JSON messages other than flat objects")
+    return frame
+
+
+@dataclass
+class _State:
+    topics: set[str]
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    found: dict[str, DecodedTopic] = field(default_factory=dict)
+    keep: dict[int, DecodedTopic] = field(default_factory=dict)
+
+    def schema(self, body: bytes) -> None:
+        record = Schema.read(ReadDataStream(io.BytesIO(body)))
+        self.schemas[record.id] = record
+
+    def channel(self, body: bytes) -> int | None:
+        """Register a channel as the per-message path does (the first per
+        topic); returns its id if its messages are to be decoded."""
+        record = Channel.read(ReadDataStream(io.BytesIO(body)))
+        if record.topic in self.found:
+            return None
+        topic = DecodedTopic(self.schemas.get(record.schema_id), record)
+        self.found[record.topic] = topic
+        kind = topic.schema.name if topic.schema is not None else ""
+        if record.topic in self.topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
+            if topic.kind == "other":
+                raise Unsupported(f"channel {record.topic!r} has a layout this path does not decode")
+            self.keep[record.id] = topic
+            return record.id
+        return None
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    if compression == "zstd":
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        return lz4.frame.decompress(data)
+    if compression == "":
+        return data
+    raise Unsupported(f"chunk compression {compression!r}")
+
+
+def _chunk(state: _State, body: bytes, indexes: list[bytes]) -> None:
+    """Decode one chunk's messages of the kept channels."""
+    head = struct.unpack_from("<QQQII", body, 0)
+    size, name_len = head[2], head[4]
+    compression = body[32 : 32 + name_len].decode()
+    (data_len,) = struct.unpack_from("<Q", body, 32 + name_len)
+    payload = body[40 + name_len : 40 + name_len + data_len]
+    if len(payload) != data_len:
+        raise Unsupported("chunk shorter than its length")
+    raw = np.frombuffer(_decompress(compression, payload, size), np.uint8)
+    if raw.size != size:
+        raise Unsupported("chunk data of the wrong size")
+    by_channel = {}
+    for index in indexes:
+        channel_id, length = struct.unpack_from("<HI", index, 0)
+        pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
+        by_channel[channel_id] = np.sort(pairs[:, 1].astype(np.int64))
+    starts = np.sort(np.concatenate([np.zeros(0, np.int64), *by_channel.values()]))
+    if starts.size and (starts[0] < 0 or starts[-1] > size - _MESSAGE_HEADER):
+        raise Unsupported("message index points outside its chunk")
+    if np.any(raw[starts] != Opcode.MESSAGE):
+        raise Unsupported("message index points at something other than a message")
+    ends = starts + 9 + _gather(raw, starts + 1, 8).view("<u8").ravel().astype(np.int64)
+    if np.any(ends[:-1] > starts[1:]) or (ends.size and ends[-1] > size):
+        raise Unsupported("overlapping message records")
+    # the other records (schemas, channels) sit in the gaps between messages
+    gap_starts, gap_ends = np.r_[0, ends], np.r_[starts, size]
+    defined_at = {}
+    for lo, hi in zip(gap_starts[gap_starts < gap_ends].tolist(), gap_ends[gap_starts < gap_ends].tolist()):
+        while lo < hi:
+            if lo + 9 > hi:
+                raise Unsupported("truncated record in a chunk")
+            opcode, length = struct.unpack_from("<BQ", raw, lo)
+            record = raw[lo + 9 : lo + 9 + length].tobytes()
+            if lo + 9 + length > hi or opcode == Opcode.MESSAGE:
+                raise Unsupported("chunk record outside the message index")
+            if opcode == Opcode.SCHEMA:
+                state.schema(record)
+            elif opcode == Opcode.CHANNEL and (cid := state.channel(record)) is not None:
+                defined_at[cid] = lo
+            lo += 9 + length
+    for channel_id, offsets in by_channel.items():
+        topic = state.keep.get(channel_id)
+        if topic is None or offsets.size == 0:
+            continue  # the per-message path skips messages of channels it has not kept (yet)
+        if offsets[0] < defined_at.get(channel_id, -1):
+            raise Unsupported("messages before their channel record")
+        if np.any(_gather(raw, offsets + 9, 2).view("<u2").ravel() != channel_id):
+            raise Unsupported("message index of another channel")
+        log_ns = _gather(raw, offsets + 15, 8).view("<i8").ravel()
+        sizes = _gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) - 22
+        data = offsets + _MESSAGE_HEADER
+        if topic.kind == "json":
+            topic._parts.append((log_ns, _json_lines(raw, data, sizes)))
+        elif topic.kind == "imu":
+            topic._parts.append(_decode_imu(raw, data, sizes, log_ns))
+        else:
+            topic._parts.append(_decode_joint(raw, data, sizes, log_ns))
+
+
+def read_topics(path: Path, topics: set[str], limits: Limits) -> dict[str, DecodedTopic]:
+    """Every channel by topic, with the messages of ``topics`` and of any Imu
+    or JointState channel decoded into columns.
+
+    Raises ``Unsupported`` for anything but a chunked, indexed file of
+    layouts this module decodes, damaged files included.
+    """
+    state = _State(topics)
+    pending: tuple[bytes, list[bytes]] | None = None
+    try:
+        with path.open("rb") as fh:
+            if fh.read(8) != MAGIC:
+                raise Unsupported("no MCAP magic")
+            while True:
+                head = fh.read(9)
+                if len(head) < 9:
+                    raise Unsupported("file ends inside a record")
+                opcode, length = struct.unpack("<BQ", head)
+                if length > limits.max_mcap_record_bytes:
+                    raise Unsupported("record over the size limit")
+                if opcode == Opcode.MESSAGE_INDEX and pending is not None:
+                    pending[1].append(_read(fh, length))
+                    continue
+                if pending is not None:
+                    _chunk(state, *pending)
+                    pending = None
+                if opcode == Opcode.CHUNK:
+                    pending = (_read(fh, length), [])
+                elif opcode == Opcode.SCHEMA:
+                    state.schema(_read(fh, length))
+                elif opcode == Opcode.CHANNEL:
+                    state.channel(_read(fh, length))
+                elif opcode == Opcode.MESSAGE:
+                    raise Unsupported("messages outside chunks")
+                elif opcode == Opcode.FOOTER:
+                    _read(fh, length)
+                    if fh.read(8) != MAGIC:
+                        raise Unsupported("no MCAP magic at the end")
+                    break
+                else:
+                    _read(fh, length)
+    except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError, RuntimeError) as exc:
+        raise Unsupported(f"damaged MCAP ({exc})") from None
+    for topic in state.keep.values():
+        topic.finish()
+    return state.found
+
+
+def _read(fh, length: int) -> bytes:
+    data = fh.read(length)
+    if len(data) != length:
+        raise Unsupported("file ends inside a record")
+    return data
