@@ -22,8 +22,12 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
     """
     labelled = pl.col("axis").is_not_null() & pl.col("rate_hz").is_not_null()
     posed = ~labelled & (pl.col("pose").is_not_null() | pl.col("gx").is_not_null())
+    # A column constant over the table starts no run; leaving it out spares
+    # materialising it (a capture name or an absent label on every sample).
+    keys = [c for c in ("capture", "axis", "rate_hz", "pose", "gx", "gy", "gz") if samples.select(pl.col(c).n_unique()).item() > 1]
+    changed = [pl.col(c).rle_id().diff().fill_null(0) != 0 for c in keys]
     frame = samples.with_columns(
-        _run=pl.struct("capture", "axis", "rate_hz", "pose", "gx", "gy", "gz").rle_id(),
+        _run=pl.any_horizontal(changed).cum_sum() if changed else pl.lit(0),
         _kind=pl.when(labelled)
         .then(pl.when(pl.col("rate_hz") == 0).then(pl.lit("static")).otherwise(pl.lit("rotation")))
         .when(posed)
@@ -35,7 +39,8 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
         segment=(pl.when(in_segment).then(pl.col("_run")).rank("dense") - 1).cast(pl.Int32)
     )
     segments = (
-        frame.filter(in_segment)
+        frame.lazy()
+        .filter(in_segment)
         .group_by("segment", maintain_order=True)
         .agg(
             capture=pl.col("capture").first(),
@@ -54,5 +59,6 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
             n_steps=pl.col("n_steps").cast(pl.Int32),
             angle_source=pl.when(pl.col("has_angle")).then(pl.lit(angle_source)).otherwise(pl.lit("none")),
         )
+        .collect()
     )
     return frame.drop("_run", "_kind"), conform(segments, "segments")

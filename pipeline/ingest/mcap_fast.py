@@ -60,13 +60,15 @@ class DecodedTopic:
 
     schema: Schema | None
     channel: Channel
+    capacity: int = 0
     columns: dict[str, np.ndarray] = field(default_factory=dict)
     frame: pl.DataFrame | None = None
+    _filled: int = 0
     _parts: list = field(default_factory=list, repr=False)
 
     @property
     def count(self) -> int:
-        return len(self.frame) if self.frame is not None else len(self.columns.get("t_ns", ()))
+        return len(self.frame) if self.frame is not None else self._filled
 
     @property
     def kind(self) -> str:
@@ -76,17 +78,33 @@ class DecodedTopic:
             return {IMU_SCHEMA: "imu", JOINT_SCHEMA: "joint"}.get(self.schema.name, "other")
         return "other"
 
+    def add(self, part: dict[str, np.ndarray]) -> None:
+        """Copy one chunk's columns into the channel's arrays, allocated once
+        for all its messages (counted from the message indexes), so no
+        column is ever held twice."""
+        if not self.columns:
+            self.columns = {name: np.empty((self.capacity, *v.shape[1:]), v.dtype) for name, v in part.items()}
+        k = len(part["t_ns"])
+        for name, values in part.items():
+            column = self.columns[name]
+            if column.shape[1:] != values.shape[1:] or column.dtype != values.dtype:
+                raise Unsupported("message layout changes between chunks")
+            column[self._filled : self._filled + k] = values
+        self._filled += k
+
     def finish(self) -> None:
-        """Join the per-chunk parts, one column at a time (bounded peak)."""
-        parts, self._parts = self._parts, []
         if self.kind == "json":
+            parts, self._parts = self._parts, []
             log_ns = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
             self.frame = _parse_json_lines(b"".join(p[1] for p in parts), log_ns.size)
             self.columns = {"log_ns": log_ns}
             return
-        names = list(parts[0]) if parts else ["t_ns"]
-        for name in names:
-            self.columns[name] = np.concatenate([p.pop(name) for p in parts]) if parts else np.zeros(0, np.int64)
+        self.columns = {name: column[: self._filled] for name, column in self.columns.items()} or {"t_ns": np.zeros(0, np.int64)}
+
+    def take(self) -> dict[str, np.ndarray]:
+        """The columns, handed over: the topic keeps no reference to them."""
+        columns, self.columns = self.columns, {}
+        return columns
 
 
 def _u32(raw: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -189,6 +207,7 @@ def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
 @dataclass
 class _State:
     topics: set[str]
+    counts: dict[int, int]
     schemas: dict[int, Schema] = field(default_factory=dict)
     found: dict[str, DecodedTopic] = field(default_factory=dict)
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
@@ -203,7 +222,7 @@ class _State:
         record = Channel.read(ReadDataStream(io.BytesIO(body)))
         if record.topic in self.found:
             return None
-        topic = DecodedTopic(self.schemas.get(record.schema_id), record)
+        topic = DecodedTopic(self.schemas.get(record.schema_id), record, self.counts.get(record.id, 0))
         self.found[record.topic] = topic
         kind = topic.schema.name if topic.schema is not None else ""
         if record.topic in self.topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
@@ -279,9 +298,40 @@ def _chunk(state: _State, body: bytes, indexes: list[bytes]) -> None:
         if topic.kind == "json":
             topic._parts.append((log_ns, _json_lines(raw, data, sizes)))
         elif topic.kind == "imu":
-            topic._parts.append(_decode_imu(raw, data, sizes, log_ns))
+            topic.add(_decode_imu(raw, data, sizes, log_ns))
         else:
-            topic._parts.append(_decode_joint(raw, data, sizes, log_ns))
+            topic.add(_decode_joint(raw, data, sizes, log_ns))
+
+
+def _records(fh, limits: Limits):
+    """(opcode, length) of each top-level record up to the footer, the file
+    positioned at the record's body."""
+    if fh.read(8) != MAGIC:
+        raise Unsupported("no MCAP magic")
+    while True:
+        head = fh.read(9)
+        if len(head) < 9:
+            raise Unsupported("file ends inside a record")
+        opcode, length = struct.unpack("<BQ", head)
+        if length > limits.max_mcap_record_bytes:
+            raise Unsupported("record over the size limit")
+        yield opcode, length
+        if opcode == Opcode.FOOTER:
+            return
+
+
+def _message_counts(fh, limits: Limits) -> dict[int, int]:
+    """Messages per channel id, from the message index records alone."""
+    counts: dict[int, int] = {}
+    for opcode, length in _records(fh, limits):
+        if opcode == Opcode.MESSAGE_INDEX:
+            channel_id, size = struct.unpack("<HI", _read(fh, 6))
+            counts[channel_id] = counts.get(channel_id, 0) + size // 16
+            fh.seek(length - 6, io.SEEK_CUR)
+        else:
+            fh.seek(length, io.SEEK_CUR)
+    fh.seek(0)
+    return counts
 
 
 def read_topics(path: Path, topics: set[str], limits: Limits) -> dict[str, DecodedTopic]:
@@ -291,19 +341,11 @@ def read_topics(path: Path, topics: set[str], limits: Limits) -> dict[str, Decod
     Raises ``Unsupported`` for anything but a chunked, indexed file of
     layouts this module decodes, damaged files included.
     """
-    state = _State(topics)
     pending: tuple[bytes, list[bytes]] | None = None
     try:
         with path.open("rb") as fh:
-            if fh.read(8) != MAGIC:
-                raise Unsupported("no MCAP magic")
-            while True:
-                head = fh.read(9)
-                if len(head) < 9:
-                    raise Unsupported("file ends inside a record")
-                opcode, length = struct.unpack("<BQ", head)
-                if length > limits.max_mcap_record_bytes:
-                    raise Unsupported("record over the size limit")
+            state = _State(topics, _message_counts(fh, limits))
+            for opcode, length in _records(fh, limits):
                 if opcode == Opcode.MESSAGE_INDEX and pending is not None:
                     pending[1].append(_read(fh, length))
                     continue
@@ -322,7 +364,6 @@ def read_topics(path: Path, topics: set[str], limits: Limits) -> dict[str, Decod
                     _read(fh, length)
                     if fh.read(8) != MAGIC:
                         raise Unsupported("no MCAP magic at the end")
-                    break
                 else:
                     _read(fh, length)
     except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError, RuntimeError) as exc:

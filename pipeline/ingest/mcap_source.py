@@ -23,7 +23,7 @@ from mcap_ros2.decoder import DecoderFactory
 from pipeline.config import Limits
 from pipeline.errors import InputError, LimitError
 from pipeline.ingest import mcap_fast
-from pipeline.ingest.labels import label_columns
+from pipeline.ingest.labels import label_columns, time_ordered
 from pipeline.meta import CaptureSpec, DatasetMeta
 from pipeline.physics import AXES, JOINT_SIGN
 
@@ -195,8 +195,10 @@ def _table_track(topic: _Topic, path: Path) -> TableTrack:
 
 def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray) -> TableTrack:
     """Table messages in time order (stable), rates to the nearest nanohertz."""
-    order = np.argsort(t_ns, kind="stable")
-    return TableTrack(t_ns[order], axis[order], np.round(rate_hz[order] * 1e9) / 1e9, angle_deg[order])
+    if np.any(t_ns[1:] < t_ns[:-1]):
+        order = np.argsort(t_ns, kind="stable")
+        t_ns, axis, rate_hz, angle_deg = t_ns[order], axis[order], rate_hz[order], angle_deg[order]
+    return TableTrack(t_ns, axis, np.round(rate_hz * 1e9) / 1e9, angle_deg)
 
 
 def _fast_imu_frame(topic: mcap_fast.DecodedTopic, path: Path) -> pl.DataFrame:
@@ -205,8 +207,8 @@ def _fast_imu_frame(topic: mcap_fast.DecodedTopic, path: Path) -> pl.DataFrame:
         return _json_frame(topic.frame.select(fields), topic.columns["log_ns"], topic.channel.topic, path)
     if topic.kind != "imu":
         raise mcap_fast.Unsupported(f"DUT topic of schema {topic.schema.name if topic.schema else None}")
-    c = topic.columns
-    return pl.DataFrame({"t_ns": c["t_ns"], "u": c["x"], "v": c["y"], "w": c["z"]})
+    c = topic.take()
+    return pl.DataFrame({"t_ns": c["t_ns"], "u": c["x"], "v": c["y"], "w": c["z"]})  # zero-copy
 
 
 def _fast_joint_index(names: np.ndarray, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
@@ -237,17 +239,24 @@ def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
         axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
         rate, angle = column("rate_hz"), column("angle_deg")
     elif topic.kind == "joint":
-        c = topic.columns
-        index = _fast_joint_index(c["name"], c["position"], c["velocity"])
-        rows = np.arange(index.size)
-        code = np.select([c["name"][rows, index] == a.encode() for a in AXES], [0, 1, 2], -1)
+        c = topic.take()
+        if c["position"].shape[1] == 1:
+            name, position = c["name"][:, 0], c["position"][:, 0]
+            velocity = c["velocity"][:, 0] if c["velocity"].shape[1] else np.zeros(position.size)
+        else:
+            index = _fast_joint_index(c["name"], c["position"], c["velocity"])
+            rows = np.arange(index.size)
+            name, position = c["name"][rows, index], c["position"][rows, index]
+            velocity = c["velocity"][rows, index] if c["velocity"].shape[1] else np.zeros(index.size)
+        code = np.full(name.size, -1, np.int8)
+        for k, a in enumerate(AXES):
+            code[name == a.encode()] = k
         if np.any(code < 0):
             raise mcap_fast.Unsupported("table joint other than x, y or z")
         sign = np.array([JOINT_SIGN[a] for a in AXES])[code]
-        velocity = c["velocity"][rows, index] if c["velocity"].shape[1] else np.zeros(index.size)
         t_ns, axis = c["t_ns"], np.array(AXES, object)[code]
         rate = sign * velocity / (2 * np.pi)
-        angle = sign * np.degrees(c["position"][rows, index])
+        angle = sign * np.degrees(position)
     else:
         raise mcap_fast.Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
     if not np.isin(axis, AXES).all():
@@ -292,6 +301,23 @@ def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarr
     return axis, rate, angle
 
 
+_LABEL_BLOCK = 1 << 18
+
+
+def _table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
+    """``map_table`` a block of samples at a time (a sample's labels depend
+    only on its own time stamp), so its temporaries stay small."""
+    parts = []
+    for start in range(0, t_ns.size, _LABEL_BLOCK):
+        axis, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
+        parts.append(pl.DataFrame({
+            "axis": pl.Series(axis, dtype=pl.String),
+            "rate_hz": pl.Series(rate).fill_nan(None),
+            "angle_deg": pl.Series(angle).fill_nan(None),
+        }))
+    return pl.concat(parts, rechunk=False)
+
+
 def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
     """One MCAP capture as canonical sample columns, and notes on the topics
     chosen where the defaults were absent."""
@@ -319,16 +345,11 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
     frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
     if frame.height == 0:
         raise InputError(f"topic {found[imu_key].channel.topic!r} has no messages", path=path)
-    frame = frame.sort("t_ns", maintain_order=True)
+    frame = time_ordered(frame)
     source = "file"
     if table_key is not None and found[table_key].count and "axis" not in frame.columns:
         track = (_fast_table_track if fast else _table_track)(found[table_key], path)
-        axis, rate, angle = map_table(frame["t_ns"].to_numpy(), track)
-        frame = frame.with_columns(
-            axis=pl.Series(axis, dtype=pl.String),
-            rate_hz=pl.Series(rate).fill_nan(None),
-            angle_deg=pl.Series(angle).fill_nan(None),
-        )
+        frame = frame.hstack(_table_labels(frame["t_ns"].to_numpy(), track).get_columns())
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)
