@@ -306,12 +306,14 @@ _LABEL_BLOCK = 1 << 18
 
 def _table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     """``map_table`` a block of samples at a time (a sample's labels depend
-    only on its own time stamp), so its temporaries stay small."""
+    only on its own time stamp), so its temporaries stay small; ``axis``
+    as an Enum (one byte a sample) until ``label_columns`` gives it the
+    contract's type, by which time the track is gone."""
     parts = []
     for start in range(0, t_ns.size, _LABEL_BLOCK):
         axis, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
         parts.append(pl.DataFrame({
-            "axis": pl.Series(axis, dtype=pl.String),
+            "axis": pl.Series(axis, dtype=pl.Enum(AXES)),
             "rate_hz": pl.Series(rate).fill_nan(None),
             "angle_deg": pl.Series(angle).fill_nan(None),
         }))
