@@ -22,7 +22,9 @@ paths give the same samples and the same messages.
 from __future__ import annotations
 
 import io
+import os
 import struct
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,6 +45,7 @@ JOINT_SCHEMA = "sensor_msgs/msg/JointState"
 MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
 _CDR_LE = np.frombuffer(CDR_LE, np.uint8)
+_BATCH_CHUNKS = 16  # chunks decompressed together (about 16 MiB)
 
 
 class Unsupported(Exception):
@@ -107,35 +110,41 @@ class DecodedTopic:
         return columns
 
 
-def _u32(raw: np.ndarray, at: np.ndarray) -> np.ndarray:
-    return _gather(raw, at, 4).view("<u4").ravel()
-
-
 def _gather(raw: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
-    """The ``width`` bytes from each start, as an (n, width) array."""
+    """The ``width`` bytes from each start, as an (n, width) array: a strided
+    view where the starts are evenly spaced (one channel's run of messages
+    of one size), else a gather."""
+    step = int(starts[1] - starts[0]) if starts.size > 1 else 0
+    if starts.size > 1 and step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and np.all(np.diff(starts) == step):
+        view = np.lib.stride_tricks.as_strided(raw[starts[0] :], (starts.size, width), (step, 1), writeable=False)
+        return view.copy()
     return raw[starts[:, None] + np.arange(width)]
 
 
-def _stamp_or_log(raw: np.ndarray, data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
-    stamp = _gather(raw, data + stamp_offset, 8)
-    sec = stamp[:, :4].copy().view("<i4").ravel().astype(np.int64)
-    nanosec = stamp[:, 4:].copy().view("<u4").ravel().astype(np.int64)
-    t_ns = sec * 1_000_000_000 + nanosec
+def _field(data: np.ndarray, offset: int, dtype: str) -> np.ndarray:
+    """Column ``offset`` of every message (rows of ``data``) as ``dtype``."""
+    width = np.dtype(dtype).itemsize
+    return np.ascontiguousarray(data[:, offset : offset + width]).view(dtype).ravel()
+
+
+def _stamp_or_log(data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
+    t_ns = _field(data, stamp_offset, "<i4").astype(np.int64) * 1_000_000_000 + _field(data, stamp_offset + 4, "<u4")
     return np.where(t_ns == 0, log_ns, t_ns)
 
 
-def _check_cdr(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, size: int) -> None:
-    if np.any(sizes != size) or np.any(_gather(raw, data, 4) != _CDR_LE):
-        raise Unsupported("CDR messages of varying layout or byte order")
+def _check_cdr(data: np.ndarray) -> None:
+    if np.any(data[:, :4] != _CDR_LE):
+        raise Unsupported("CDR messages in another byte order")
 
 
-def _decode_imu(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    lay = imu_layout(int(_u32(raw, data[:1] + 12)[0]))
-    _check_cdr(raw, data, sizes, lay.size)
-    if np.any(_u32(raw, data + 12) != lay.frame_id_len):
+def _decode_imu(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """Imu messages of one size (rows of ``data``) into columns."""
+    lay = imu_layout(int(_field(data[:1], 12, "<u4")[0]))
+    _check_cdr(data)
+    if data.shape[1] != lay.size or np.any(_field(data, 12, "<u4") != lay.frame_id_len):
         raise Unsupported("Imu frame_id of varying length")
-    acc = _gather(raw, data + lay.linear_acceleration, 24).view("<f8")
-    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+    acc = np.ascontiguousarray(data[:, lay.linear_acceleration : lay.linear_acceleration + 24]).view("<f8")
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
 
 
 def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
@@ -160,22 +169,21 @@ def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
     return frame_len, tuple(lens), counts[1], counts[2]
 
 
-def _decode_joint(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+def _decode_joint(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """JointState messages of one size (rows of ``data``) into columns."""
     try:
-        shape = _joint_shape(raw[data[0] : data[0] + sizes[0]].tobytes())
+        shape = _joint_shape(data[0].tobytes())
     except struct.error:
         raise Unsupported("JointState message shorter than its fields") from None
     lay = joint_layout(*shape)
-    _check_cdr(raw, data, sizes, lay.size)
-    for offset, value in lay.counts:
-        if np.any(_u32(raw, data + offset) != value):
-            raise Unsupported("JointState messages of varying layout")
+    _check_cdr(data)
+    if data.shape[1] != lay.size or any(np.any(_field(data, o, "<u4") != v) for o, v in lay.counts):
+        raise Unsupported("JointState messages of varying layout")
     n, n_vel = len(lay.names), shape[2]
-    names = np.column_stack([_gather(raw, data + o, k - 1).view(f"S{k - 1}").ravel() for o, k in zip(lay.names, lay.name_lens)])
-    position = _gather(raw, data + lay.position, 8 * n).view("<f8")
-    velocity = _gather(raw, data + lay.velocity, 8 * n_vel).view("<f8").reshape(-1, n_vel)
-    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "name": names,
-            "position": position, "velocity": velocity}
+    names = np.column_stack([_field(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
+    position = np.ascontiguousarray(data[:, lay.position : lay.position + 8 * n]).view("<f8")
+    velocity = np.ascontiguousarray(data[:, lay.velocity : lay.velocity + 8 * n_vel]).view("<f8").reshape(-1, n_vel)
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
 
 
 def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
@@ -243,8 +251,8 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
     raise Unsupported(f"chunk compression {compression!r}")
 
 
-def _chunk(state: _State, body: bytes, indexes: list[bytes]) -> None:
-    """Decode one chunk's messages of the kept channels."""
+def _inflate(body: bytes) -> np.ndarray:
+    """A chunk record's decompressed records."""
     head = struct.unpack_from("<QQQII", body, 0)
     size, name_len = head[2], head[4]
     compression = body[32 : 32 + name_len].decode()
@@ -255,6 +263,20 @@ def _chunk(state: _State, body: bytes, indexes: list[bytes]) -> None:
     raw = np.frombuffer(_decompress(compression, payload, size), np.uint8)
     if raw.size != size:
         raise Unsupported("chunk data of the wrong size")
+    return raw
+
+
+def _chunks(state: _State, pending: list[tuple[bytes, list[bytes]]], pool: ThreadPoolExecutor) -> None:
+    """Decompress a batch of chunks on every core (zstd and lz4 release the
+    GIL), then decode them in file order."""
+    for raw, (_, indexes) in zip(pool.map(_inflate, [body for body, _ in pending]), pending):
+        _chunk(state, raw, indexes)
+    pending.clear()
+
+
+def _chunk(state: _State, raw: np.ndarray, indexes: list[bytes]) -> None:
+    """Decode one chunk's messages of the kept channels."""
+    size = raw.size
     by_channel = {}
     for index in indexes:
         channel_id, length = struct.unpack_from("<HI", index, 0)
@@ -290,17 +312,24 @@ def _chunk(state: _State, body: bytes, indexes: list[bytes]) -> None:
             continue  # the per-message path skips messages of channels it has not kept (yet)
         if offsets[0] < defined_at.get(channel_id, -1):
             raise Unsupported("messages before their channel record")
-        if np.any(_gather(raw, offsets + 9, 2).view("<u2").ravel() != channel_id):
-            raise Unsupported("message index of another channel")
-        log_ns = _gather(raw, offsets + 15, 8).view("<i8").ravel()
-        sizes = _gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) - 22
-        data = offsets + _MESSAGE_HEADER
+        sizes = _gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) + 9
         if topic.kind == "json":
-            topic._parts.append((log_ns, _json_lines(raw, data, sizes)))
-        elif topic.kind == "imu":
-            topic.add(_decode_imu(raw, data, sizes, log_ns))
+            head = _gather(raw, offsets, _MESSAGE_HEADER)
+            data = None
+        elif np.all(sizes == sizes[0]):  # fixed layout: each record copied once, fields are its columns
+            head = _gather(raw, offsets, int(sizes[0]))
+            data = head[:, _MESSAGE_HEADER:]
         else:
-            topic.add(_decode_joint(raw, data, sizes, log_ns))
+            raise Unsupported("CDR messages of varying size")
+        if np.any(_field(head, 9, "<u2") != channel_id):
+            raise Unsupported("message index of another channel")
+        log_ns = _field(head, 15, "<i8")
+        if topic.kind == "json":
+            topic._parts.append((log_ns, _json_lines(raw, offsets + _MESSAGE_HEADER, sizes - _MESSAGE_HEADER)))
+        elif topic.kind == "imu":
+            topic.add(_decode_imu(data, log_ns))
+        else:
+            topic.add(_decode_joint(data, log_ns))
 
 
 def _records(fh, limits: Limits):
@@ -341,19 +370,21 @@ def read_topics(path: Path, topics: set[str], limits: Limits) -> dict[str, Decod
     Raises ``Unsupported`` for anything but a chunked, indexed file of
     layouts this module decodes, damaged files included.
     """
-    pending: tuple[bytes, list[bytes]] | None = None
+    pending: list[tuple[bytes, list[bytes]]] = []  # chunks read, not yet decoded, each with its message indexes
     try:
-        with path.open("rb") as fh:
+        with path.open("rb") as fh, ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             state = _State(topics, _message_counts(fh, limits))
             for opcode, length in _records(fh, limits):
-                if opcode == Opcode.MESSAGE_INDEX and pending is not None:
-                    pending[1].append(_read(fh, length))
+                if opcode == Opcode.MESSAGE_INDEX and pending:
+                    pending[-1][1].append(_read(fh, length))
                     continue
-                if pending is not None:
-                    _chunk(state, *pending)
-                    pending = None
+                if opcode == Opcode.CHUNK and len(pending) < _BATCH_CHUNKS:
+                    pending.append((_read(fh, length), []))
+                    continue
+                if pending:
+                    _chunks(state, pending, pool)
                 if opcode == Opcode.CHUNK:
-                    pending = (_read(fh, length), [])
+                    pending.append((_read(fh, length), []))
                 elif opcode == Opcode.SCHEMA:
                     state.schema(_read(fh, length))
                 elif opcode == Opcode.CHANNEL:

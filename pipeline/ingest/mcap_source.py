@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import struct
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,17 @@ class TableTrack:
     axis: np.ndarray  # object array of 'x', 'y', 'z'
     rate_hz: np.ndarray
     angle_deg: np.ndarray
+
+    @cached_property
+    def runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each message's run (same axis and rate) and the angle increment to
+        the next message, unwrapped with the commanded rate (only sin and cos
+        of theta are used, so no running sum is needed); computed once for
+        all blocks of samples."""
+        run_break = np.r_[True, (self.axis[1:] != self.axis[:-1]) | (self.rate_hz[1:] != self.rate_hz[:-1])]
+        expected = 360.0 * self.rate_hz[:-1] * np.diff(self.t_ns) / 1e9
+        increment = expected + (np.diff(self.angle_deg) - expected + 180.0) % 360.0 - 180.0
+        return np.cumsum(run_break) - 1, increment
 
 
 @dataclass
@@ -237,6 +249,8 @@ def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
         t_s = column("t")
         t_ns = np.where(np.isnan(t_s), log_ns, np.round(np.nan_to_num(t_s) * 1e9).astype(np.int64))
         axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
+        if not np.isin(axis, AXES).all():
+            raise mcap_fast.Unsupported("table axis other than x, y or z")
         rate, angle = column("rate_hz"), column("angle_deg")
     elif topic.kind == "joint":
         c = topic.take()
@@ -259,13 +273,12 @@ def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
         angle = sign * np.degrees(position)
     else:
         raise mcap_fast.Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
-    if not np.isin(axis, AXES).all():
-        raise mcap_fast.Unsupported("table axis other than x, y or z")
     return _track(t_ns, axis, rate, angle)
 
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Axis, rate and angle at each DUT stamp (contract section 1).
+    """The table message in force (index into ``track``, -1 before the
+    first), rate and angle at each DUT stamp (contract section 1).
 
     Labels hold from the last table message. Angles are linearly interpolated
     between messages of the same run (same axis and rate) after unwrapping
@@ -273,32 +286,25 @@ def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarr
     message, and held during static steps.
     """
     n = t_ns.size
-    axis = np.full(n, None, object)
     rate = np.full(n, np.nan)
     angle = np.full(n, np.nan)
-    if track.t_ns.size == 0:
-        return axis, rate, angle
-    run_break = np.r_[True, (track.axis[1:] != track.axis[:-1]) | (track.rate_hz[1:] != track.rate_hz[:-1])]
-    run = np.cumsum(run_break) - 1
-    # The increment to the next message, unwrapped with the commanded rate;
-    # only sin and cos of theta are used, so no running sum is needed.
-    expected = 360.0 * track.rate_hz[:-1] * np.diff(track.t_ns) / 1e9
-    increment = expected + (np.diff(track.angle_deg) - expected + 180.0) % 360.0 - 180.0
     idx = np.searchsorted(track.t_ns, t_ns, side="right") - 1
+    if track.t_ns.size == 0:
+        return idx, rate, angle
+    run, increment = track.runs
     have = idx >= 0
     i = idx[have]
-    axis[have] = track.axis[i]
-    rate[have] = track.rate_hz[i]
+    rate_i, angle_i, t_i = track.rate_hz[i], track.angle_deg[i], track.t_ns[i]  # each gathered once
+    rate[have] = rate_i
     nxt = np.minimum(i + 1, track.t_ns.size - 1)
     same_run = (nxt != i) & (run[nxt] == run[i])
-    dt_ns = t_ns[have] - track.t_ns[i]
-    span_ns = np.where(same_run, track.t_ns[nxt] - track.t_ns[i], 1)
+    dt_ns = t_ns[have] - t_i
+    span_ns = np.where(same_run, track.t_ns[nxt] - t_i, 1)
     step = np.where(same_run, increment[np.minimum(i, increment.size - 1)] if increment.size else 0.0, 0.0)
-    interp = track.angle_deg[i] + dt_ns / span_ns * step
-    extrap = track.angle_deg[i] + 360.0 * track.rate_hz[i] * dt_ns / 1e9
-    moving = track.rate_hz[i] != 0
-    angle[have] = np.where(moving, np.where(same_run, interp, extrap), track.angle_deg[i])
-    return axis, rate, angle
+    interp = angle_i + dt_ns / span_ns * step
+    extrap = angle_i + 360.0 * rate_i * dt_ns / 1e9
+    angle[have] = np.where(rate_i != 0, np.where(same_run, interp, extrap), angle_i)
+    return idx, rate, angle
 
 
 _LABEL_BLOCK = 1 << 18
@@ -309,11 +315,15 @@ def _table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     only on its own time stamp), so its temporaries stay small; ``axis``
     as an Enum (one byte a sample) until ``label_columns`` gives it the
     contract's type, by which time the track is gone."""
+    codes = np.full(track.t_ns.size + 1, -1, np.int8)  # the last entry serves index -1: no message yet
+    for k, a in enumerate(AXES):
+        codes[:-1][track.axis == a] = k
     parts = []
     for start in range(0, t_ns.size, _LABEL_BLOCK):
-        axis, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
+        index, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
+        axis = pl.Series(codes[index]).replace_strict(range(len(AXES)), AXES, default=None, return_dtype=pl.Enum(AXES))
         parts.append(pl.DataFrame({
-            "axis": pl.Series(axis, dtype=pl.Enum(AXES)),
+            "axis": axis,
             "rate_hz": pl.Series(rate).fill_nan(None),
             "angle_deg": pl.Series(angle).fill_nan(None),
         }))
