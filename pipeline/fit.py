@@ -187,10 +187,10 @@ def fits_frame(fits: list[SegmentFit], segments: pl.DataFrame, dataset: str) -> 
 # Normal equations of all three channels in one pass over the samples, a
 # second pass for the residual statistics; both walk blocks of
 # BLOCK_SAMPLES contiguous samples, so every operation is a 1-D numpy call
-# on data in cache (and OpenBLAS, which threads dot products above 10,000
-# elements, stays single-threaded while segments are fitted in parallel).
+# on data in the core's cache. (``run_dataset`` keeps BLAS on one thread;
+# a threaded dot product here would compete with the segment workers.)
 
-BLOCK_SAMPLES = 8192
+BLOCK_SAMPLES = 32768
 PROGRESSION_TOLERANCE_DEG = 1e-9  # far below any table encoder's resolution
 _TABLE_SIZE = 4096
 _TABLE_STEP_DEG = 360.0 / _TABLE_SIZE  # 0.087890625, exact in binary
@@ -292,5 +292,6 @@ def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[
             resid.append(r)
             for i in range(j + 1):
                 rtr[i, j] += resid[i] @ r
-    rtr = np.triu(rtr) + np.triu(rtr, 1).T
-    return coef, np.kron(rtr / max(n - 3, 1), xtx_inv), rtr, max_abs, lag
+    rtr = np.where(np.arange(k)[:, None] <= np.arange(k), rtr, rtr.T)  # the lower triangle from the upper
+    cov = (rtr[:, None, :, None] / max(n - 3, 1) * xtx_inv[None, :, None, :]).reshape(3 * k, 3 * k)  # Sigma (x) (X^T X)^-1
+    return coef, cov, rtr, max_abs, lag
