@@ -22,37 +22,48 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
     """
     labelled = pl.col("axis").is_not_null() & pl.col("rate_hz").is_not_null()
     posed = ~labelled & (pl.col("pose").is_not_null() | pl.col("gx").is_not_null())
-    frame = samples.with_columns(
-        _run=pl.struct("capture", "axis", "rate_hz", "pose", "gx", "gy", "gz").rle_id(),
-        _kind=pl.when(labelled)
-        .then(pl.when(pl.col("rate_hz") == 0).then(pl.lit("static")).otherwise(pl.lit("rotation")))
-        .when(posed)
-        .then(pl.lit("pose"))
-        .otherwise(None),
-    )
-    in_segment = pl.col("_kind").is_not_null()
+    # 0 static, 1 rotation, 2 pose, null outside segments; one byte a sample
+    rotating = (labelled & (pl.col("rate_hz") != 0)).cast(pl.Int8)
+    kind = pl.when(labelled | posed).then(rotating + 2 * posed.cast(pl.Int8))
+    # Runs and segments by cumulative counts, not by sorting or grouping the
+    # whole table (large captures: bounded memory). Absent labels and a
+    # single capture's name start no run; leaving them out spares
+    # materialising them (null_count, and n_unique of a constant, are free).
+    keys = [c for c in ("axis", "rate_hz", "pose", "gx", "gy", "gz") if samples[c].null_count() < samples.height]
+    keys += ["capture"] if samples.select(pl.col("capture").n_unique()).item() > 1 else []
+    frame = samples.with_columns(_kind=kind, _start=pl.lit(False))
+    for c in keys:  # one column at a time: one column's temporaries at a time (row 0 starts a run)
+        run = pl.col(c).rle_id()
+        frame = frame.with_columns(_start=pl.col("_start") | run.ne_missing(run.shift(1)))
+    first_of_segment = pl.col("_kind").is_not_null() & pl.col("_start")
     frame = frame.with_columns(
-        segment=(pl.when(in_segment).then(pl.col("_run")).rank("dense") - 1).cast(pl.Int32)
-    )
+        segment=pl.when(pl.col("_kind").is_not_null()).then(first_of_segment.cum_sum() - 1).cast(pl.Int32)
+    ).drop("_start")
+    runs = frame.select(pl.col("segment").rle()).unnest("segment").with_columns(first=pl.col("len").cum_sum() - pl.col("len"))
+    runs = runs.filter(pl.col("value").is_not_null())
+    first, last = runs["first"], runs["first"] + runs["len"] - 1
+    angle_null = frame.select(null_before=pl.col("angle_deg").is_null().cum_sum(), step=pl.col("angle_deg").rle_id())
+    at_first, at_last = frame.select("capture", "_kind", "axis", "rate_hz", "t_ns", "label_source", "angle_deg")[first], frame["t_ns"][last]
+    n_nulls = angle_null["null_before"][last].to_numpy() - angle_null["null_before"][first].to_numpy() + at_first["angle_deg"].is_null().to_numpy()
     segments = (
-        frame.filter(in_segment)
-        .group_by("segment", maintain_order=True)
-        .agg(
-            capture=pl.col("capture").first(),
-            kind=pl.col("_kind").first(),
-            axis=pl.col("axis").first(),
-            rate_hz=pl.col("rate_hz").first().fill_null(0.0),
-            t_start_ns=pl.col("t_ns").first(),
-            t_end_ns=pl.col("t_ns").last(),
-            n_samples=pl.len().cast(pl.Int64),
-            n_steps=pl.when(pl.col("_kind").first() == "rotation").then(0).otherwise(pl.col("angle_deg").rle_id().max() + 1),
-            label_source=pl.col("label_source").first().fill_null("file"),
-            has_angle=pl.col("angle_deg").is_not_null().all(),
-        )
+        pl.DataFrame({
+            "segment": runs["value"],
+            "capture": at_first["capture"],
+            "kind": at_first["_kind"].replace_strict({0: "static", 1: "rotation", 2: "pose"}, return_dtype=pl.String),
+            "axis": at_first["axis"],
+            "rate_hz": at_first["rate_hz"].fill_null(0.0),
+            "t_start_ns": at_first["t_ns"],
+            "t_end_ns": at_last,
+            "n_samples": runs["len"].cast(pl.Int64),
+            "n_steps": pl.Series(angle_null["step"][last].to_numpy() - angle_null["step"][first].to_numpy() + 1),
+            "label_source": at_first["label_source"].fill_null("file"),
+            "has_angle": n_nulls == 0,
+        })
+        .with_columns(n_steps=pl.when(pl.col("kind") == "rotation").then(0).otherwise(pl.col("n_steps")))
         .with_columns(
             dataset=pl.lit(dataset),
             n_steps=pl.col("n_steps").cast(pl.Int32),
             angle_source=pl.when(pl.col("has_angle")).then(pl.lit(angle_source)).otherwise(pl.lit("none")),
         )
     )
-    return frame.drop("_run", "_kind"), conform(segments, "segments")
+    return frame.drop("_kind"), conform(segments, "segments")

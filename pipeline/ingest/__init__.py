@@ -13,6 +13,7 @@ import polars as pl
 from pipeline.config import Limits
 from pipeline.errors import InputError
 from pipeline.ingest.csv_source import read_csv_capture
+from pipeline.ingest.labels import time_ordered
 from pipeline.ingest.mcap_source import read_mcap_capture
 from pipeline.meta import CaptureSpec, DatasetMeta, load_meta
 from pipeline.tables import conform
@@ -89,5 +90,6 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         notes += capture_notes
         name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
         frames.append(frame.with_columns(capture=pl.lit(name)))
-    samples = conform(pl.concat(frames).sort("t_ns", maintain_order=True), "samples")
+    joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
+    samples = conform(time_ordered(joined), "samples")
     return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes))

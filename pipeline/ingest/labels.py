@@ -20,6 +20,14 @@ POSES = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
 OPTIONAL_FLOATS = ("rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
 
 
+def time_ordered(frame: pl.DataFrame) -> pl.DataFrame:
+    """Sorted by ``t_ns``, stably; a frame already in order is only marked so
+    (a sort would copy every column)."""
+    if frame["t_ns"].is_sorted():
+        return frame.with_columns(pl.col("t_ns").set_sorted())
+    return frame.sort("t_ns", maintain_order=True)
+
+
 def canonical_rate(rate: pl.Expr) -> pl.Expr:
     """Rates to the nearest nanohertz, so one plan rate compares equal whatever
     path (CSV text, a joint velocity in rad/s) it arrived by."""
@@ -37,7 +45,7 @@ def label_columns(
     """
     if "t_ns" not in frame.columns:
         frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
-    back = frame["t_ns"].diff().lt(0).arg_true()
+    back = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
     if len(back):
         row = int(back[0])
         raise InputError(
@@ -46,7 +54,8 @@ def label_columns(
             path=path,
         )
     labelled_in_file = "axis" in frame.columns or "rate_hz" in frame.columns
-    if "axis" in frame.columns:
+    canonical = "axis" in frame.columns and (frame["axis"].is_in(AXES) | frame["axis"].is_null()).all()
+    if "axis" in frame.columns and not canonical:  # new strings only where some label needs it
         frame = frame.with_columns(pl.col("axis").str.strip_chars().str.to_lowercase())
         bad = frame["axis"].is_not_null() & ~frame["axis"].is_in(AXES)
         if bad.any():
@@ -71,9 +80,10 @@ def label_columns(
     pose = pl.col("pose").str.strip_chars() if "pose" in frame.columns else pl.lit(None, pl.String)
     has_labels = pl.col("axis").is_not_null() | pl.col("rate_hz").is_not_null()
     source = label_source if labelled_in_file else ("toml" if spec.axis or spec.rate_hz is not None else None)
+    all_labelled = frame.select(has_labels.all()).item()
     frame = frame.with_columns(
         pose=pl.when(pose.is_in(POSES)).then(pose).otherwise(None),
-        label_source=pl.when(has_labels).then(pl.lit(source, pl.String)).otherwise(None),
+        label_source=pl.lit(source, pl.String) if all_labelled else pl.when(has_labels).then(pl.lit(source, pl.String)).otherwise(None),
         capture=pl.lit(spec.file),
     )
     return frame.select(pl.col(c).cast(t) for c, t in schema("samples").polars_schema.items())

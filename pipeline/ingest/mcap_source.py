@@ -1,15 +1,19 @@
 """MCAP captures: ``sensor_msgs/msg/Imu`` (CDR) or JSON messages on the DUT
 topic, and an optional table channel (``sensor_msgs/msg/JointState`` or JSON)
-whose labels are mapped onto the DUT's time stamps (contract sections 1, 2)."""
+whose labels are mapped onto the DUT's time stamps (contract sections 1, 2).
+
+Files are decoded by ``mcap_fast`` (whole chunks into columns) where it knows
+the layouts, else message by message here; both feed the same steps.
+"""
 
 from __future__ import annotations
 
 import json
 import struct
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 
-import lz4.frame
 import numpy as np
 import polars as pl
 import zstandard
@@ -21,7 +25,8 @@ from mcap_ros2.decoder import DecoderFactory
 
 from pipeline.config import Limits
 from pipeline.errors import InputError, LimitError
-from pipeline.ingest.labels import label_columns
+from pipeline.ingest import mcap_fast
+from pipeline.ingest.labels import label_columns, time_ordered
 from pipeline.meta import CaptureSpec, DatasetMeta
 from pipeline.physics import AXES, JOINT_SIGN
 
@@ -39,6 +44,17 @@ class TableTrack:
     rate_hz: np.ndarray
     angle_deg: np.ndarray
 
+    @cached_property
+    def runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each message's run (same axis and rate) and the angle increment to
+        the next message, unwrapped with the commanded rate (only sin and cos
+        of theta are used, so no running sum is needed); computed once for
+        all blocks of samples."""
+        run_break = np.r_[True, (self.axis[1:] != self.axis[:-1]) | (self.rate_hz[1:] != self.rate_hz[:-1])]
+        expected = 360.0 * self.rate_hz[:-1] * np.diff(self.t_ns) / 1e9
+        increment = expected + (np.diff(self.angle_deg) - expected + 180.0) % 360.0 - 180.0
+        return np.cumsum(run_break) - 1, increment
+
 
 @dataclass
 class _Topic:
@@ -47,24 +63,21 @@ class _Topic:
     stamps: list
     rows: list
 
+    @property
+    def count(self) -> int:
+        return len(self.rows)
+
 
 def _chunk_records(chunk: Chunk, limit: int, path: Path) -> list:
     """A chunk's records, never decompressing more than ``limit`` bytes: a
     chunk of a few kilobytes can expand a million-fold, and the mcap library
     would allocate whatever its header claims."""
-    size = chunk.uncompressed_size
-    if size > limit:
-        raise LimitError(f"an MCAP chunk expands to {size} bytes, above the limit of {limit} bytes", path=path)
-    if chunk.compression == "zstd":
-        reader, data = zstandard.ZstdDecompressor().stream_reader(chunk.data), b""
-        while len(data) <= size and (block := reader.read(size + 1 - len(data))):
-            data += block
-    elif chunk.compression == "lz4":
-        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
-    else:
-        data = chunk.data
-    if len(data) != size:
-        raise InputError(f"corrupt MCAP: a chunk holds {len(data)} bytes where it declares {size}", path=path)
+    if chunk.uncompressed_size > limit:
+        raise LimitError(f"an MCAP chunk expands to {chunk.uncompressed_size} bytes, above the limit of {limit} bytes", path=path)
+    try:
+        data = mcap_fast.decompress_chunk(chunk.compression, chunk.data, chunk.uncompressed_size)
+    except mcap_fast.Unsupported as exc:
+        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
     return breakup_chunk(replace(chunk, compression="", data=data))
 
 
@@ -136,13 +149,7 @@ def _imu_frame(topic: _Topic, path: Path) -> pl.DataFrame:
     log_ns = np.asarray(topic.stamps, np.int64)
     if topic.channel.message_encoding == "json":
         cols = {f: [m.get(f) for m in msgs] for f in JSON_FIELDS if any(f in m for m in msgs)}
-        missing = [f for f in ("u", "v", "w") if f not in cols]
-        if missing:
-            raise InputError(f"topic {topic.channel.topic!r}: JSON messages lack {', '.join(missing)}", path=path)
-        frame = pl.DataFrame(cols, strict=False)
-        t_s = pl.col("t").cast(pl.Float64) if "t" in cols else pl.lit(None, pl.Float64)
-        stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
-        return frame.with_columns(t_ns=stamp).drop("t", strict=False)
+        return _json_frame(pl.DataFrame(cols, strict=False), log_ns, topic.channel.topic, path)
     stamp = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64)
     return pl.DataFrame(
         {
@@ -152,6 +159,16 @@ def _imu_frame(topic: _Topic, path: Path) -> pl.DataFrame:
             "w": [m.linear_acceleration.z for m in msgs],
         }
     )
+
+
+def _json_frame(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path) -> pl.DataFrame:
+    """DUT samples from JSON fields: ``t`` (s) where given, else the log time."""
+    missing = [f for f in ("u", "v", "w") if f not in frame.columns]
+    if missing:
+        raise InputError(f"topic {topic!r}: JSON messages lack {', '.join(missing)}", path=path)
+    t_s = pl.col("t").cast(pl.Float64) if "t" in frame.columns else pl.lit(None, pl.Float64)
+    stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
+    return frame.with_columns(t_ns=stamp).drop("t", strict=False)
 
 
 def _joint_axis(names: list[str], position: list[float], velocity: list[float], previous: tuple | None) -> int:
@@ -202,17 +219,83 @@ def _table_track(topic: _Topic, path: Path) -> TableTrack:
     bad = [a for a in axis if a not in AXES]
     if bad:
         raise InputError(f"table topic: unknown axis label {bad[0]!r} (expected x, y or z)", path=path)
-    order = np.argsort(np.asarray(t_ns, np.int64), kind="stable")
-    return TableTrack(
-        np.asarray(t_ns, np.int64)[order],
-        np.asarray(axis, object)[order],
-        np.round(np.asarray(rate, float)[order] * 1e9) / 1e9,
-        np.asarray(angle, float)[order],
-    )
+    return _track(np.asarray(t_ns, np.int64), np.asarray(axis, object), np.asarray(rate, float), np.asarray(angle, float))
+
+
+def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray) -> TableTrack:
+    """Table messages in time order (stable), rates to the nearest nanohertz."""
+    if np.any(t_ns[1:] < t_ns[:-1]):
+        order = np.argsort(t_ns, kind="stable")
+        t_ns, axis, rate_hz, angle_deg = t_ns[order], axis[order], rate_hz[order], angle_deg[order]
+    return TableTrack(t_ns, axis, np.round(rate_hz * 1e9) / 1e9, angle_deg)
+
+
+def _fast_imu_frame(topic: mcap_fast.DecodedTopic, path: Path) -> pl.DataFrame:
+    if topic.kind == "json":
+        fields = [f for f in JSON_FIELDS if f in topic.frame.columns]
+        return _json_frame(topic.frame.select(fields), topic.columns["log_ns"], topic.channel.topic, path)
+    if topic.kind != "imu":
+        raise mcap_fast.Unsupported(f"DUT topic of schema {topic.schema.name if topic.schema else None}")
+    c = topic.take()
+    return pl.DataFrame({"t_ns": c["t_ns"], "u": c["x"], "v": c["y"], "w": c["z"]})  # zero-copy
+
+
+def _fast_joint_index(names: np.ndarray, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """``_joint_axis`` for every message at once (joints named alike in all)."""
+    n_msgs, n_joints = position.shape
+    if n_joints == 1:
+        return np.zeros(n_msgs, np.int64)
+    if np.any(names != names[:1]):
+        raise mcap_fast.Unsupported("JointState joints renamed between messages")
+    speed = np.abs(velocity) if velocity.shape[1] == n_joints else np.zeros_like(position)
+    moving = speed.max(axis=1) > 0
+    index = np.where(moving, speed.argmax(axis=1), -1)
+    moved = position[1:] != position[:-1]
+    index[1:] = np.where(~moving[1:] & moved.any(axis=1), moved.argmax(axis=1), index[1:])
+    index[0] = max(index[0], 0)
+    held = np.maximum.accumulate(np.where(index >= 0, np.arange(n_msgs), 0))  # at rest, unmoved: the previous joint
+    return index[held]
+
+
+def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
+    if topic.kind == "json":
+        frame, log_ns = topic.frame, topic.columns["log_ns"]
+        def column(name: str) -> np.ndarray:
+            values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
+            return values.fill_null(np.nan).to_numpy()
+        t_s = column("t")
+        t_ns = np.where(np.isnan(t_s), log_ns, np.round(np.nan_to_num(t_s) * 1e9).astype(np.int64))
+        axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
+        if not np.isin(axis, AXES).all():
+            raise mcap_fast.Unsupported("table axis other than x, y or z")
+        rate, angle = column("rate_hz"), column("angle_deg")
+    elif topic.kind == "joint":
+        c = topic.take()
+        if c["position"].shape[1] == 1:
+            name, position = c["name"][:, 0], c["position"][:, 0]
+            velocity = c["velocity"][:, 0] if c["velocity"].shape[1] else np.zeros(position.size)
+        else:
+            index = _fast_joint_index(c["name"], c["position"], c["velocity"])
+            rows = np.arange(index.size)
+            name, position = c["name"][rows, index], c["position"][rows, index]
+            velocity = c["velocity"][rows, index] if c["velocity"].shape[1] else np.zeros(index.size)
+        code = np.full(name.size, -1, np.int8)
+        for k, a in enumerate(AXES):
+            code[name == a.encode()] = k
+        if np.any(code < 0):
+            raise mcap_fast.Unsupported("table joint other than x, y or z")
+        sign = np.array([JOINT_SIGN[a] for a in AXES])[code]
+        t_ns, axis = c["t_ns"], np.array(AXES, object)[code]
+        rate = sign * velocity / (2 * np.pi)
+        angle = sign * np.degrees(position)
+    else:
+        raise mcap_fast.Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
+    return _track(t_ns, axis, rate, angle)
 
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Axis, rate and angle at each DUT stamp (contract section 1).
+    """The table message in force (index into ``track``, -1 before the
+    first), rate and angle at each DUT stamp (contract section 1).
 
     Labels hold from the last table message. Angles are linearly interpolated
     between messages of the same run (same axis and rate) after unwrapping
@@ -220,32 +303,48 @@ def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarr
     message, and held during static steps.
     """
     n = t_ns.size
-    axis = np.full(n, None, object)
     rate = np.full(n, np.nan)
     angle = np.full(n, np.nan)
-    if track.t_ns.size == 0:
-        return axis, rate, angle
-    run_break = np.r_[True, (track.axis[1:] != track.axis[:-1]) | (track.rate_hz[1:] != track.rate_hz[:-1])]
-    run = np.cumsum(run_break) - 1
-    # The increment to the next message, unwrapped with the commanded rate;
-    # only sin and cos of theta are used, so no running sum is needed.
-    expected = 360.0 * track.rate_hz[:-1] * np.diff(track.t_ns) / 1e9
-    increment = expected + (np.diff(track.angle_deg) - expected + 180.0) % 360.0 - 180.0
     idx = np.searchsorted(track.t_ns, t_ns, side="right") - 1
+    if track.t_ns.size == 0:
+        return idx, rate, angle
+    run, increment = track.runs
     have = idx >= 0
     i = idx[have]
-    axis[have] = track.axis[i]
-    rate[have] = track.rate_hz[i]
+    rate_i, angle_i, t_i = track.rate_hz[i], track.angle_deg[i], track.t_ns[i]  # each gathered once
+    rate[have] = rate_i
     nxt = np.minimum(i + 1, track.t_ns.size - 1)
     same_run = (nxt != i) & (run[nxt] == run[i])
-    dt_ns = t_ns[have] - track.t_ns[i]
-    span_ns = np.where(same_run, track.t_ns[nxt] - track.t_ns[i], 1)
+    dt_ns = t_ns[have] - t_i
+    span_ns = np.where(same_run, track.t_ns[nxt] - t_i, 1)
     step = np.where(same_run, increment[np.minimum(i, increment.size - 1)] if increment.size else 0.0, 0.0)
-    interp = track.angle_deg[i] + dt_ns / span_ns * step
-    extrap = track.angle_deg[i] + 360.0 * track.rate_hz[i] * dt_ns / 1e9
-    moving = track.rate_hz[i] != 0
-    angle[have] = np.where(moving, np.where(same_run, interp, extrap), track.angle_deg[i])
-    return axis, rate, angle
+    interp = angle_i + dt_ns / span_ns * step
+    extrap = angle_i + 360.0 * rate_i * dt_ns / 1e9
+    angle[have] = np.where(rate_i != 0, np.where(same_run, interp, extrap), angle_i)
+    return idx, rate, angle
+
+
+_LABEL_BLOCK = 1 << 18
+
+
+def _table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
+    """``map_table`` a block of samples at a time (a sample's labels depend
+    only on its own time stamp), so its temporaries stay small; ``axis``
+    as an Enum (one byte a sample) until ``label_columns`` gives it the
+    contract's type, by which time the track is gone."""
+    codes = np.full(track.t_ns.size + 1, -1, np.int8)  # the last entry serves index -1: no message yet
+    for k, a in enumerate(AXES):
+        codes[:-1][track.axis == a] = k
+    parts = []
+    for start in range(0, t_ns.size, _LABEL_BLOCK):
+        index, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
+        axis = pl.Series(codes[index]).replace_strict(range(len(AXES)), AXES, default=None, return_dtype=pl.Enum(AXES))
+        parts.append(pl.DataFrame({
+            "axis": axis,
+            "rate_hz": pl.Series(rate).fill_nan(None),
+            "angle_deg": pl.Series(angle).fill_nan(None),
+        }))
+    return pl.concat(parts, rechunk=False)
 
 
 def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
@@ -253,7 +352,14 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     chosen where the defaults were absent."""
     if path.stat().st_size == 0:
         raise InputError("the file is empty", path=path)
-    found = _read_records(path, {meta.imu_topic, meta.table_topic}, limits)
+    topics = {meta.imu_topic, meta.table_topic}
+    try:
+        return _capture(mcap_fast.read_topics(path, topics, limits), path, meta, spec, fast=True)
+    except mcap_fast.Unsupported:
+        return _capture(_read_records(path, topics, limits), path, meta, spec, fast=False)
+
+
+def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
     imu_key = _choose_topic(found, meta.imu_topic, meta.imu_topic_given, IMU_SCHEMA, path)
     table_key = _choose_topic(found, meta.table_topic, meta.table_topic_given, JOINT_SCHEMA, path)
     if imu_key is None:
@@ -265,18 +371,14 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
         for key, meta_topic, kind in ((imu_key, meta.imu_topic, "Imu"), (table_key, meta.table_topic, "JointState"))
         if key is not None and key != meta_topic
     )
-    frame = _imu_frame(found[imu_key], path)
+    frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
     if frame.height == 0:
         raise InputError(f"topic {found[imu_key].channel.topic!r} has no messages", path=path)
-    frame = frame.sort("t_ns", maintain_order=True)
+    frame = time_ordered(frame)
     source = "file"
-    if table_key is not None and found[table_key].rows and "axis" not in frame.columns:
-        axis, rate, angle = map_table(frame["t_ns"].to_numpy(), _table_track(found[table_key], path))
-        frame = frame.with_columns(
-            axis=pl.Series(axis, dtype=pl.String),
-            rate_hz=pl.Series(rate).fill_nan(None),
-            angle_deg=pl.Series(angle).fill_nan(None),
-        )
+    if table_key is not None and found[table_key].count and "axis" not in frame.columns:
+        track = (_fast_table_track if fast else _table_track)(found[table_key], path)
+        frame = frame.hstack(_table_labels(frame["t_ns"].to_numpy(), track).get_columns())
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)
