@@ -23,25 +23,32 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from pipeline.fit import design, linear_fit
+from pipeline.fit import SegmentFit, design, linear_fit, residual_stats
 
 
 @dataclass(frozen=True, eq=False)
 class SineFit:
-    """Coefficients (channel x (C, A, B)) against theta = 360 rate (t - t_ref),
-    their 9 x 9 channel-major covariance, the rate and its uncertainty, and
-    the residual standard deviation per channel."""
+    """The rate and its uncertainty, the phase reference, and the segment
+    fit (coefficients channel x (C, A, B) against theta = 360 rate (t -
+    t_ref), their 9 x 9 covariance, residual statistics; its segment number
+    is -1 until the segment has one)."""
 
     rate_hz: float
     rate_u_hz: float
     t_ref_ns: int
-    coef: np.ndarray
-    cov: np.ndarray
-    sigma: np.ndarray
-    rms: np.ndarray
-    max_abs: np.ndarray
-    lag1: np.ndarray
-    n_samples: int
+    fit: SegmentFit
+
+    @property
+    def coef(self) -> np.ndarray:
+        return self.fit.coef
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.fit.cov
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return self.fit.sigma
 
     def theta_deg(self, t_ns: np.ndarray) -> np.ndarray:
         return 360.0 * self.rate_hz * (t_ns - self.t_ref_ns) / 1e9
@@ -115,7 +122,6 @@ def fit_sine(t_ns: np.ndarray, y: np.ndarray, rate_guess_hz: float, search: bool
     info[9, :9] = info[:9, 9]
     info[9, 9] = float(np.einsum("ir,rs,is->", d, info_inv, d))
     cov = np.linalg.inv(info)
-    ss = np.einsum("ij,ij->j", resid, resid)
-    lag1 = np.einsum("ij,ij->j", resid[1:], resid[:-1]) / np.where(ss > 0, ss, 1.0)
-    return SineFit(rate, float(np.sqrt(cov[9, 9])), t_ref, coef, cov[:9, :9], np.sqrt(np.diag(sigma2)),
-                   np.sqrt(ss / n), np.abs(resid).max(axis=0), lag1, n)
+    rms, max_abs, lag1 = residual_stats(resid)
+    fit = SegmentFit(-1, "ok", None, n, coef, cov[:9, :9], np.sqrt(np.diag(sigma2)), rms, max_abs, lag1, rate)
+    return SineFit(rate, float(np.sqrt(cov[9, 9])), t_ref, fit)

@@ -239,8 +239,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         elif fitted:
             own_labelled.append({"segment": r.key, **fitted})
         fits.append(SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")) if f is None else
-                    SegmentFit(r.key, "ok", None, f.n_samples, f.coef, f.cov, f.sigma, f.rms, f.max_abs, f.lag1,
-                               float(measured[k])))
+                    replace(f.fit, segment=r.key, rate_fit_hz=float(measured[k])))
     if own_labelled:
         kept = kept.update(pl.DataFrame(own_labelled, schema_overrides={"segment": pl.Int32}), on="segment")
     new = pl.DataFrame(rows, schema=schema("segments").polars_schema) if rows else schema("segments").empty()
@@ -253,8 +252,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     lookup[np.array(order, dtype=int)] = np.arange(len(order))
     seg_col = np.where(seg_col >= 0, lookup[np.maximum(seg_col, 0)], -1)
     samples = samples.with_columns(segment=pl.Series(np.where(seg_col >= 0, seg_col, None).tolist(), dtype=pl.Int32))
-    fits = tuple(SegmentFit(int(lookup[f.segment]), f.status, f.reason, f.n_samples, f.coef, f.cov, f.sigma, f.rms,
-                            f.max_abs, f.lag1, f.rate_fit_hz) for f in fits)
+    fits = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
     dwells = _dwells_frame(dwell_parts, dataset, lookup)
     return Inference(samples, conform(every, "segments"), fits, frozenset(f.segment for f in fits), dwells,
                      (finding,) if rotations else (), tuple(warnings), tuple(notes))
