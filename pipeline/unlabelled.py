@@ -164,6 +164,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     capture_col = samples["capture"].to_numpy()
     key = int(segments["segment"].max() + 1) if segments.height else 0
     rows, dwell_parts, rotations, notes, warnings = [], [], [], [], []
+    found = np.zeros(3, int)
     for capture in dict.fromkeys(capture_col[free]):
         idx = np.flatnonzero(free & (capture_col == capture))
         if idx.size < 10:
@@ -206,9 +207,11 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
             for row in rows:
                 if row["capture"] == capture and row["kind"] in ("static", "pose") and row["chi2_reduced"] is None:
                     row["chi2_reduced"] = float(chi2[group == row["segment"]].mean())
-        notes.append(f"{capture}: segments inferred from the signals: {len(blind.rotations)} constant rotations, "
-                     f"{len(blind.sequences)} static step sequences, {int((group >= 0).sum())} dwells in all")
+        found += [len(blind.rotations), len(blind.sequences), len(blind.dwells)]
 
+    if free.any():
+        notes.append(f"segments inferred from the signals of {len(set(capture_col[free]))} capture(s): "
+                     f"{found[0]} constant rotations, {found[1]} static step sequences, {found[2]} dwells in all")
     for row in kept.filter((pl.col("kind") == "rotation") & (pl.col("angle_source") == "none")).iter_rows(named=True):
         on = seg_col == row["segment"]
         t, y = t_all[on], y_all[on]

@@ -71,3 +71,15 @@ def test_xsens_hand_placed_poses_with_no_setting_beyond_the_format():
     first = blind.dwells[0]
     t = s["t_ns"].to_numpy()
     assert t[first[0]] < 1e9 and 45e9 < t[first[1] - 1] < 55e9
+
+
+def test_a_recording_that_never_rests_has_no_still_intervals():
+    """One constant rotation: no window is quiet, so the percentile floor
+    alone would call it all still; the second-difference noise floor does not."""
+    from pipeline.fit import design
+    from pipeline.stillness import still_intervals
+
+    rng = np.random.default_rng(6)
+    t_ns = np.arange(4200, dtype=np.int64) * 60_000_000
+    y = design(360 * 0.5 * t_ns / 1e9) @ np.array([[300.0, 16000.0, 500.0], [-40.0, -800.0, 16300.0], [20.0, 30.0, 10.0]]).T
+    assert still_intervals(t_ns, np.round(y + rng.normal(0, 8, y.shape))).height == 0

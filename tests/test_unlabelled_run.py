@@ -129,3 +129,25 @@ def test_nothing_to_segment_is_undetermined(tmp_path):
     pl.DataFrame({"t": t, "u": y[:, 0], "v": y[:, 1], "w": y[:, 2]}).write_csv(tmp_path / "walk.csv")
     with pytest.raises(UndeterminedError):
         run_dataset(tmp_path / "walk.csv", tmp_path / "out")
+
+
+def test_one_unlabelled_file_per_segment(make_dataset, tmp_path):
+    """The default layout with every label column removed: each file one
+    static sequence (its steps without the moves) or one rotation. The
+    static steps become poses of unknown orientation, the rotations keep
+    their axes and rates."""
+    labelled = make_dataset(22)
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for f in labelled.glob("*.csv"):
+        pl.read_csv(f).select("t", "u", "v", "w").write_csv(bare / f.name)
+    (bare / "dataset.toml").write_text((labelled / "dataset.toml").read_text())
+    outcome = run_dataset(bare, tmp_path / "out")
+    segs = pl.read_parquet(tmp_path / "out" / "segments.parquet")
+    assert dict(segs.group_by("kind").len().iter_rows()) == {"pose": 72, "rotation": 12}
+    rot = segs.filter(pl.col("kind") == "rotation").sort("t_start_ns")
+    assert rot["axis"].to_list() == [a for a in "xyz" for _ in range(4)]
+    np.testing.assert_allclose(rot["rate_measured_hz"], [0.01, 0.05, 0.1, 0.5] * 3, rtol=1e-5)
+    truth = truth_of(labelled)["intrinsic"]
+    z = [np.abs((r.value - [truth[p] for p in truth]) / r.std_uncertainty).max() for r in outcome.results]
+    assert len(z) == 5 and max(z) < 4
