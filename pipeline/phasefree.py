@@ -15,17 +15,23 @@ opposite of the phase's:
 with rho = g r (output units), (a, b) the components of Geist's Eq. 5 for
 axis s and sigma_k = +-1. Each component of each vector is seen by two axes
 and each offset by three, so the angles are fixed by the requirement that the
-components measured twice agree: a joint weighted least-squares fit of the
-twelve state elements (rho, O) and every segment's theta_k to all segments'
-coefficient vectors with their full covariances (Gauss-Newton). There is no
-continuous gauge freedom: a change of one segment's angle mixes two columns
-of rho that the other two axes see separately. What stays free is the sign
-of each table axis (a rotation or reflection of the whole solution), which
-the intrinsic parameters do not see. The state covariance is the inverse of
-the normal matrix, so the estimated angles' uncertainty is in it; to first
-order the intrinsic parameters do not depend on the angles at all (lengths
-and dot products of rotated vectors), which is why they match the labelled
-reduction of the same data.
+components measured twice agree: a joint weighted least-squares fit
+(Gauss-Newton) of the twelve state elements (rho, O) and every segment's
+theta_k to all segments' coefficient vectors. The weights are each
+coefficient's inverse variance, as combine gives the labelled segments (Geist
+2017 Eqs. 10 and 12); the covariance of the estimate is propagated from every
+segment's full 9 x 9 covariance through the fit's linear response (a sandwich
+estimate), so the estimated angles' uncertainty is in it. To first order the
+intrinsic parameters do not depend on the angles at all (lengths and dot
+products of turned vectors), which is why they match the labelled reduction
+of the same data.
+
+There is no continuous gauge freedom: a change of one segment's angle mixes
+two columns of rho that the other two axes see separately. What stays free
+is the sign of each table axis (a rotation or reflection of the whole
+solution), which the intrinsic parameters do not see; rotcal fixes them by
+the DUT's rough alignment (the diagonal of rho positive), so that rho is in
+the table frame as the blind axis names are.
 
 Segments that do have a table angle enter with theta_k = 0 and sigma_k = +1
 fixed, and then also fix the signs of the axes.
@@ -157,6 +163,10 @@ def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: floa
         cost = [sum(np.sum((_in_plane(s.coef) - (rho * (1 - 2 * v))[:, list(_plane(s.axis))]) ** 2) for s in fixed)
                 for v in signs]
         rho = rho * (1 - 2 * signs[int(np.argmin(cost))])
+    else:
+        # no direction reference: the axes' signs follow the DUT's rough alignment (u along x, v along y,
+        # w along z), as the blind axis names do
+        rho = rho * np.where(np.diag(rho) < 0, -1.0, 1.0)
     turns = [(0.0, 1.0) if s.fixed else _turn(_polar(rho[:, list(_plane(s.axis))].T @ _in_plane(s.coef)))
              for s in segments]
     free = [k for k, s in enumerate(segments) if not s.fixed]

@@ -70,13 +70,10 @@ def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = S
     per-channel mean and standard deviation."""
     mask = still_mask(t_ns, y, config)
     dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
-    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]
-    edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    # split runs at time gaps
-    cuts = np.flatnonzero(gap & mask)
-    starts = np.sort(np.r_[starts, cuts[~np.isin(cuts, starts)]])
-    ends = np.sort(np.r_[ends, cuts[~np.isin(cuts, ends)]])
+    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
+    # runs of still samples, split at time gaps
+    starts = np.flatnonzero(mask & (np.r_[True, ~mask[:-1]] | gap))
+    ends = np.flatnonzero(mask & (np.r_[~mask[1:], True] | np.r_[gap[1:], True])) + 1
     long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
     starts, ends = starts[long], ends[long]
     rows = {"start": starts, "stop": ends, "t_start_ns": t_ns[starts], "t_end_ns": t_ns[ends - 1],

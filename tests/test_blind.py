@@ -83,3 +83,14 @@ def test_a_recording_that_never_rests_has_no_still_intervals():
     t_ns = np.arange(4200, dtype=np.int64) * 60_000_000
     y = design(360 * 0.5 * t_ns / 1e9) @ np.array([[300.0, 16000.0, 500.0], [-40.0, -800.0, 16300.0], [20.0, 30.0, 10.0]]).T
     assert still_intervals(t_ns, np.round(y + rng.normal(0, 8, y.shape))).height == 0
+
+
+def test_still_runs_split_at_time_gaps():
+    """A gap inside a still run, and one right where a run starts, both split it."""
+    from pipeline.stillness import still_intervals
+
+    t_ns = np.r_[np.arange(300), 400 + np.arange(300), 1000 + np.arange(300)].astype(np.int64) * 10_000_000
+    y = np.random.default_rng(7).normal(0, 3, (900, 3)).round()
+    y[300:600] += 5000.0 * np.sin(np.arange(300) / 10.0)[:, None]  # moving between the first and last gap
+    out = still_intervals(t_ns, y)
+    assert out.select("start", "stop").rows() == [(0, 300), (600, 900)]

@@ -56,8 +56,9 @@ def test_parquet_files_record_their_schema(make_dataset, tmp_path):
     from pipeline.tables import read_schema_name
 
     run_dataset(make_dataset(22), tmp_path)
-    for name in ("intrinsic", "fits", "segments", "components"):
-        assert read_schema_name(tmp_path / f"{name}.parquet") == (name, "1.0")
+    versions = {"intrinsic": "1.0", "fits": "1.0", "segments": "1.1", "components": "1.0", "timebase": "1.0"}
+    for name, version in versions.items():
+        assert read_schema_name(tmp_path / f"{name}.parquet") == (name, version)
 
 
 def test_demo_prints_the_summary(cli, tmp_path):

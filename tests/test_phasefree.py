@@ -50,6 +50,8 @@ def test_noise_free_unknown_angles_and_reflections_give_the_truth():
     fit = solve_phase_free(0.1, segs, G, 0.0)
     np.testing.assert_allclose(fit.result.value, truth, rtol=1e-10, atol=1e-8)
     assert fit.chi2 < 1e-6
+    # no continuous freedom is left, and the axes' signs follow the DUT's alignment: the table frame
+    np.testing.assert_allclose(fit.result.responsivity, resp, rtol=1e-10, atol=1e-8)
 
 
 def test_matches_the_labelled_combination_and_covers_the_truth():
