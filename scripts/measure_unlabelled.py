@@ -20,6 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.config import DiagnosisConfig, RunConfig  # noqa: E402
+from pipeline.run import run_dataset  # noqa: E402
+from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset  # noqa: E402
 from tests.unlabelled_checks import DEFECTS, check_seed  # noqa: E402
 
 
@@ -27,6 +30,28 @@ def _one(args: tuple[int, str | None]):
     seed, defects = args
     with tempfile.TemporaryDirectory() as work:
         return check_seed(seed, Path(work), defects, labelled=defects is None)
+
+
+def benchmark(repeats: int = 5) -> str:
+    """One continuous recording run labelled and unlabelled in this process
+    (the diagnosis off: it needs table angles, so only the labelled run would
+    pay for it): best of ``repeats`` each, and their ratio."""
+    config = RunConfig(diagnosis=DiagnosisConfig(enabled=False))
+    spec = SimulationSpec(plan=Plan(continuous=True))
+    sim = simulate(spec, 7)
+    with tempfile.TemporaryDirectory() as work:
+        work = Path(work)
+        data = {fmt: write_dataset(sim, spec, work / fmt, fmt) for fmt in ("csv", "csv-unlabelled")}
+        best = {}
+        for fmt, path in data.items():
+            times = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                run_dataset(path, work / f"out-{fmt}", config=config)
+                times.append(time.perf_counter() - start)
+            best[fmt] = min(times)
+    return (f"run_dataset, {sim.samples.height} samples: labelled {best['csv']:.2f} s, unlabelled "
+            f"{best['csv-unlabelled']:.2f} s (ratio {best['csv-unlabelled'] / best['csv']:.1f}, best of {repeats})")
 
 
 def main() -> None:
@@ -75,6 +100,7 @@ def main() -> None:
                 print(f"| {check}: reported - true (detected in {detected} of {len(runs)}) | "
                       f"mean {diff.mean():.3g}{unit}, largest {np.abs(diff).max():.3g}{unit} |")
     print(f"\n({elapsed:.0f} s on {args.workers} workers)")
+    print(benchmark())
 
 
 if __name__ == "__main__":

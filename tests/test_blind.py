@@ -94,3 +94,20 @@ def test_still_runs_split_at_time_gaps():
     y[300:600] += 5000.0 * np.sin(np.arange(300) / 10.0)[:, None]  # moving between the first and last gap
     out = still_intervals(t_ns, y)
     assert out.select("start", "stop").rows() == [(0, 300), (600, 900)]
+
+
+@pytest.mark.parametrize("effect", [
+    "centripetal:axis=x,radius_m=0.25", "cubic_nonlinearity:k3_w=1.2e-3", "quadratic_nonlinearity:k2_u=8e-4",
+    "clipping:below_max=0.008", "channel_delay:delay_v_s=0.006", "rate_error:rate_error=4e-4",
+    "rate_ripple:axis=y,ripple_deg=0.2", "axis_tilt:axis=z,tilt_deg=0.5", "offset_drift:drift_u=0.03",
+])
+def test_segmentation_survives_every_effect_at_its_large_end(effect):
+    sim = simulate(SimulationSpec(plan=Plan(continuous=True)).with_effects(effect), 3)
+    t, y = _arrays(sim)
+    blind = segment_blind(t, y)
+    rotations = _truth(sim, "rotation")
+    assert [r.axis for r in blind.rotations] == [p["axis"] for p in rotations]
+    factor = 1 + (4e-4 if effect.startswith("rate_error") else 0.0)
+    np.testing.assert_allclose([r.fit.rate_hz for r in blind.rotations], [p["rate_hz"] * factor for p in rotations], rtol=1e-5)
+    assert len(blind.dwells) == len(_truth(sim, "step") + _truth(sim, "pause"))
+    assert [len(q.dwells) for q in blind.sequences] == [24, 24, 24]
