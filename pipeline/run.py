@@ -76,11 +76,11 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
                              out / "timebase.parquet", "timebase")]
     labelled_fits = fits.filter(~pl.col("segment").is_in(list(own_phase)))
     combined = combine(labelled_fits, ds.meta.g_local, ds.meta.g_local_uncertainty)
-    unreferenced = []
+    unreferenced, consistency = [], []
     if table:
         static_labelled = any(isinstance(r, IntrinsicResult) and r.rate_hz == 0 for r in combined)
-        unreferenced, dwells, _ = reduce_unreferenced(fits, own_phase, inferred.dwells, not static_labelled,
-                                                      ds.meta.g_local, ds.meta.g_local_uncertainty)
+        unreferenced, dwells, consistency = reduce_unreferenced(fits, own_phase, inferred.dwells, not static_labelled,
+                                                                ds.meta.g_local, ds.meta.g_local_uncertainty)
         if dwells.height:
             written.append(write_parquet(dwells, out / "dwells.parquet", "dwells"))
     replaced = {r.rate_hz for r in unreferenced}
@@ -88,7 +88,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
     failed = fits.filter(fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
     warnings = tuple(
-        list(timebase.warnings) + (list(inferred.warnings) if table else [])
+        list(timebase.warnings) + (list(inferred.warnings) + consistency if table else [])
         + [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
         + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
     )
