@@ -54,7 +54,8 @@ class Inference:
 
 @dataclass(frozen=True, eq=False)
 class _Rotation:
-    """A rotation segment without an angle reference, before numbering."""
+    """A rotation segment without an angle reference, before numbering;
+    with a ``reason`` its fit only names its rate and it is refused."""
 
     key: int
     capture: str
@@ -97,7 +98,7 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
     blind = segment_blind(t, y, replace(config, max_residual_ratio=np.inf) if reason else config)
     segment = np.full(t.size, -1)
     for r in blind.rotations:
-        found.rotations.append(_Rotation(found.key, capture, r.axis, "inferred", None, None if reason else r.fit, reason,
+        found.rotations.append(_Rotation(found.key, capture, r.axis, "inferred", None, r.fit, reason,
                                          int(t[r.start]), int(t[r.stop - 1]), r.stop - r.start, r.axis_offset_deg,
                                          r.chi2_reduced))
         segment[r.start : r.stop] = found.key
@@ -137,21 +138,21 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     """Rates of the rotations without an angle reference against the nominal
     ones: segment rows of the inferred ones, the fitted columns of the
     labelled ones, every own-phase fit, the clock-drift finding and warnings."""
-    fitted = [r.fit is not None for r in rotations]
+    usable = np.array([r.fit is not None and r.reason is None for r in rotations], bool)
     measured = np.array([r.fit.rate_hz if r.fit else np.nan for r in rotations])
     u = np.array([r.fit.rate_u_hz if r.fit else np.nan for r in rotations])
     nominal = np.array([r.label_hz if r.label_hz is not None else
                         (nominal_rate(f, plan_rates) if np.isfinite(f) else None) for r, f in zip(rotations, measured)],
                        dtype=float)
-    drift = clock_drift(measured, u, nominal)
+    drift = clock_drift(np.where(usable, measured, np.nan), u, nominal)
     corrected = measured * drift.factor
     u_corrected = np.hypot(u * drift.factor, measured * (drift.u_drift if drift.detected else 0.0))
     rate = np.where(np.isfinite(nominal), nominal, 0.0)
-    free = ~np.isfinite(nominal) & np.array(fitted, bool)
+    free = ~np.isfinite(nominal) & np.isfinite(measured)
     rate[free] = rate_classes(corrected[free])
     rows, updates, fits = [], [], []
     for k, r in enumerate(rotations):
-        measured_cols = {} if r.fit is None else {
+        measured_cols = {} if not usable[k] else {
             "rate_measured_hz": float(corrected[k]), "rate_u_hz": float(u_corrected[k]), "t_phase_ns": r.fit.t_ref_ns}
         if r.label_source == "inferred":
             rows.append(_segment_row(dataset, r.key, r.capture, "rotation", r.axis, float(rate[k]), r.start_ns, r.end_ns,
@@ -159,8 +160,8 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
                                      **measured_cols))
         elif measured_cols:
             updates.append({"segment": r.key, **measured_cols})
-        fits.append(SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")) if r.fit is None
-                    else replace(r.fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])))
+        fits.append(replace(r.fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if usable[k] else
+                    SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")))
     return rows, updates, fits, drift.finding(dataset), drift.warnings()
 
 

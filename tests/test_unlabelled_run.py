@@ -116,6 +116,10 @@ def test_jitter_too_large_for_rotations_refuses_them_and_keeps_the_dwells(tmp_pa
     fits = pl.read_parquet(tmp_path / "out" / "fits.parquet").filter(pl.col("kind") == "rotation")
     assert fits.height and (fits["status"] == "failed").all()
     assert fits["reason"].str.contains("too large against the 60 ms sample interval").all()
+    # refused, but named with their (rough) rate
+    segs = pl.read_parquet(tmp_path / "out" / "segments.parquet").filter(pl.col("kind") == "rotation")
+    np.testing.assert_allclose(segs["rate_hz"], 0.5, rtol=1e-3)
+    assert segs["rate_measured_hz"].is_null().all()
     assert [r.rate_hz for r in outcome.results] == [0.0]
     truth = truth_of(data)["intrinsic"]
     res = outcome.results[0]
