@@ -78,10 +78,16 @@ def simulate_cmd(
     seed: Annotated[int, typer.Option(help="random seed; the same seed gives the same files")] = 1,
     fmt: Annotated[str, typer.Option("--format", help=FORMATS)] = "csv",
     effect: Annotated[list[str], typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = [],
-    config: Annotated[Optional[Path], typer.Option(help="simulation TOML: [plan], [dut], [site], [[effect]]")] = None,
+    config: Annotated[Optional[Path], typer.Option(help="simulation TOML: [plan], [dut], [site], [timebase], [[effect]]")] = None,
+    continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
+    timebase: Annotated[Optional[str], typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
     spec = _spec(config, effect)
+    if continuous:
+        spec = replace(spec, plan=replace(spec.plan, continuous=True))
+    if timebase:
+        spec = spec.with_timebase(timebase)
     path = write_dataset(simulate(spec, seed), spec, directory, fmt)
     out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False)
 

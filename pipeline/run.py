@@ -1,5 +1,6 @@
-"""One dataset through every stage: ingest -> segment -> fit -> combine, and
-the result tables written into the output directory. The CLI and the batch
+"""One dataset through every stage: ingest -> time base -> segment (labels,
+then the signals for what labels leave out) -> fit -> combine, and the
+result tables written into the output directory. The CLI and the batch
 runner both call ``run_dataset``; neither holds pipeline logic."""
 
 from __future__ import annotations
@@ -27,7 +28,9 @@ from pipeline.segment import segment_by_labels
 from pipeline.simultaneous import simultaneous, simultaneous_frame
 from pipeline.static import StaticReduction, reduce_static
 from pipeline.tables import write_parquet
+from pipeline.timebase import findings_frame, repair_timebase
 from pipeline.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
+from pipeline.unlabelled import infer_segments, reduce_unreferenced
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,19 +64,42 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     (the segment and fit tables, with the failure rows, are written first).
     """
     ds = load_dataset(path, meta_path, config.limits)
-    samples, segments = segment_by_labels(ds.samples, ds.name, ds.meta.angle_source)
-    fits = fits_frame(fit_segments(samples, segments, config.fit, config.workers), segments, ds.name)
+    timebase = repair_timebase(ds.samples, ds.name)
+    samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
+    inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
+    # a table recording (labelled or found in the signals); otherwise the static path below
+    table = not inferred.segments.filter(pl.col("kind").is_in(["static", "rotation"])).is_empty()
+    own_phase = inferred.own_phase if table else frozenset()
+    if table:
+        samples, segments = inferred.samples, inferred.segments
+    referenced = segments.filter(pl.col("angle_source") != "none")
+    fits = fits_frame(fit_segments(samples, referenced, config.fit, config.workers)
+                      + (list(inferred.fits) if table else []), segments, ds.name)
     written = [write_parquet(segments, out / "segments.parquet", "segments"),
-               write_parquet(fits, out / "fits.parquet", "fits")]
-    combined = combine(fits, ds.meta.g_local, ds.meta.g_local_uncertainty)
+               write_parquet(fits, out / "fits.parquet", "fits"),
+               write_parquet(pl.concat([timebase.findings, findings_frame(list(inferred.findings) if table else [])]),
+                             out / "timebase.parquet", "timebase")]
+    labelled_fits = fits.filter(~pl.col("segment").is_in(list(own_phase)))
+    combined = combine(labelled_fits, ds.meta.g_local, ds.meta.g_local_uncertainty)
+    unreferenced, consistency = [], []
+    if table:
+        static_labelled = any(isinstance(r, IntrinsicResult) and r.rate_hz == 0 for r in combined)
+        unreferenced, dwells, consistency = reduce_unreferenced(fits, own_phase, inferred.dwells, not static_labelled,
+                                                                ds.meta.g_local, ds.meta.g_local_uncertainty)
+        if dwells.height:
+            written.append(write_parquet(dwells, out / "dwells.parquet", "dwells"))
+    replaced = {r.rate_hz for r in unreferenced}
+    combined = sorted([r for r in combined if r.rate_hz not in replaced] + unreferenced, key=lambda r: (abs(r.rate_hz), r.rate_hz))
     results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
     failed = fits.filter(fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
     warnings = tuple(
-        [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
+        list(timebase.warnings) + (list(inferred.warnings) + consistency if table else [])
+        + [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
         + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
     )
+    notes = ds.notes + (inferred.notes if table else ())
     static = None
-    if not results and segments.filter(segments["kind"].is_in(["static", "rotation"])).is_empty():
+    if not results and not table:
         static = reduce_static(samples, segments, ds.name, ds.meta.g_local, ds.meta.g_local_uncertainty)
         if isinstance(static, PoseFailure):
             raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {static.reason}", path=path)
@@ -86,7 +112,9 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     unit = ds.meta.output_unit
     intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
     diagnosis = None
-    if config.diagnosis.enabled and static is None:
+    if replaced:
+        notes += ("diagnosis skipped: segments without a table angle (its models need the angle)",)
+    elif config.diagnosis.enabled and static is None:
         diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
                              ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None:
@@ -98,11 +126,16 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
 
             written.append(write_report(diagnosis, fits, results, ds.name, unit, out))
     written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
+    # per-segment components, and issue 3's tables, exist only where the segments' phases are the table's
+    labelled_results = [r for r in results if r.rate_hz not in replaced]
     if static is None:
-        written.append(write_parquet(components_frame(fits, list(results), ds.name), out / "components.parquet", "components"))
-    frame = "table" if static is None else static.frame
+        written.append(write_parquet(components_frame(labelled_fits, labelled_results, ds.name),
+                                     out / "components.parquet", "components"))
+    # the dwells' orientation-free result is in the intrinsic frame; phase-free rotations in the table's
+    frames = [static.frame if static is not None else "intrinsic" if r.rate_hz == 0 and r.rate_hz in replaced else "table"
+              for r in results]
     written.append(write_parquet(
-        cross_sensitivity_frame([(r, frame) for r in results], ds.name, "baseline", unit, ds.meta.g_local_uncertainty),
+        cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit, ds.meta.g_local_uncertainty),
         out / "cross_sensitivity.parquet", "cross_sensitivity"))
     corrections, correction_warnings = corrections_from_poses(table_step_poses(samples, segments) if static is None else static.positions)
     warnings += tuple(correction_warnings)
@@ -113,13 +146,13 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         by_temperature = temperature_frame(corrections, ds.name, unit)
         if not by_temperature.is_empty():
             written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
-    notes = list(ds.notes)
-    if static is None:
-        more, extra = _metrology_tables(samples, fits, list(results), ds.name, unit, ds.meta.g_local,
+    notes = list(notes)
+    if static is None and labelled_results:
+        more, extra = _metrology_tables(samples, labelled_fits, labelled_results, ds.name, unit, ds.meta.g_local,
                                         ds.meta.g_local_uncertainty, out, config)
         written += more
         notes += extra
-    else:
+    if static is not None:
         written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
     return RunOutcome(ds.name, unit, results, warnings, tuple(notes), tuple(written), diagnosis, static)
 

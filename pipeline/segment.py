@@ -64,6 +64,8 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
             dataset=pl.lit(dataset),
             n_steps=pl.col("n_steps").cast(pl.Int32),
             angle_source=pl.when(pl.col("has_angle")).then(pl.lit(angle_source)).otherwise(pl.lit("none")),
+            # what only inferred or own-phase segments have (pipeline.unlabelled)
+            rate_measured_hz=None, rate_u_hz=None, axis_offset_deg=None, chi2_reduced=None, t_phase_ns=None,
         )
     )
     return frame.drop("_kind"), conform(segments, "segments")

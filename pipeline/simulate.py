@@ -16,8 +16,10 @@ from pipeline import __version__
 from pipeline.errors import ConfigError
 from pipeline.physics import (
     AXES, CHANNELS, INTRINSIC, AxisEffect, Dut, Effects, Motion, axis_index, intrinsic_from_vectors,
-    noise_free_output, observe, rotation_matrix, unit_vectors_from_angles,
+    drift_term, noise_free_output, nonlinearity, observe, rotation_matrix, unit_vectors_from_angles,
 )
+from pipeline.timebase_sim import TimebaseDefects, apply_defects
+from pipeline.transitions import schedule_continuous, timeline
 
 # Structures outside the catalogue of effects.md, for testing that rotcal
 # reports them as unexplained instead of forcing them onto a catalogue name.
@@ -31,7 +33,13 @@ EFFECT_NAMES = (
 
 @dataclass(frozen=True)
 class Plan:
-    """The test plan: per axis, a static step sequence then constant rotations."""
+    """The test plan: per axis, a static step sequence then constant rotations.
+
+    ``continuous``: one recording with the transitions recorded too
+    (``pipeline.transitions``): step moves of ``step_move_s``, ramps at
+    ``ramp_deg_s2``, a rest of ``pause_s`` after the last rate of an axis and
+    a hand reorientation of ``reorient_s`` between axes.
+    """
 
     axes: tuple[str, ...] = AXES
     step_deg: float = 15.0
@@ -41,6 +49,9 @@ class Plan:
     dt_s: float = 0.06
     pause_s: float = 5.0
     step_move_s: float = 1.0
+    continuous: bool = False
+    ramp_deg_s2: float = 10.0
+    reorient_s: float = 8.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +77,11 @@ class SimulationSpec:
     output_unit: str = "bit"
     effects: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
     foreign: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
+    timebase: TimebaseDefects = field(default_factory=TimebaseDefects)
+
+    def with_timebase(self, text: str) -> "SimulationSpec":
+        """Time-base defects from ``key=value,...`` (the CLI form)."""
+        return replace(self, timebase=TimebaseDefects.parse(text, self.timebase))
 
     def with_effects(self, *specs: str) -> "SimulationSpec":
         return replace(self, effects=self.effects + tuple(parse_effect(s) for s in specs))
@@ -242,19 +258,30 @@ def schedule(plan: Plan, rng: np.random.Generator) -> tuple[Motion, pl.DataFrame
 
 def simulate(spec: SimulationSpec, seed: int) -> Simulation:
     """One dataset. Independent random streams for the DUT, the plan, the
-    effects and the noise keep a seed's DUT and noise the same whatever
-    effects are switched on."""
-    dut_rng, plan_rng, effect_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    effects, the noise and the logger keep a seed's DUT and noise the same
+    whatever effects are switched on."""
+    streams = np.random.SeedSequence(seed).spawn(5)
+    dut_rng, plan_rng, effect_rng, noise_rng, logger_rng = (np.random.default_rng(s) for s in streams)
     dut, mount = draw_dut(spec.dut, dut_rng)
-    motion, labels = schedule(spec.plan, plan_rng)
     effects, described = build_effects(spec.effects, effect_rng)
+    phases = None
+    if spec.plan.continuous:
+        motion, labels, phases, hand = schedule_continuous(spec.plan, effects.rate_error, plan_rng)
+    else:
+        motion, labels = schedule(spec.plan, plan_rng)
     clean = noise_free_output(motion, dut, effects, spec.g_local)
+    if phases is not None and hand.mask.any():
+        # a hand move: the same output chain after r . a (effects.md order) with the hand's specific force
+        linear = hand.specific_force(spec.g_local) @ dut.responsivity.T
+        x1g = np.linalg.norm(dut.responsivity, axis=1) * spec.g_local
+        clean[hand.mask] = dut.offsets + drift_term(motion, effects)[hand.mask] + nonlinearity(linear, x1g, effects)
     effects, described = _resolve_clipping(effects, described, clean)
     clean, foreign = _add_foreign(clean, motion, spec.foreign, effect_rng)
     observed = observe(clean, dut, effects, noise_rng)
     samples = labels.with_columns(
         *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS))
     ).select("t_ns", *CHANNELS, "axis", "rate_hz", "angle_deg", "plan_segment")
+    samples, logger = apply_defects(samples, spec.timebase, logger_rng)
     truth = {
         "rotcal_version": __version__,
         "seed": seed,
@@ -267,7 +294,10 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         "plan": asdict(spec.plan),
         "effects": described,
         "foreign": foreign,
+        "timebase": logger,
     }
+    if phases is not None:
+        truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
     return Simulation(samples, truth, dut, effects)
 
 
@@ -317,7 +347,7 @@ def _resolve_clipping(effects: Effects, described: list[dict], clean: np.ndarray
 
 def segment_files(samples: pl.DataFrame) -> pl.DataFrame:
     """One CSV file name per plan segment: ``NN_axis_static.csv`` or ``NN_axis_RATEhz.csv``."""
-    first = samples.group_by("plan_segment", maintain_order=True).agg(pl.col("axis").first(), pl.col("rate_hz").first())
+    first = samples.filter(pl.col("plan_segment").is_not_null()).group_by("plan_segment", maintain_order=True).agg(pl.col("axis").first(), pl.col("rate_hz").first())
     names = [
         f"{seg:02d}_{axis}_{'static' if rate == 0 else f'{rate:g}hz'}.csv"
         for seg, axis, rate in first.iter_rows()
@@ -368,7 +398,8 @@ def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: st
     and the table on ``table_topic`` (JointState in CDR, or JSON)."""
     from pipeline.mcap_writer import write_capture
 
-    return write_capture(sim.samples, table_messages(sim.samples), path, encoding, imu_topic, table_topic)
+    table = table_messages(sim.samples.filter(pl.col("plan_segment").is_not_null()))
+    return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)
 
 
 def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: str = "csv", device_id: str | None = None) -> Path:
@@ -384,17 +415,20 @@ def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: s
     else:
         raise ConfigError(f"unknown format {fmt!r} (csv, csv-unlabelled, mcap-cdr, mcap-json)")
     full_scale = f"full_scale = {spec.dut.full_scale:g}\n" if spec.dut.full_scale else ""
+    # a continuous recording comes with the plan's nominal rates, as a lab would write them down
+    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if spec.plan.continuous else ""
     (directory / "dataset.toml").write_text(
         f'[device]\nid = "{device_id or directory.name}"\noutput_unit = "{spec.output_unit}"\n{full_scale}'
-        f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n"
+        f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n{plan}"
     )
     (directory / "truth.json").write_text(json.dumps(sim.truth, indent=2) + "\n")
     return directory
 
 
 def spec_from_toml(path: Path) -> SimulationSpec:
-    """A simulation request file: ``[plan]``, ``[dut]``, ``[site]`` tables and
-    ``[[effect]]`` entries (``name`` plus the effect's parameters)."""
+    """A simulation request file: ``[plan]``, ``[dut]``, ``[site]``,
+    ``[timebase]`` tables and ``[[effect]]`` entries (``name`` plus the
+    effect's parameters)."""
     import tomllib
 
     try:
@@ -403,9 +437,9 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         raise ConfigError("simulation file not found", path=path) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"simulation file is not valid TOML: {exc}", path=path) from None
-    unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit"})
+    unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit", "timebase"})
     if unknown:
-        raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit)", path=path)
+        raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit, timebase)", path=path)
 
     def build(cls, table: dict):
         names = set(cls.__dataclass_fields__)
@@ -432,4 +466,5 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
         output_unit=doc.get("output_unit", "bit"),
         effects=tuple(effects),
+        timebase=build(TimebaseDefects, doc.get("timebase", {})).checked(),
     )

@@ -4,8 +4,12 @@ A moving-variance detector (the one imu_tk and most multi-position methods
 use), with its threshold set from the recording itself: the noise floor is
 the 10th percentile of each channel's moving variance (hand-placed and table
 sessions rest most of the time), and a window is still when no channel's
-variance exceeds ``threshold`` times its floor. Nothing beyond the samples
-and their time stamps is needed.
+variance exceeds ``threshold`` times its floor. A recording that never
+rests (a capture of one constant rotation) has no still windows to set that
+percentile, so the floor is also capped by the white-noise variance that
+second differences show (var(y[k+1] - 2 y[k] + y[k-1]) = 6 sigma^2, robustly
+from their median absolute deviation; slow motion barely adds to it). Nothing
+beyond the samples and their time stamps is needed.
 """
 
 from __future__ import annotations
@@ -46,7 +50,10 @@ def still_mask(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = Stilln
         return np.zeros(n, bool)
     var = moving_variance(y, window)
     integer = np.all(y == np.round(y))
-    floor = np.maximum(np.percentile(var, config.floor_percentile, axis=0), 1.0 / 12.0 if integer else 1e-12)
+    second = np.diff(y, 2, axis=0)
+    white = (1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0)) ** 2 / 6.0
+    floor = np.maximum(np.minimum(np.percentile(var, config.floor_percentile, axis=0), white),
+                       1.0 / 12.0 if integer else 1e-12)
     quiet = (var / floor).max(axis=1) < config.threshold
     gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
     gap_before = np.concatenate([[0], np.cumsum(gap)])
@@ -63,13 +70,10 @@ def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = S
     per-channel mean and standard deviation."""
     mask = still_mask(t_ns, y, config)
     dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
-    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]
-    edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    # split runs at time gaps
-    cuts = np.flatnonzero(gap & mask)
-    starts = np.sort(np.r_[starts, cuts[~np.isin(cuts, starts)]])
-    ends = np.sort(np.r_[ends, cuts[~np.isin(cuts, ends)]])
+    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
+    # runs of still samples, split at time gaps
+    starts = np.flatnonzero(mask & (np.r_[True, ~mask[:-1]] | gap))
+    ends = np.flatnonzero(mask & (np.r_[~mask[1:], True] | np.r_[gap[1:], True])) + 1
     long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
     starts, ends = starts[long], ends[long]
     rows = {"start": starts, "stop": ends, "t_start_ns": t_ns[starts], "t_end_ns": t_ns[ends - 1],

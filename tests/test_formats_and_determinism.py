@@ -56,7 +56,7 @@ def test_parquet_files_record_their_schema(make_dataset, tmp_path):
     from pipeline.tables import read_schema_name, schema
 
     run_dataset(make_dataset(22), tmp_path)
-    for name in ("intrinsic", "fits", "segments", "components"):
+    for name in ("intrinsic", "fits", "segments", "components", "timebase"):
         assert read_schema_name(tmp_path / f"{name}.parquet") == (name, schema(name).version)
 
 

@@ -1,0 +1,128 @@
+"""Time-base checks and repairs against known stamps (issue 5)."""
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.simulate import Plan, SimulationSpec, simulate
+from pipeline.timebase import check_capture
+
+PERIOD_NS = 60_000_000
+
+
+def _grid(n: int, rng, drop: float = 0.0) -> np.ndarray:
+    slots = np.flatnonzero(rng.random(n) >= drop)
+    return 7_000_000_000 + slots * PERIOD_NS
+
+
+def _found(tb):
+    return {f.check: f for f in tb.findings}
+
+
+def test_clean_stamps_are_left_alone():
+    t = _grid(5000, np.random.default_rng(0))
+    tb = check_capture(t, np.random.default_rng(1).normal(0, 8, (5000, 3)), "c")
+    f = _found(tb)
+    assert not any(x.detected for x in tb.findings)
+    assert f["sample_interval"].value == pytest.approx(0.06, abs=1e-15)
+    np.testing.assert_array_equal(tb.t_ns, t)
+
+
+def test_defects_counted_exactly_and_jitter_repaired():
+    """Drops, lost packets, records written twice, repeated stamps and 5 ms
+    stamp jitter: every count exact, the jitter measured, and the repaired
+    stamps on the true grid (to the grid fit's own precision)."""
+    rng = np.random.default_rng(2)
+    n = 20000
+    keep = rng.random(n) >= 0.01
+    keep[5000:5040] = False  # a lost packet of 40 samples
+    true = (7_000_000_000 + np.arange(n) * PERIOD_NS)[keep]
+    y = rng.normal(0, 8, (true.size, 3)).round()
+    stamps = true + np.round(rng.normal(0, 5e6, true.size)).astype(np.int64)
+    repeat = np.flatnonzero(rng.random(true.size) < 0.005)
+    repeat = repeat[(repeat > 0) & ~np.isin(repeat - 1, repeat)]
+    stamps[repeat] = stamps[repeat - 1]
+    twice = np.sort(rng.choice(true.size, 50, replace=False))
+    order = np.sort(np.r_[np.arange(true.size), twice])
+    tb = check_capture(stamps[order], y[order], "c")
+    f = _found(tb)
+    assert f["duplicated_samples"].value == 50
+    assert f["repeated_stamps"].value == repeat.size
+    assert f["missing_samples"].value == n - keep.sum()
+    assert f["gaps"].detected and f["gaps"].value == pytest.approx(40 * 0.06, rel=1e-6)
+    assert f["timestamp_jitter"].detected and "refit" in f["timestamp_jitter"].action
+    assert f["timestamp_jitter"].value == pytest.approx(5e-3, rel=0.05)
+    assert not f["logging_pauses"].value
+    # every kept sample on its true slot, to the grid fit's own precision (about 0.04 ms);
+    # only samples whose slot is ambiguous (empty slots on both sides) are dropped
+    assert tb.t_ns.size >= true.size - 10
+    np.testing.assert_allclose(tb.t_ns, true[order[tb.keep]], rtol=0, atol=0.2e6)
+
+
+def test_logging_pauses_restart_the_phase_and_are_not_missing_samples():
+    t = np.r_[np.arange(100) * PERIOD_NS, 8_010_000_000 + np.arange(100) * PERIOD_NS]
+    tb = check_capture(t, np.zeros((200, 3)), "c")
+    f = _found(tb)
+    assert f["logging_pauses"].value == 1 and not f["missing_samples"].detected
+
+
+def test_stepped_clock_is_kept_as_stamped():
+    """A stamp clock corrected in 1 ms steps (the Xsens recording) wanders
+    smoothly about the grid: irregular, not jitter; stamps kept."""
+    n = 20000
+    t = (np.arange(n) * 10_000_000 - (np.arange(n) // 1000) * 1_000_000).astype(np.int64)
+    tb = check_capture(t, np.zeros((n, 3)), "c")
+    f = _found(tb)
+    assert f["irregular_sampling"].detected and not f["timestamp_jitter"].detected
+    np.testing.assert_array_equal(tb.t_ns, t)
+
+
+def test_irregular_sampling_keeps_stamps_and_drops_unplaceable_repeats():
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.normal(PERIOD_NS, 3e6, 5000)).astype(np.int64)
+    t[100] = t[99]
+    tb = check_capture(t, rng.normal(0, 8, (5000, 3)), "c")
+    f = _found(tb)
+    assert f["irregular_sampling"].detected and f["repeated_stamps"].value == 1
+    assert tb.keep.sum() == 4999
+    np.testing.assert_array_equal(tb.t_ns, np.delete(t, 100))
+
+
+def test_jitter_too_large_to_place_is_marked_unrepairable():
+    rng = np.random.default_rng(4)
+    t = np.sort(np.arange(5000) * PERIOD_NS + np.round(rng.normal(0, 15e6, 5000)).astype(np.int64))
+    tb = check_capture(t, np.zeros((5000, 3)), "c")
+    assert tb.unrepairable and "too large" in tb.unrepairable
+
+
+def test_stamps_that_do_not_advance_are_refused():
+    with pytest.raises(InputError, match="do not advance"):
+        check_capture(np.zeros(100, np.int64), np.zeros((100, 3)), "c")
+
+
+def test_simulated_logger_defects_are_found_with_their_size():
+    spec = SimulationSpec(plan=Plan(continuous=True)).with_timebase(
+        "drop_fraction=0.01,gap_count=2,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,jitter_s=0.005")
+    sim = simulate(spec, 7)
+    s = sim.samples.sort("t_ns", maintain_order=True)
+    f = _found(check_capture(s["t_ns"].to_numpy(), s.select("u", "v", "w").to_numpy(), "c"))
+    real = sim.truth["timebase"]
+    assert f["duplicated_samples"].value == real["duplicated_records"]
+    assert f["repeated_stamps"].value == real["repeated_stamps"]
+    assert f["missing_samples"].value == real["missing_samples"]
+    assert f["timestamp_jitter"].value == pytest.approx(real["jitter_realised_s"], rel=0.03)
+
+
+def test_repaired_stamps_are_the_true_sampling_instants():
+    """The same simulated recording with and without stamp jitter and
+    repeated stamps (the logger's random draws are the same): after repair
+    every kept sample sits within 0.2 ms of its true, drift-scaled instant."""
+    base = SimulationSpec(plan=Plan(continuous=True))
+    noisy = simulate(base.with_timebase("drop_fraction=0.01,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,"
+                                        "jitter_s=0.005,clock_drift_ppm=200"), 102).samples
+    clean = simulate(base.with_timebase("drop_fraction=0.01,duplicate_fraction=0.005,clock_drift_ppm=200"), 102).samples
+    y = noisy.select("u", "v", "w").to_numpy()
+    tb = check_capture(noisy["t_ns"].to_numpy(), y, "c")
+    err = tb.t_ns - clean["t_ns"].to_numpy()[tb.keep]
+    assert np.abs(err).max() < 0.2e6
+    assert tb.keep.sum() > noisy.height - _found(tb)["duplicated_samples"].value - 40
