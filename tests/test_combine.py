@@ -22,6 +22,8 @@ def test_noise_free_dataset_gives_the_truth_at_every_rate(make_dataset, tmp_path
     assert sorted(set(df["rate_hz"])) == [0.0, 0.01, 0.05, 0.1, 0.5]
     for name, value in zip(df["parameter"], df["value"]):
         assert value == pytest.approx(truth[name], rel=1e-10, abs=1e-9), name
+    # rounding is not physics: with no noise the diagnosis names nothing
+    assert not pl.read_parquet(tmp_path / "diagnosis.parquet")["detected"].any()
 
 
 def test_jacobian_matches_finite_differences():

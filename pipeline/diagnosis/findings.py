@@ -89,7 +89,7 @@ def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, a
                  if k else clipped)
     n = np.full(3, obs.n)
     rss_before, rss_after = (unclipped**2).sum(axis=0), (clipped**2).sum(axis=0)
-    dbic = bic(rss_after, n, k, 3 * obs.n) - bic(rss_before, n, 0, 3 * obs.n)
+    dbic = bic(rss_after, n, k, 3 * obs.n, obs.noise_floor) - bic(rss_before, n, 0, 3 * obs.n, obs.noise_floor)
     rms = lambda rss: float(np.sqrt(rss.sum() / (3 * obs.n)))  # noqa: E731
     strongest = min(evidence, key=lambda e: e.p_value)
     p = min(1.0, strongest.p_value * len(evidence))
@@ -131,6 +131,6 @@ def step_row(final: ModelFit, dataset: str, output_unit: str) -> tuple[dict, Mod
 
 def scan_row(final: ModelFit, found: Unexplained, dataset: str) -> dict:
     rss_after = np.maximum(final.ev.rss - found.rss_reduction, 1e-300)
-    dbic = bic(rss_after, final.ev.n_used, final.n_params + found.n_params, final.n_total) - final.bic
+    dbic = bic(rss_after, final.ev.n_used, final.n_params + found.n_params, final.n_total, final.obs.noise_floor) - final.bic
     return _row(dataset, "unexplained", True, found.where, found.evidence, final.rms,
                 float(np.sqrt(rss_after.sum() / final.n_total)), dbic, found.p_value)

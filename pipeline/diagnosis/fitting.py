@@ -46,7 +46,7 @@ class ModelFit:
 
     @property
     def bic(self) -> float:
-        return bic(self.ev.rss, self.ev.n_used, self.n_params, self.n_total)
+        return bic(self.ev.rss, self.ev.n_used, self.n_params, self.n_total, self.obs.noise_floor)
 
     @property
     def rms(self) -> float:
@@ -62,9 +62,10 @@ class ModelFit:
         return self.beta[self.layout.params(cand)], self.covariance()[np.ix_(pos, pos)]
 
 
-def bic(rss: np.ndarray, n_used: np.ndarray, k: int, n_total: int) -> float:
-    """Bayesian information criterion with each channel's noise profiled."""
-    return float(np.sum(n_used * np.log(rss / n_used)) + k * np.log(n_total))
+def bic(rss: np.ndarray, n_used: np.ndarray, k: int, n_total: int, floor: np.ndarray) -> float:
+    """Bayesian information criterion with each channel's noise profiled
+    (never below its numerical ``floor``)."""
+    return float(np.sum(n_used * np.log(np.maximum(rss / n_used, floor**2))) + k * np.log(n_total))
 
 
 def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
@@ -72,9 +73,10 @@ def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
     return np.sort(np.concatenate(idx))
 
 
-def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray) -> np.ndarray:
+def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray, obs: Observations) -> np.ndarray:
+    """Each channel's noise from its residuals, never below the numerical floor."""
     k = np.array([np.isin(layout.per_channel[r], idx).sum() for r in range(3)])
-    return np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1))
+    return np.maximum(np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1)), obs.noise_floor)
 
 
 def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple[Candidate, ...],
@@ -90,7 +92,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     beta[inactive] = 0.0
     for _ in range(max_iter):
         ev = evaluate(obs, beta, layout, active, clip, structure, use)
-        sigma = _sigma(ev, layout, idx)
+        sigma = _sigma(ev, layout, idx, obs)
         G, b = weighted(ev, sigma)
         step, decrement = solve(G, b, idx)
         if decrement < 1e-8 * max(idx.size, 1):
@@ -124,7 +126,7 @@ def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = N
     dchi = max(float(b[idx] @ step) - base_dec, 0.0)
     rss = np.maximum(rss_after(ev, step, idx), 1e-300)
     k = extra.size + extra_params
-    dbic = bic(rss, ev.n_used, fit.n_params + k, fit.n_total) - fit.bic
+    dbic = bic(rss, ev.n_used, fit.n_params + k, fit.n_total, fit.obs.noise_floor) - fit.bic
     p = float(chi2.sf(dchi, extra.size)) if p_value is None else p_value
     return Score(cands[0], dchi, p, dbic, rss)
 
@@ -144,7 +146,7 @@ def swap_bic(fit: ModelFit, drop: Candidate, add: Candidate) -> float:
     full = np.concatenate([step, -beta_out])
     order = np.concatenate([idx, out])
     rss = np.maximum(rss_after(fit.ev, full, order), 1e-300)
-    return bic(rss, fit.ev.n_used, fit.n_params - out.size + layout.params(add).size, fit.n_total)
+    return bic(rss, fit.ev.n_used, fit.n_params - out.size + layout.params(add).size, fit.n_total, fit.obs.noise_floor)
 
 
 def without(fit: ModelFit, drop: tuple[Candidate, ...]) -> ModelFit:

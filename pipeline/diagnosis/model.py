@@ -18,6 +18,7 @@ extension, without refitting from scratch.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg
@@ -27,6 +28,11 @@ from pipeline.physics import (
     AXES, Effects, Motion, drift_term, gravity_direction, gravity_direction_derivative, nonlinearity,
     specific_force, true_angle, uniform_angle,
 )
+
+
+# Relative to a channel's largest output: far above float64 rounding of the
+# model (~1e-15), far below any sensor's noise or quantization (~1e-5).
+NUMERICAL_FLOOR = 1e-9
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,6 +49,13 @@ class Observations:
     @property
     def n(self) -> int:
         return self.y.shape[0]
+
+    @cached_property
+    def noise_floor(self) -> np.ndarray:
+        """Each channel's smallest credible noise, ``NUMERICAL_FLOOR`` of its
+        largest output: on noise-free (simulated) data the residuals are
+        rounding, and weighting by them would make rounding look like physics."""
+        return NUMERICAL_FLOOR * np.abs(self.y).max(axis=0, initial=0.0)
 
 
 class Layout:
