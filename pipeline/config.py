@@ -55,6 +55,7 @@ class DiagnosisConfig:
     false_alarm: float = 1e-4             # per catalogue extension (per axis or channel) and per scan for a step
     unexplained_false_alarm: float = 1e-3  # per family of residual scans
     report: bool = True                   # write report.md with figures
+    max_samples: int = 100_000            # samples modelled; longer segments are thinned evenly beyond it
 
 
 @dataclass(frozen=True)

@@ -118,6 +118,9 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
                              ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None:
+        if diagnosis.final.obs.n < diagnosis.samples_available:
+            notes += (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} samples "
+                      f"(long segments thinned evenly; [diagnosis] max_samples)",)
         intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
         written += [write_parquet(diagnosis.findings, out / "diagnosis.parquet", "diagnosis"),
                     write_parquet(diagnosis.parameters, out / "effect_parameters.parquet", "effect_parameters")]

@@ -11,21 +11,21 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.config import RunConfig
-from pipeline.diagnosis import STEP, catalogue, observations, _start
+from pipeline.config import DiagnosisConfig, RunConfig
+from pipeline.diagnosis import STEP, catalogue, kept_per_segment, observations, _start
 from pipeline.diagnosis.fitting import fit_model
 from pipeline.diagnosis.model import Layout, Structure, evaluate, predict
 from pipeline.diagnosis.scans import step_scan_p
 from pipeline.run import run_dataset
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 ONE_WORKER = RunConfig(workers=1)
 
 
-def _diagnose(tmp_path, seed, effects=(), foreign=()):
-    spec = SimulationSpec().with_effects(*effects).with_foreign(*foreign)
+def _diagnose(tmp_path, seed, effects=(), foreign=(), spec=SimulationSpec(), config=ONE_WORKER):
+    spec = spec.with_effects(*effects).with_foreign(*foreign)
     data = write_dataset(simulate(spec, seed), spec, tmp_path / "data")
-    outcome = run_dataset(data, tmp_path / "out", config=ONE_WORKER)
+    outcome = run_dataset(data, tmp_path / "out", config=config)
     truth = json.loads((data / "truth.json").read_text())
     findings = pl.read_parquet(tmp_path / "out" / "diagnosis.parquet")
     params = pl.read_parquet(tmp_path / "out" / "effect_parameters.parquet")
@@ -68,6 +68,28 @@ def test_each_catalogue_effect_is_found_named_and_measured(tmp_path, name, spec,
         assert row.height == 1, parameter
         u = max(row["std_uncertainty"][0], 1.0) if name == "clipping" else row["std_uncertainty"][0]
         assert abs(row["value"][0] - truth_params[parameter]) <= 3 * u, (parameter, row.row(0), truth_params[parameter])
+
+
+def test_samples_kept_per_segment_beyond_the_cap():
+    counts = np.array([1200, 50, 4200, 4200])
+    assert kept_per_segment(counts, 20_000).tolist() == counts.tolist()
+    # the two short segments whole (1250), the remaining 3750 shared by the two long ones
+    assert kept_per_segment(counts, 5000).tolist() == [1200, 50, 1875, 1875]
+    assert kept_per_segment(counts, 400).tolist() == [116, 50, 116, 116]  # 350 / 3, rounded down
+
+
+def test_a_thinned_capture_still_names_and_measures_its_effect(tmp_path):
+    """Rotations of 20,000 samples (about 250,000 in all) modelled through
+    40,000 of them: the centripetal term is still named and its radius is
+    within 3 u of the truth, and the run says it thinned."""
+    config = RunConfig(workers=1, diagnosis=DiagnosisConfig(max_samples=40_000))
+    outcome, truth, findings, params = _diagnose(tmp_path, 42, ("centripetal:axis=x,radius_m=0.04",),
+                                                 spec=SimulationSpec(plan=Plan(rotation_samples=20_000)), config=config)
+    assert set(findings.filter(pl.col("detected"))["effect"]) == {"centripetal"}
+    row = params.filter(pl.col("parameter") == "radius_m")
+    assert abs(row["value"][0] - 0.04) <= 3 * row["std_uncertainty"][0]
+    modelled = [int(m[1].replace(",", "")) for n in outcome.notes if (m := re.match(r"diagnosis modelled ([\d,]+) of the", n))]
+    assert len(modelled) == 1 and 39_990 <= modelled[0] <= 40_000
 
 
 def test_refined_parameters_correct_a_biased_baseline(tmp_path):
@@ -128,7 +150,7 @@ def test_jacobian_matches_finite_differences(make_dataset):
     fits = fits_frame(fit_segments(samples, segments, FitConfig()), segments, ds.name)
     results = [r for r in combine(fits, ds.meta.g_local, 0.0) if isinstance(r, IntrinsicResult)]
     results.sort(key=lambda r: r.rate_hz)
-    obs, _ = observations(samples, segments, fits, [r.rate_hz for r in results], ds.meta.g_local)
+    obs, _, _ = observations(samples, segments, fits, [r.rate_hz for r in results], ds.meta.g_local, 10**9)
     cands = catalogue(("x", "y", "z"), ("x", "y", "z"), False)
     layout = Layout(len(results), cands + (STEP,))
     beta = _start(layout, results)

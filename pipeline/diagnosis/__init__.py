@@ -36,6 +36,7 @@ from pipeline.diagnosis.model import Layout, Observations, Structure, predict, w
 from pipeline.diagnosis.scans import (
     Residuals, Unexplained, harmonic_scan, segment_scan, static_step_scan, step_scan, tone_scan,
 )
+from pipeline.fit import segment_rows
 from pipeline.physics import AXES, CHANNELS, Motion, axis_index
 from pipeline.tables import conform, schema
 
@@ -56,19 +57,43 @@ class Diagnosis:
     final: ModelFit
     before: dict[str, np.ndarray]   # finding -> residuals of the model without it
     step_id: np.ndarray
+    samples_available: int          # in the fitted segments; the model's are ``final.obs.n``
+
+
+def kept_per_segment(counts: np.ndarray, max_samples: int) -> np.ndarray:
+    """How many samples of each segment the model keeps: all of every segment
+    when the total is within ``max_samples``, else the same number c from
+    each segment longer than c, with c chosen so that the total is
+    ``max_samples`` (short segments, the static steps, are kept whole)."""
+    if counts.sum() <= max_samples:
+        return counts
+    ordered = np.sort(counts)
+    below = np.r_[0, np.cumsum(ordered)[:-1]]  # samples in the segments shorter than each
+    cap = (max_samples - below) / (ordered.size - np.arange(ordered.size))  # c if it lies between neighbours
+    return np.minimum(counts, int(cap[np.argmax(ordered >= cap)]))
 
 
 def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
-                 rates: list[float], g_local: float) -> tuple[Observations, np.ndarray] | None:
+                 rates: list[float], g_local: float, max_samples: int) -> tuple[Observations, np.ndarray, int] | None:
     """The samples of the fitted table segments at the determined ``rates``
-    (in the order given), sorted by rate then time, and each static sample's
-    step number (-1 during rotation)."""
-    ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique()
+    (in the order given), sorted by rate then time, each static sample's step
+    number (-1 during rotation), and how many samples there were in all.
+
+    Beyond ``max_samples`` each long segment is thinned to evenly spaced
+    samples (``kept_per_segment``): the model stays exact, the noise of its
+    estimates grows as the square root of the thinning, and memory stays
+    bounded on captures of millions of samples.
+    """
+    ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique().sort()
     seg = segments.filter(pl.col("segment").is_in(ok.implode()))
     if seg.height == 0:
         return None
-    frame = (samples.filter(pl.col("segment").is_in(ok.implode()))
-             .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left")
+    rows = segment_rows(samples)
+    first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
+    kept = kept_per_segment(count, max_samples)
+    index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
+    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", *CHANNELS)[index]
+             .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
              .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
                            step=pl.when(pl.col("kind") == "static")
                            .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(-1),
@@ -88,7 +113,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     )
     obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
                        np.array(rates), frame["segment"].to_numpy(), g_local)
-    return obs, frame["step"].to_numpy()
+    return obs, frame["step"].to_numpy(), int(count.sum())
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
@@ -255,10 +280,10 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     if not results:
         return None
     g_local = results[0].g_local
-    built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local)
+    built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local, config.max_samples)
     if built is None:
         return None
-    obs, step_id = built
+    obs, step_id, n_all = built
     m = obs.motion
     rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
     all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
@@ -305,4 +330,4 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     findings = conform(pl.DataFrame(rows, schema=schema("diagnosis").polars_schema), "diagnosis")
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
-    return Diagnosis(findings, parameters, refined, null, final, before, step_id)
+    return Diagnosis(findings, parameters, refined, null, final, before, step_id, n_all)

@@ -149,6 +149,10 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
     else:
         lines.append(f"{found.height} finding{'s' if found.height > 1 else ''}: "
                      + "; ".join(f"**{e}** ({w})" for e, w in found.select("effect", "where").iter_rows()) + ".")
+    if diag.final.obs.n < diag.samples_available:
+        lines += ["", f"The model used {diag.final.obs.n:,} of the {diag.samples_available:,} samples of the fitted "
+                  "segments (long segments thinned evenly, `[diagnosis] max_samples`): effects smaller than the "
+                  "thinned data can resolve may go unnamed."]
     lines += ["", "## Findings", "",
               _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
                       for e, d, w, ev, b, a, bic in findings.select(
