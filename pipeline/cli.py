@@ -138,6 +138,7 @@ def batch(
     workers: Annotated[Optional[int], typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
     executor: Annotated[Optional[str], typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
+    figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
     import dataclasses
@@ -147,7 +148,8 @@ def batch(
 
     cfg = load_config(config)
     cfg = dataclasses.replace(cfg, batch=dataclasses.replace(
-        cfg.batch, workers=cfg.batch.workers if workers is None else workers, executor=executor or cfg.batch.executor))
+        cfg.batch, workers=cfg.batch.workers if workers is None else workers, executor=executor or cfg.batch.executor),
+        report=dataclasses.replace(cfg.report, figures=figures))
     with Reporter(err) as reporter:
         summary = run_batch(root, out_dir, cfg, reporter)
     if json_summary:

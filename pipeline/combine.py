@@ -115,17 +115,16 @@ class SegmentCoefficients:
 
 def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
     """Rebuild each ok segment's 9-vector and 9 x 9 covariance from the fits table."""
-    out = []
-    ok = fits.filter(pl.col("status") == "ok").sort("segment", "channel")
-    for (segment,), part in ok.group_by("segment", maintain_order=True):
-        part = part.sort(pl.col("channel").replace_strict({c: i for i, c in enumerate(CHANNELS)}))
-        coef = part.select("C", "A", "B").to_numpy().ravel()
-        cov = np.vstack([
-            np.hstack([np.asarray(row[f"cov_{c}"]).reshape(3, 3) for c in CHANNELS])
-            for row in part.iter_rows(named=True)
-        ])
-        out.append(SegmentCoefficients(int(segment), part["axis"][0], coef, cov, int(part["dof"][0])))
-    return out
+    ok = (fits.filter(pl.col("status") == "ok")
+          .sort("segment", pl.col("channel").replace_strict({c: i for i, c in enumerate(CHANNELS)})))
+    n = ok.height // 3
+    coef = ok.select("C", "A", "B").to_numpy().reshape(n, 9)
+    # blocks[s, r, k] is the 3 x 3 covariance of channel r's (C, A, B) with channel k's
+    blocks = np.stack([ok[f"cov_{c}"].list.to_array(9).to_numpy() for c in CHANNELS], axis=1).reshape(n, 3, 3, 3, 3)
+    cov = blocks.transpose(0, 1, 3, 2, 4).reshape(n, 9, 9)
+    first = ok.gather_every(3)
+    return [SegmentCoefficients(int(seg), axis, coef[i], cov[i], int(dof))
+            for i, (seg, axis, dof) in enumerate(first.select("segment", "axis", "dof").iter_rows())]
 
 
 def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:

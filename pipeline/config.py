@@ -59,11 +59,19 @@ class DiagnosisConfig:
 
 
 @dataclass(frozen=True)
+class ReportConfig:
+    """Outputs for people beside the tables."""
+
+    figures: bool = True  # PNG figures: the frequency response, the diagnosis report's residual plots
+
+
+@dataclass(frozen=True)
 class RunConfig:
     workers: int = 0
     fit: FitConfig = field(default_factory=FitConfig)
     limits: Limits = field(default_factory=Limits)
     diagnosis: DiagnosisConfig = field(default_factory=DiagnosisConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     source: str | None = None
@@ -103,6 +111,7 @@ def load_config(path: Path | None = None) -> RunConfig:
         fit=FitConfig(**doc.get("fit", {})),
         limits=Limits(**doc.get("limits", {})),
         diagnosis=DiagnosisConfig(**doc.get("diagnosis", {})),
+        report=ReportConfig(**doc.get("report", {})),
         batch=BatchConfig(**doc.get("batch", {})),
         uncertainty=UncertaintyConfig(**doc.get("uncertainty", {})),
         source=None if path is None else str(path),

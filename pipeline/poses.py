@@ -28,6 +28,7 @@ import polars as pl
 
 from pipeline.combine import IntrinsicResult, intrinsic_jacobian
 from pipeline.errors import UndeterminedError
+from pipeline.fit import segment_rows
 from pipeline.lsq import ols
 from pipeline.multiposition import PoseFailure, group_statistics, pose_arrays
 from pipeline.physics import AXES, CHANNELS, axis_index, gravity_direction
@@ -86,6 +87,9 @@ def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFr
     """Every step of the static table segments as a pose, its reference the
     gravity of contract section 1 at the commanded angle."""
     static = segments.filter((pl.col("kind") == "static") & (pl.col("angle_source") != "none"))["segment"]
+    rows = segment_rows(samples)
+    # the static segments' rows only: a few thousand of a capture's millions
+    samples = pl.concat([samples.slice(*rows[s]) for s in static.to_list() if s in rows] or [samples.clear()])
     marked = samples.select(
         step=pl.when(pl.col("segment").is_in(static.implode()))
         .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(None),

@@ -127,7 +127,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         if config.diagnosis.report:
             from pipeline.diagnosis.report import write_report  # matplotlib only when a report is wanted
 
-            written.append(write_report(diagnosis, fits, results, ds.name, unit, out))
+            written.append(write_report(diagnosis, fits, results, ds.name, unit, out, config.report.figures))
     written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
     # per-segment components, and issue 3's tables, exist only where the segments' phases are the table's
     labelled_results = [r for r in results if r.rate_hz not in replaced]
@@ -176,10 +176,11 @@ def _metrology_tables(samples: pl.DataFrame, fits: pl.DataFrame, results: list[I
         write_parquet(gaitan_frame(fits, g, u_g, dataset, unit), out / "gaitan_estimators.parquet", "gaitan_estimators"),
         write_parquet(response, out / "frequency_response.parquet", "frequency_response"),
     ]
-    from pipeline.plot import frequency_response_png  # matplotlib only when there is a plot to draw
+    if config.report.figures:
+        from pipeline.plot import frequency_response_png  # matplotlib only when there is a plot to draw
 
-    png = frequency_response_png(response, out / "frequency_response.png", dataset)
-    written += [png] if png else []
+        png = frequency_response_png(response, out / "frequency_response.png", dataset)
+        written += [png] if png else []
     notes = [n for n in [consistency_note(consistency)] if n]
     if config.uncertainty.monte_carlo:
         mc = monte_carlo_frame(monte_carlo(fits, g, u_g, config.uncertainty), results, dataset, unit)

@@ -219,3 +219,20 @@ def test_plain_log_lines_when_not_on_a_terminal(cli, tmp_path):
     assert sorted(line.split("] ", 1)[1].split(" (")[0] for line in lines[1:]) == [
         "ok lot1/dut001", "ok lot2/dut002", "quarantined bad.csv"]
     assert "3 datasets: 3 processed (2 ok, 1 quarantined, 0 errors)" in stdout
+
+
+def test_batch_draws_figures_only_when_asked_and_the_switch_reprocesses(cli, tmp_path):
+    """Figures are for people: a batch writes tables (and the diagnosis
+    report) unless --figures; the switch is part of what results depend on."""
+    root, out = tmp_path / "root", tmp_path / "out"
+    make_root(root, [1])
+    status, _, err = cli("batch", root, "--out", out, "--workers", "1")
+    assert status == 0, err
+    published = out / "datasets" / "lot1__dut001"
+    assert (published / "intrinsic.parquet").exists() and (published / "report.md").exists()
+    assert not list(published.rglob("*.png")) and "## Figures" not in (published / "report.md").read_text()
+    status, stdout, err = cli("batch", root, "--out", out, "--workers", "1", "--figures", "--json")
+    assert status == 0, err
+    assert json.loads(stdout)["processed"] == 1
+    assert (published / "frequency_response.png").read_bytes()[:4] == b"\x89PNG"
+    assert "## Figures" in (published / "report.md").read_text()

@@ -5,7 +5,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.combine import combine_rate, intrinsic_jacobian, SegmentCoefficients
+from pipeline.combine import SegmentCoefficients, combine_rate, intrinsic_jacobian, segment_coefficients
 from pipeline.coverage import simulate_errors
 from pipeline.run import run_dataset
 from pipeline.simulate import DutSpec, SimulationSpec
@@ -67,3 +67,22 @@ def test_normalised_errors_over_ten_seeded_datasets():
     print(f"z RMS {rms:.3f}, max |z| {np.abs(z).max():.2f} over {z.size}")
     assert 0.8 <= rms <= 1.25
     assert np.abs(z).max() <= 4.5
+
+
+def test_fits_table_round_trip_gives_each_segments_vector_and_covariance(make_dataset):
+    """The fits table's columns rebuild exactly what the fit computed: the
+    9-vector (channel-major C, A, B) and the 9 x 9 covariance."""
+    from pipeline.config import FitConfig
+    from pipeline.fit import fit_segments, fits_frame
+    from pipeline.ingest import load_dataset
+    from pipeline.segment import segment_by_labels
+
+    ds = load_dataset(make_dataset(6))
+    samples, segments = segment_by_labels(ds.samples, ds.name)
+    fits = fit_segments(samples, segments, FitConfig())
+    rebuilt = segment_coefficients(fits_frame(fits, segments, ds.name).sample(fraction=1.0, shuffle=True, seed=1))
+    assert [s.segment for s in rebuilt] == [f.segment for f in fits]
+    for fit, seg in zip(fits, rebuilt):
+        np.testing.assert_array_equal(seg.coef, fit.coef.ravel())
+        np.testing.assert_array_equal(seg.cov, fit.cov)
+        assert seg.dof == fit.dof

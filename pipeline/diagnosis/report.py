@@ -136,10 +136,8 @@ def _comparison(baseline: tuple[IntrinsicResult, ...], refined: tuple[IntrinsicR
 
 
 def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicResult, ...], dataset: str,
-                 output_unit: str, out: Path) -> Path:
-    """Write ``report.md`` and its figures into ``out``."""
-    figures = out / "figures"
-    figures.mkdir(parents=True, exist_ok=True)
+                 output_unit: str, out: Path, draw: bool = True) -> Path:
+    """Write ``report.md`` into ``out``, and its figures when ``draw``."""
     findings = diag.findings
     found = findings.filter(pl.col("detected"))
     lines = [f"# Diagnosis of {dataset}", ""]
@@ -165,7 +163,19 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
                       "effect", "axis", "parameter", "value", "std_uncertainty", "unit").iter_rows()],
                          ["effect", "axis", "parameter", "value", "standard uncertainty", "unit"]), ""]
     lines += ["## Refined against baseline intrinsic parameters", "", _comparison(baseline, diag.refined, output_unit)]
-    lines += ["## Figures", ""]
+    if draw:
+        lines += _figures(diag, fits, out / "figures", output_unit)
+    path = out / "report.md"
+    tmp = path.with_name(f".report.md.{os.getpid()}.tmp")
+    tmp.write_text("\n".join(lines))
+    os.replace(tmp, path)
+    return path
+
+
+def _figures(diag: Diagnosis, fits: pl.DataFrame, figures: Path, output_unit: str) -> list[str]:
+    """Draw the report's figures into ``figures``; the report's lines that show them."""
+    figures.mkdir(parents=True, exist_ok=True)
+    lines = ["## Figures", ""]
     for k, name in enumerate(sorted(diag.before)):
         file = f"residuals_{k}_{name.replace(' ', '_').replace(':', '')}.png"
         where = residual_figure(diag, name, figures / file, output_unit)
@@ -174,8 +184,4 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
         offsets_figure(diag, fits, figures / "offsets_vs_w2.png", output_unit)
         lines += ["Offsets of the rotation segments against w^2 (Gaitan 2021 Fig. 7), before and after the "
                   "modelled centripetal acceleration:", "", "![offsets](figures/offsets_vs_w2.png)", ""]
-    path = out / "report.md"
-    tmp = path.with_name(f".report.md.{os.getpid()}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
-    return path
+    return lines
