@@ -1,3 +1,12 @@
 """rotcal: rotation-table calibration of three-axis accelerometers."""
 
+import os
+
 __version__ = "0.1.0"
+
+# Polars' allocator (jemalloc) keeps freed pages for a second or more before
+# returning them; rotcal's stages alternate polars and numpy, which cannot
+# reuse them, so on captures of millions of samples they add up to the peak
+# memory. Returned at once instead (read when polars is first imported; a
+# setting of the user's own is kept).
+os.environ.setdefault("_RJEM_MALLOC_CONF", "dirty_decay_ms:0,muzzy_decay_ms:0")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import polars as pl
 from threadpoolctl import threadpool_limits
@@ -16,7 +17,6 @@ from pipeline.combine import CombineFailure, IntrinsicResult, combine, component
 from pipeline.config import RunConfig
 from pipeline.consistency import consistency_frame, consistency_note
 from pipeline.crosssens import cross_sensitivity_frame
-from pipeline.diagnosis import Diagnosis, diagnose
 from pipeline.errors import UndeterminedError
 from pipeline.fit import fit_segments, fits_frame
 from pipeline.gaitan import gaitan_frame
@@ -31,6 +31,9 @@ from pipeline.tables import write_parquet
 from pipeline.timebase import findings_frame, repair_timebase
 from pipeline.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
 from pipeline.unlabelled import infer_segments, reduce_unreferenced
+
+if TYPE_CHECKING:
+    from pipeline.diagnosis import Diagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,10 +114,18 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         raise UndeterminedError(f"no rate can be determined: {warnings[0]}{more}", path=path)
     unit = ds.meta.output_unit
     intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
+    # per-segment components, and issue 3's tables, exist only where the segments' phases are the table's
+    labelled_results = [r for r in results if r.rate_hz not in replaced]
+    # issue 3's tables before the diagnosis, whose imports and figures then stay in memory; listed in their place
+    metrology = (_metrology_tables(samples, labelled_fits, labelled_results, ds.name, unit, ds.meta.g_local,
+                                   ds.meta.g_local_uncertainty, out, config)
+                 if static is None and labelled_results else ([], []))
     diagnosis = None
     if replaced:
         notes += ("diagnosis skipped: segments without a table angle (its models need the angle)",)
     elif config.diagnosis.enabled and static is None:
+        from pipeline.diagnosis import diagnose  # scipy.stats loads when diagnosing, after the large stages
+
         diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
                              ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None:
@@ -129,8 +140,6 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
 
             written.append(write_report(diagnosis, fits, results, ds.name, unit, out, config.report.figures))
     written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
-    # per-segment components, and issue 3's tables, exist only where the segments' phases are the table's
-    labelled_results = [r for r in results if r.rate_hz not in replaced]
     if static is None:
         written.append(write_parquet(components_frame(labelled_fits, labelled_results, ds.name),
                                      out / "components.parquet", "components"))
@@ -149,12 +158,8 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         by_temperature = temperature_frame(corrections, ds.name, unit)
         if not by_temperature.is_empty():
             written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
-    notes = list(notes)
-    if static is None and labelled_results:
-        more, extra = _metrology_tables(samples, labelled_fits, labelled_results, ds.name, unit, ds.meta.g_local,
-                                        ds.meta.g_local_uncertainty, out, config)
-        written += more
-        notes += extra
+    written += metrology[0]
+    notes = list(notes) + metrology[1]
     if static is not None:
         written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
     return RunOutcome(ds.name, unit, results, warnings, tuple(notes), tuple(written), diagnosis, static)

@@ -38,6 +38,7 @@ import polars as pl
 from pipeline.combine import (
     CombineFailure, IntrinsicResult, STATE, result_from_state, segment_input, units,
 )
+from pipeline.fit import segment_rows
 from pipeline.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from pipeline.sinemodel import basis, normal_equations, precision, residuals, solve
 from pipeline.tables import conform, schema
@@ -47,34 +48,44 @@ MAX_ITERATIONS = 30
 
 @dataclass(frozen=True, eq=False)
 class SegmentSamples:
-    """One fitted segment's samples: table angle (degrees), outputs (n, 3),
-    and the rate scale kappa to start from (None: the angle is trusted)."""
+    """One fitted segment's samples: table angle (degrees), outputs (one
+    array per channel, views of the sample table: no copy held), and the
+    rate scale kappa to start from (None: the angle is trusted)."""
 
     segment: int
     axis: str
     theta_deg: np.ndarray
-    y: np.ndarray
+    channels: tuple[np.ndarray, ...]
     kappa: float | None
+
+    @property
+    def y(self) -> np.ndarray:
+        """The outputs (n, 3), built when wanted, in ``DataFrame.to_numpy``'s layout."""
+        y = np.empty((self.theta_deg.size, len(self.channels)), order="F")
+        for r, column in enumerate(self.channels):
+            y[:, r] = column
+        return y
 
 
 def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool) -> list[SegmentSamples]:
     """The ok segments of one rate with their samples, in segment order."""
     ok = (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
           .unique("segment", keep="first").sort("segment"))
-    out = []
+    rows, out = segment_rows(samples), []
     for row in ok.iter_rows(named=True):
-        part = samples.filter(pl.col("segment") == row["segment"])
+        part = samples.slice(*rows[row["segment"]])
         rotating = four_parameter and row["kind"] == "rotation"
         out.append(SegmentSamples(row["segment"], row["axis"], part["angle_deg"].to_numpy(),
-                                  part.select(CHANNELS).to_numpy(),
+                                  tuple(part[c].to_numpy() for c in CHANNELS),
                                   row["rate_fit_hz"] / row["rate_hz"] if rotating else None))
     return out
 
 
 def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
-                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """One segment's normal equations at ``beta`` with the channel weight
-    matrix ``weight`` (``sinemodel``), and its residuals."""
+    matrix ``weight`` (``sinemodel``), and the weight its residuals give
+    (``precision``; computed here so that no segment's residuals are kept)."""
     a = axis_index(seg.axis)
     theta_unw = np.unwrap(seg.theta_deg, period=360.0)
     psi = np.deg2rad(theta_unw - theta_unw[0])
@@ -87,8 +98,9 @@ def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: 
         design[r, 0, i_off], design[r, 1, i_sin], design[r, 2, i_cos] = 1.0, -1.0, 1.0
         if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
             design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
-    resid = residuals(z, seg.y, coef)
-    return (*normal_equations(z, resid, design, weight), resid)
+    y = seg.y
+    resid = residuals(z, y, coef)
+    return (*normal_equations(z, resid, design, weight), precision(resid, y, 3))
 
 
 def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float, g_uncertainty: float) -> IntrinsicResult | CombineFailure:
@@ -123,7 +135,7 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
                 break
         else:
             return CombineFailure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
-        weights = [w if (w := precision(b[2], s.y, 3)) is not None else np.eye(3) for b, s in zip(blocks, segs)]
+        weights = [b[2] if b[2] is not None else np.eye(3) for b in blocks]
     transform = np.zeros((12, p))
     transform[:9, :9] = np.eye(9)
     var = np.diag(cov)
@@ -135,7 +147,7 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
     parts = []
     for s, (block, _, _) in zip(segs, blocks):
         share = transform @ cov @ block @ cov @ transform.T
-        parts.append((segment_input(s.segment, s.axis, s.y.shape[0] - 3), share))
+        parts.append((segment_input(s.segment, s.axis, s.theta_deg.size - 3), share))
     return result_from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)
 
 

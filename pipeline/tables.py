@@ -4,7 +4,9 @@ them, and write Parquet files atomically with the schema recorded in the file.
 A schema file holds ``name``, ``version``, ``description`` and ``columns``
 (each with ``name``, ``type``, ``description`` and, where it has one,
 ``unit``). Types are ``string``, ``bool``, ``int32``, ``int64``,
-``float64`` and ``list[float64]``.
+``float64`` and ``list[float64]``; internal tables (``samples``) may also use
+``enum`` (with ``values``) and ``categorical``, one integer code a row for
+label columns of millions of rows.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ from importlib import resources
 from pathlib import Path
 
 import polars as pl
-import pyarrow.parquet as pq
 
 from pipeline import __version__
 
@@ -61,8 +62,16 @@ def schema(name: str) -> TableSchema:
         name=doc["name"],
         version=doc["version"],
         columns=tuple(c["name"] for c in cols),
-        dtypes=tuple(_DTYPES[c["type"]] for c in cols),
+        dtypes=tuple(_dtype(c) for c in cols),
     )
+
+
+def _dtype(column: dict) -> pl.DataType:
+    if column["type"] == "enum":
+        return pl.Enum(column["values"])
+    if column["type"] == "categorical":
+        return pl.Categorical()
+    return _DTYPES[column["type"]]
 
 
 def conform(frame: pl.DataFrame, name: str) -> pl.DataFrame:
@@ -93,6 +102,8 @@ def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
     The file is written under a temporary name in the same directory and
     moved into place, so no reader ever sees a half-written table.
     """
+    import pyarrow.parquet as pq  # loaded at the first write: not held through the stages before (memory)
+
     table = conform(frame, name).to_arrow()
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -107,5 +118,7 @@ def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
 
 def read_schema_name(path: Path) -> tuple[str, str]:
     """The (schema name, schema version) recorded in a Parquet file rotcal wrote."""
+    import pyarrow.parquet as pq
+
     meta = pq.read_schema(path).metadata or {}
     return meta[b"rotcal.schema"].decode(), meta[b"rotcal.schema_version"].decode()

@@ -165,6 +165,11 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     return rows, updates, fits, drift.finding(dataset), drift.warnings()
 
 
+def _outputs(samples: pl.DataFrame, rows: np.ndarray) -> np.ndarray:
+    """The outputs of some rows, (n, 3)."""
+    return np.column_stack([samples[c].to_numpy()[rows] for c in CHANNELS])
+
+
 def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, plan_rates: tuple[float, ...] = (),
                    unrepairable: dict[str, str] | None = None, config: BlindConfig = BlindConfig()) -> Inference:
     """Add the segments that labels do not give; fit rotations without an
@@ -176,21 +181,20 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     free = (seg_col < 0) | np.isin(seg_col, static_no_angle.to_numpy())
     seg_col[free] = -1
     t_all = samples["t_ns"].to_numpy()
-    y_all = samples.select(CHANNELS).to_numpy().astype(float)
-    capture_col = samples["capture"].to_numpy()
     found = _Found(int(segments["segment"].max() + 1) if segments.height else 0)
-    captures = list(dict.fromkeys(capture_col[free]))
+    # the outputs are gathered only for the samples a step needs (no copy of a whole labelled recording)
+    captures = samples["capture"].filter(pl.Series(free)).unique(maintain_order=True).to_list()
     for capture in captures:
-        idx = np.flatnonzero(free & (capture_col == capture))
+        idx = np.flatnonzero(free & (samples["capture"] == capture).to_numpy())
         if idx.size >= 10:
-            seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], y_all[idx],
+            seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], _outputs(samples, idx),
                                             unrepairable.get(capture), config)
     notes = ([f"segments inferred from the signals of {len(captures)} capture(s): {found.counts[0]} constant "
               f"rotations, {found.counts[1]} static step sequences, {found.counts[2]} dwells in all"] if captures else [])
     for row in kept.filter((pl.col("kind") == "rotation") & (pl.col("angle_source") == "none")).iter_rows(named=True):
         on = seg_col == row["segment"]
         reason = unrepairable.get(row["capture"])
-        fit = None if reason else fit_sine(t_all[on], y_all[on], abs(row["rate_hz"]))
+        fit = None if reason else fit_sine(t_all[on], _outputs(samples, np.flatnonzero(on)), abs(row["rate_hz"]))
         found.rotations.append(_Rotation(row["segment"], row["capture"], row["axis"], row["label_source"],
                                          row["rate_hz"], fit, reason, row["t_start_ns"], row["t_end_ns"], int(on.sum())))
     rows, updates, fits, finding, warnings = _own_phase_fits(found.rotations, dataset, plan_rates)
@@ -200,12 +204,12 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     every = pl.concat([conform(kept, "segments"), new]).with_columns(rate_hz=canonical_rate(pl.col("rate_hz")))
     # number every segment in time order
     order = every.sort("t_start_ns", "segment")["segment"].to_numpy()
-    lookup = np.full(int(order.max(initial=-1)) + 2, -1)
+    lookup = np.full(int(order.max(initial=-1)) + 2, -1, np.int32)  # the last entry serves -1: no segment
     lookup[order] = np.arange(order.size)
     renumber = {int(old): int(new) for new, old in enumerate(order)}
     every = every.with_columns(segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32)).sort("segment")
-    seg_col = np.where(seg_col >= 0, lookup[np.maximum(seg_col, 0)], -1)
-    samples = samples.with_columns(segment=pl.Series(np.where(seg_col >= 0, seg_col, None).tolist(), dtype=pl.Int32))
+    seg_col = lookup[seg_col]
+    samples = samples.with_columns(segment=pl.Series(np.ma.masked_array(seg_col, seg_col < 0), dtype=pl.Int32))
     fits = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
     dwells = schema("dwells").empty() if not found.dwells else conform(
         pl.concat(found.dwells).sort("t_start_ns").with_columns(

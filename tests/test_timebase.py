@@ -21,7 +21,7 @@ def _found(tb):
 
 def test_clean_stamps_are_left_alone():
     t = _grid(5000, np.random.default_rng(0))
-    tb = check_capture(t, np.random.default_rng(1).normal(0, 8, (5000, 3)), "c")
+    tb = check_capture(t, np.random.default_rng(1).normal(0, 8, (5000, 3)).T, "c")
     f = _found(tb)
     assert not any(x.detected for x in tb.findings)
     assert f["sample_interval"].value == pytest.approx(0.06, abs=1e-15)
@@ -44,7 +44,7 @@ def test_defects_counted_exactly_and_jitter_repaired():
     stamps[repeat] = stamps[repeat - 1]
     twice = np.sort(rng.choice(true.size, 50, replace=False))
     order = np.sort(np.r_[np.arange(true.size), twice])
-    tb = check_capture(stamps[order], y[order], "c")
+    tb = check_capture(stamps[order], y[order].T, "c")
     f = _found(tb)
     assert f["duplicated_samples"].value == 50
     assert f["repeated_stamps"].value == repeat.size
@@ -61,7 +61,7 @@ def test_defects_counted_exactly_and_jitter_repaired():
 
 def test_logging_pauses_restart_the_phase_and_are_not_missing_samples():
     t = np.r_[np.arange(100) * PERIOD_NS, 8_010_000_000 + np.arange(100) * PERIOD_NS]
-    tb = check_capture(t, np.zeros((200, 3)), "c")
+    tb = check_capture(t, np.zeros((3, 200)), "c")
     f = _found(tb)
     assert f["logging_pauses"].value == 1 and not f["missing_samples"].detected
 
@@ -71,7 +71,7 @@ def test_stepped_clock_is_kept_as_stamped():
     smoothly about the grid: irregular, not jitter; stamps kept."""
     n = 20000
     t = (np.arange(n) * 10_000_000 - (np.arange(n) // 1000) * 1_000_000).astype(np.int64)
-    tb = check_capture(t, np.zeros((n, 3)), "c")
+    tb = check_capture(t, np.zeros((3, n)), "c")
     f = _found(tb)
     assert f["irregular_sampling"].detected and not f["timestamp_jitter"].detected
     np.testing.assert_array_equal(tb.t_ns, t)
@@ -81,7 +81,7 @@ def test_irregular_sampling_keeps_stamps_and_drops_unplaceable_repeats():
     rng = np.random.default_rng(3)
     t = np.cumsum(rng.normal(PERIOD_NS, 3e6, 5000)).astype(np.int64)
     t[100] = t[99]
-    tb = check_capture(t, rng.normal(0, 8, (5000, 3)), "c")
+    tb = check_capture(t, rng.normal(0, 8, (5000, 3)).T, "c")
     f = _found(tb)
     assert f["irregular_sampling"].detected and f["repeated_stamps"].value == 1
     assert tb.keep.sum() == 4999
@@ -91,13 +91,13 @@ def test_irregular_sampling_keeps_stamps_and_drops_unplaceable_repeats():
 def test_jitter_too_large_to_place_is_marked_unrepairable():
     rng = np.random.default_rng(4)
     t = np.sort(np.arange(5000) * PERIOD_NS + np.round(rng.normal(0, 15e6, 5000)).astype(np.int64))
-    tb = check_capture(t, np.zeros((5000, 3)), "c")
+    tb = check_capture(t, np.zeros((3, 5000)), "c")
     assert tb.unrepairable and "too large" in tb.unrepairable
 
 
 def test_stamps_that_do_not_advance_are_refused():
     with pytest.raises(InputError, match="do not advance"):
-        check_capture(np.zeros(100, np.int64), np.zeros((100, 3)), "c")
+        check_capture(np.zeros(100, np.int64), np.zeros((3, 100)), "c")
 
 
 def test_simulated_logger_defects_are_found_with_their_size():
@@ -105,7 +105,7 @@ def test_simulated_logger_defects_are_found_with_their_size():
         "drop_fraction=0.01,gap_count=2,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,jitter_s=0.005")
     sim = simulate(spec, 7)
     s = sim.samples.sort("t_ns", maintain_order=True)
-    f = _found(check_capture(s["t_ns"].to_numpy(), s.select("u", "v", "w").to_numpy(), "c"))
+    f = _found(check_capture(s["t_ns"].to_numpy(), [s[c].to_numpy() for c in "uvw"], "c"))
     real = sim.truth["timebase"]
     assert f["duplicated_samples"].value == real["duplicated_records"]
     assert f["repeated_stamps"].value == real["repeated_stamps"]
@@ -121,8 +121,61 @@ def test_repaired_stamps_are_the_true_sampling_instants():
     noisy = simulate(base.with_timebase("drop_fraction=0.01,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,"
                                         "jitter_s=0.005,clock_drift_ppm=200"), 102).samples
     clean = simulate(base.with_timebase("drop_fraction=0.01,duplicate_fraction=0.005,clock_drift_ppm=200"), 102).samples
-    y = noisy.select("u", "v", "w").to_numpy()
-    tb = check_capture(noisy["t_ns"].to_numpy(), y, "c")
+    tb = check_capture(noisy["t_ns"].to_numpy(), [noisy[c].to_numpy() for c in "uvw"], "c")
     err = tb.t_ns - clean["t_ns"].to_numpy()[tb.keep]
     assert np.abs(err).max() < 0.2e6
     assert tb.keep.sum() > noisy.height - _found(tb)["duplicated_samples"].value - 40
+
+
+def test_repair_of_a_defective_recording_is_pinned():
+    """The simulated logger defects above, every figure exactly as the
+    time base gave it before it was rewritten for captures of millions of
+    samples (the same arithmetic, fewer sample-length arrays)."""
+    spec = SimulationSpec(plan=Plan(continuous=True)).with_timebase(
+        "drop_fraction=0.01,gap_count=2,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,jitter_s=0.005")
+    s = simulate(spec, 7).samples.sort("t_ns", maintain_order=True)
+    tb = check_capture(s["t_ns"].to_numpy(), [s[c].to_numpy() for c in "uvw"], "c")
+    f = _found(tb)
+    assert (f["sample_interval"].value, f["sample_interval"].std_uncertainty) == (0.059999998698548995, 1.2546849290208277e-09)
+    assert [f[c].value for c in ("duplicated_samples", "repeated_stamps", "missing_samples")] == [280, 289, 686]
+    assert f["gaps"].value == 1.979999957052117
+    assert (f["timestamp_jitter"].value, f["timestamp_jitter"].std_uncertainty) == (0.004916774543566965, 1.4590413575394562e-05)
+    assert f["irregular_sampling"].value == 0.004975705677806501
+    assert f["irregular_sampling"].evidence == ("stamps deviate from a regular grid by 4.98 ms (sd), 21.1 ms at most, "
+                                                "residual lag-1 autocorrelation 0.01")
+    assert "14 could not be placed" in f["repeated_stamps"].evidence
+    assert (s.height, int(tb.keep.sum()), int(np.flatnonzero(~tb.keep).sum())) == (57061, 56767, 8734692)
+    assert int(tb.t_ns.sum()) == 97890459201920440
+
+
+def _samples(capture: str, t_ns: np.ndarray, u: np.ndarray):
+    import polars as pl
+
+    from pipeline.tables import conform
+    return conform(pl.DataFrame({"capture": capture, "t_ns": t_ns, "u": u, "v": 0.0, "w": 0.0, "axis": None, "rate_hz": None,
+                                 "angle_deg": None, "temperature_c": None, "gx": None, "gy": None, "gz": None,
+                                 "pose": None, "label_source": None}), "samples")
+
+
+def test_repaired_table_keeps_rows_in_time_and_capture_order():
+    """Two captures on one clock: a clean one comes back as it was; with a
+    record written twice in the second, that row goes, and at a stamp both
+    share the capture met first in the table comes first (as when each
+    capture's rows were concatenated and sorted stably), whatever the order
+    the rows came in."""
+    import polars as pl
+
+    from pipeline.timebase import repair_timebase
+    a = _samples("a.csv", 1_000_000_000 + np.arange(400) * PERIOD_NS, np.arange(400.0))
+    assert repair_timebase(a, "ds").samples.equals(a)
+    b_t = 1_000_000_000 + 200 * PERIOD_NS + np.arange(300) * PERIOD_NS
+    b_t = np.insert(b_t, 10, b_t[9])  # written twice
+    b = _samples("b.csv", b_t, np.insert(-np.arange(300.0), 10, -9.0))
+    both = pl.concat([b, a]).sort("t_ns", maintain_order=True)
+    out = repair_timebase(both, "ds")
+    assert out.samples.height == 700
+    assert out.samples["t_ns"].is_sorted()
+    shared = out.samples.filter(pl.col("t_ns") == 1_000_000_000 + 200 * PERIOD_NS)
+    assert both.filter(pl.col("t_ns") == shared["t_ns"][0])["capture"].to_list() == ["b.csv", "a.csv"]
+    assert shared["capture"].to_list() == ["a.csv", "b.csv"]
+    assert out.findings.filter(pl.col("check") == "duplicated_samples").select("capture", "value").rows() == [("a.csv", 0.0), ("b.csv", 1.0)]

@@ -91,6 +91,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     inactive = np.setdiff1d(np.arange(beta.size), idx)
     beta[inactive] = 0.0
     for _ in range(max_iter):
+        ev = None  # the last evaluation's design matrices go before the next ones are built (memory)
         ev = evaluate(obs, beta, layout, active, clip, structure, use)
         sigma = _sigma(ev, layout, idx, obs)
         G, b = weighted(ev, sigma)

@@ -89,7 +89,7 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         frame, capture_notes = read_capture(file, spec, meta, limits)
         notes += capture_notes
         name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-        frames.append(frame.with_columns(capture=pl.lit(name)))
+        frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
     joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
     samples = conform(time_ordered(joined), "samples")
     return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes))

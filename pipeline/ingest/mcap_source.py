@@ -40,7 +40,7 @@ class TableTrack:
     """Table-channel messages in time order: the commanded axis, rate and angle."""
 
     t_ns: np.ndarray
-    axis: np.ndarray  # object array of 'x', 'y', 'z'
+    axis: np.ndarray  # int8 index into AXES
     rate_hz: np.ndarray
     angle_deg: np.ndarray
 
@@ -219,7 +219,8 @@ def _table_track(topic: _Topic, path: Path) -> TableTrack:
     bad = [a for a in axis if a not in AXES]
     if bad:
         raise InputError(f"table topic: unknown axis label {bad[0]!r} (expected x, y or z)", path=path)
-    return _track(np.asarray(t_ns, np.int64), np.asarray(axis, object), np.asarray(rate, float), np.asarray(angle, float))
+    codes = np.array([AXES.index(a) for a in axis], np.int8)
+    return _track(np.asarray(t_ns, np.int64), codes, np.asarray(rate, float), np.asarray(angle, float))
 
 
 def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray) -> TableTrack:
@@ -227,7 +228,10 @@ def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: n
     if np.any(t_ns[1:] < t_ns[:-1]):
         order = np.argsort(t_ns, kind="stable")
         t_ns, axis, rate_hz, angle_deg = t_ns[order], axis[order], rate_hz[order], angle_deg[order]
-    return TableTrack(t_ns, axis, np.round(rate_hz * 1e9) / 1e9, angle_deg)
+    rate = rate_hz * 1e9  # canonical_rate, one array
+    np.round(rate, out=rate)
+    rate /= 1e9
+    return TableTrack(t_ns, axis, rate, angle_deg)
 
 
 def _fast_imu_frame(topic: mcap_fast.DecodedTopic, path: Path) -> pl.DataFrame:
@@ -257,6 +261,14 @@ def _fast_joint_index(names: np.ndarray, position: np.ndarray, velocity: np.ndar
     return index[held]
 
 
+def _axis_code(labels: np.ndarray, axes: list) -> np.ndarray:
+    """Each label's index into ``axes`` (AXES as the source spells them), -1 for any other."""
+    code = np.full(labels.size, -1, np.int8)
+    for k, a in enumerate(axes):
+        code[labels == a] = k
+    return code
+
+
 def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
     if topic.kind == "json":
         frame, log_ns = topic.frame, topic.columns["log_ns"]
@@ -266,7 +278,8 @@ def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
         t_s = column("t")
         t_ns = np.where(np.isnan(t_s), log_ns, np.round(np.nan_to_num(t_s) * 1e9).astype(np.int64))
         axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
-        if not np.isin(axis, AXES).all():
+        code = _axis_code(axis, AXES)
+        if np.any(code < 0):
             raise mcap_fast.Unsupported("table axis other than x, y or z")
         rate, angle = column("rate_hz"), column("angle_deg")
     elif topic.kind == "joint":
@@ -279,18 +292,18 @@ def _fast_table_track(topic: mcap_fast.DecodedTopic, path: Path) -> TableTrack:
             rows = np.arange(index.size)
             name, position = c["name"][rows, index], c["position"][rows, index]
             velocity = c["velocity"][rows, index] if c["velocity"].shape[1] else np.zeros(index.size)
-        code = np.full(name.size, -1, np.int8)
-        for k, a in enumerate(AXES):
-            code[name == a.encode()] = k
+        code = _axis_code(name, [a.encode() for a in AXES])
         if np.any(code < 0):
             raise mcap_fast.Unsupported("table joint other than x, y or z")
-        sign = np.array([JOINT_SIGN[a] for a in AXES])[code]
-        t_ns, axis = c["t_ns"], np.array(AXES, object)[code]
-        rate = sign * velocity / (2 * np.pi)
-        angle = sign * np.degrees(position)
+        sign = np.array([JOINT_SIGN[a] for a in AXES], np.int8)[code]
+        t_ns = c["t_ns"]
+        rate = sign * velocity  # in place from here: millions of messages
+        rate /= 2 * np.pi
+        angle = np.degrees(position)
+        angle *= sign
     else:
         raise mcap_fast.Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
-    return _track(t_ns, axis, rate, angle)
+    return _track(t_ns, code, rate, angle)
 
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -330,21 +343,20 @@ _LABEL_BLOCK = 1 << 18
 def _table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     """``map_table`` a block of samples at a time (a sample's labels depend
     only on its own time stamp), so its temporaries stay small; ``axis``
-    as an Enum (one byte a sample) until ``label_columns`` gives it the
-    contract's type, by which time the track is gone."""
-    codes = np.full(track.t_ns.size + 1, -1, np.int8)  # the last entry serves index -1: no message yet
-    for k, a in enumerate(AXES):
-        codes[:-1][track.axis == a] = k
-    parts = []
+    as the sample table's Enum (one byte a sample). The columns are filled
+    in place: blocks kept as chunks would pin the freed temporaries between
+    them in the heap."""
+    codes = np.r_[track.axis, -1]  # the last entry serves index -1: no message yet
+    axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
     for start in range(0, t_ns.size, _LABEL_BLOCK):
-        index, rate, angle = map_table(t_ns[start : start + _LABEL_BLOCK], track)
-        axis = pl.Series(codes[index]).replace_strict(range(len(AXES)), AXES, default=None, return_dtype=pl.Enum(AXES))
-        parts.append(pl.DataFrame({
-            "axis": axis,
-            "rate_hz": pl.Series(rate).fill_nan(None),
-            "angle_deg": pl.Series(angle).fill_nan(None),
-        }))
-    return pl.concat(parts, rechunk=False)
+        block = slice(start, start + _LABEL_BLOCK)
+        index, rate[block], angle[block] = map_table(t_ns[block], track)
+        axis[block] = codes[index]
+    return pl.DataFrame({
+        "axis": pl.Series(np.ma.masked_array(axis.view(np.uint8), axis < 0)).cat.to(pl.Enum(AXES)),  # codes as they are
+        "rate_hz": pl.Series(rate).fill_nan(None),
+        "angle_deg": pl.Series(angle).fill_nan(None),
+    })
 
 
 def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
@@ -377,8 +389,9 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
     frame = time_ordered(frame)
     source = "file"
     if table_key is not None and found[table_key].count and "axis" not in frame.columns:
-        track = (_fast_table_track if fast else _table_track)(found[table_key], path)
-        frame = frame.hstack(_table_labels(frame["t_ns"].to_numpy(), track).get_columns())
+        # the track is a temporary, gone before label_columns builds the final columns
+        make_track = _fast_table_track if fast else _table_track
+        frame = frame.hstack(_table_labels(frame["t_ns"].to_numpy(), make_track(found[table_key], path)).get_columns())
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)
