@@ -134,6 +134,11 @@ def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, th
     return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz)
 
 
+# Starting a thread pool costs about 0.5 ms, what one core takes to fit some
+# 20,000 samples: below this many samples in all, threads cost more than they save.
+THREADED_MIN_SAMPLES = 100_000
+
+
 def _workers(requested: int) -> int:
     return requested if requested > 0 else (os.cpu_count() or 1)
 
@@ -147,7 +152,8 @@ def segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
 
 
 def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfig, workers: int = 0) -> list[SegmentFit]:
-    """Fit every static and rotation segment, in parallel across segments.
+    """Fit every static and rotation segment, in parallel across segments
+    (threads, where there are enough samples to pay for them).
 
     Each segment's columns are zero-copy slices of ``samples``, so the stage
     holds no copy of the sample table. Results come back in segment order
@@ -160,12 +166,12 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         part = samples.slice(*rows[row["segment"]])
         theta = part["angle_deg"]
         theta = (theta.fill_null(np.nan) if theta.null_count() else theta).to_numpy()
-        channels = tuple(part[c].cast(pl.Float64).to_numpy() for c in CHANNELS)
+        channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
         return _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
 
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(_workers(workers), max(len(todo_rows), 1))
-    if n_workers == 1:
+    if n_workers == 1 or sum(rows[r["segment"]][1] for r in todo_rows) < THREADED_MIN_SAMPLES:
         return [job(row) for row in todo_rows]
     with ThreadPoolExecutor(n_workers) as pool:
         return list(pool.map(job, todo_rows))
@@ -252,7 +258,9 @@ class _Sines:
         n = theta_deg.size
         self.theta0 = float(theta_deg[0])
         self.step = (float(theta_deg[-1]) - self.theta0) / max(n - 1, 1)
-        self.bases = _progression_bases(self.step, min(n, BLOCK_SAMPLES)) if self.step and n > _INNER else None
+        # the bases only where the first interval is the mean one (never for static steps)
+        progression = self.step and n > _INNER and abs(theta_deg[1] - theta_deg[0] - self.step) <= PROGRESSION_TOLERANCE_DEG
+        self.bases = _progression_bases(self.step, min(n, BLOCK_SAMPLES)) if progression else None
         self.offsets = self.step * np.arange(min(n, BLOCK_SAMPLES))
 
     def __call__(self, theta_deg: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray]:
