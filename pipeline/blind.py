@@ -267,11 +267,13 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     noise_sd = noise_sd_of(y, cores)
     var = noise_sd**2
 
-    # dwells: edges refined against each dwell's own mean
+    # dwells: edges refined against each dwell's own mean; a dwell starts
+    # no earlier than the previous one ends (both may explain the few samples
+    # between two still intervals when the DUT barely moved)
     dwells = []
     for j, (s, e) in enumerate(cores):
         mean = y[s:e].mean(axis=0)
-        low = max(raw[j - 1, 1] if j else 0, raw[j, 0] - w_still)
+        low = max(raw[j - 1, 1] if j else 0, dwells[-1][1] if dwells else 0, raw[j, 0] - w_still)
         high = min(raw[j + 1, 0] if j + 1 < len(raw) else n, raw[j, 1] + w_still)
         dwells.append(_extend(s, e, low, high, lambda i, m=mean: ((y[i] - m) ** 2 / var).mean(axis=1),
                               config.cusum_kappa))

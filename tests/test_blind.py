@@ -73,6 +73,23 @@ def test_xsens_hand_placed_poses_with_no_setting_beyond_the_format():
     assert t[first[0]] < 1e9 and 45e9 < t[first[1] - 1] < 55e9
 
 
+def test_driving_robot_dwells_never_overlap_and_the_run_refuses_in_one_line(tmp_path):
+    """The Jackal recording (a robot driving, no calibration motion): still
+    intervals a few samples apart, whose dwells, each extended against its
+    own mean, both reached into the samples between them (they overlapped at
+    samples 2298 to 2317, and the pose table failed with a traceback). Dwells
+    now tile without overlap, and the run says why it cannot calibrate."""
+    from pipeline.errors import UndeterminedError
+    from pipeline.run import run_dataset
+
+    s = load_dataset(REAL / "jackal_mcap" / "test2_ros2.mcap").samples
+    dwells = segment_blind(s["t_ns"].to_numpy(), s.select("u", "v", "w").to_numpy()).dwells
+    assert len(dwells) == 12
+    assert np.all(dwells[:, 0] < dwells[:, 1]) and np.all(dwells[1:, 0] >= dwells[:-1, 1])
+    with pytest.raises(UndeterminedError, match="static poses cannot be reduced"):
+        run_dataset(REAL / "jackal_mcap", tmp_path / "out")
+
+
 def test_a_recording_that_never_rests_has_no_still_intervals():
     """One constant rotation: no window is quiet, so the percentile floor
     alone would call it all still; the second-difference noise floor does not."""
