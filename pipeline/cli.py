@@ -78,7 +78,8 @@ def simulate_cmd(
     seed: Annotated[int, typer.Option(help="random seed; the same seed gives the same files")] = 1,
     fmt: Annotated[str, typer.Option("--format", help=FORMATS)] = "csv",
     effect: Annotated[list[str], typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = [],
-    config: Annotated[Optional[Path], typer.Option(help="simulation TOML: [plan], [dut], [site], [timebase], [[effect]]")] = None,
+    # rich reads [name] in help text as markup: the backslashes keep the table names
+    config: Annotated[Optional[Path], typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
     timebase: Annotated[Optional[str], typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
 ) -> None:

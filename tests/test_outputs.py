@@ -21,3 +21,11 @@ def test_demo_writes_every_table_and_the_png(cli, tmp_path):
     mc = pl.read_parquet(results / "monte_carlo.parquet")
     assert mc.height == 45 and mc["stabilised"].all()
     assert "±" in out  # expanded uncertainties in the summary
+
+
+def test_help_names_the_simulation_tables(cli):
+    """rich reads "[plan]" in help text as markup and drops it; the help must
+    still name the TOML tables a simulation file may hold."""
+    code, out, _ = cli("simulate", "--help")
+    assert code == 0
+    assert "[plan], [dut], [site], [timebase], [[effect]]" in out
