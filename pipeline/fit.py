@@ -106,6 +106,17 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
     return None
 
 
+def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:
+    """Why a segment's samples cannot be fitted: a channel that holds one
+    value throughout (pinned at full scale, or dead) has no residual
+    scatter, so its fit would claim zero uncertainty and outweigh every
+    other segment in the combination."""
+    for channel, y in zip(CHANNELS, channels):
+        if y.min() == y.max():
+            return f"channel {channel} holds {y[0]:g} in every sample (stuck or saturated): nothing to fit"
+    return None
+
+
 def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
                 y: np.ndarray, config: FitConfig) -> SegmentFit:
     """Fit one segment's three channels (``y``: samples x channels); a
@@ -115,7 +126,7 @@ def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, thet
 
 def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
                   channels: tuple[np.ndarray, ...], config: FitConfig) -> SegmentFit:
-    reason = refusal(kind, angle_source, theta_deg, config)
+    reason = refusal(kind, angle_source, theta_deg, config) or stuck_channel(channels)
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)
     n = theta_deg.size
