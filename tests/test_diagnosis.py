@@ -103,6 +103,16 @@ def test_refined_parameters_correct_a_biased_baseline(tmp_path):
     assert intrinsic.filter(pl.col("model") == "refined")["z"].abs().max() < 3
 
 
+def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
+    """A converter clipped to a band 100 counts wide: every sample has some
+    channel at a limit, so the offset-step scan has no sample to scan and a
+    rotation's channel no stretch for the tone scan (both used to stop the
+    run with a traceback). The clipping is a finding with its limits."""
+    _, _, findings, params = _diagnose(tmp_path, 45, effects=("clipping:clip_high=0,clip_low=-100",))
+    assert findings.filter(pl.col("effect") == "clipping")["detected"].item()
+    assert dict(zip(params["parameter"], params["value"])) == {"clip_low": -100.0, "clip_high": 0.0}
+
+
 def test_two_effects_at_once_are_both_named(tmp_path):
     _, _, findings, params = _diagnose(tmp_path, 42, effects=("centripetal:axis=x,radius_m=0.1",
                                                               "channel_delay:delay_v_s=0.002"))
