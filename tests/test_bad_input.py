@@ -54,6 +54,14 @@ def test_missing_required_column(cli, dataset, tmp_path):
     assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "missing required column 'v'")
 
 
+def test_message_keeps_the_dataset_toml_table_it_names(cli, dataset, tmp_path):
+    """A message quoting [format] (or a path with brackets) is printed as it
+    is, not read as console markup and dropped."""
+    csv = first_csv(dataset)
+    pl.read_csv(csv).drop("v").write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), "(map the file's columns in dataset.toml [format] columns)")
+
+
 def test_non_numeric_value(cli, dataset, tmp_path):
     csv = first_csv(dataset)
     rewrite(csv, lambda lines: lines[:5] + [lines[5].replace(lines[5].split(",")[1], "12x4", 1)] + lines[6:])
