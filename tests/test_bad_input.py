@@ -190,3 +190,30 @@ def test_run_fails_only_when_nothing_can_be_determined(cli, dataset, tmp_path):
 
 def test_missing_dataset(cli, tmp_path):
     assert_one_line_error(cli("run", tmp_path / "absent", "--out", tmp_path / "o"), "absent", "dataset not found")
+
+
+def test_headerless_file_wider_than_its_names(tmp_path):
+    """[format] names may list the first columns only: the logger's further
+    columns are left out, as a header file's unknown columns are."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.txt"
+    path.write_text("0.00  10 20 30  7 8\n0.01  11 21 31  7 8\n")
+    fmt = CsvFormat(delimiter="whitespace", header=False, names=("t", "u", "v", "w"))
+    frame = read_csv_capture(path, fmt, None, Limits())
+    assert frame.select("t_ns", "u", "v", "w").rows() == [(0, 10.0, 20.0, 30.0), (10_000_000, 11.0, 21.0, 31.0)]
+
+
+@pytest.mark.parametrize("text, needles", [
+    ("0.00 10 20\n0.01 11 21\n", ("fewer columns than the 4 that dataset.toml [format] names lists",)),
+    ("t u v w\n0.00 10 20 30\n", ("column 't', row 1: 't' is not a number",)),
+], ids=["narrower than its names", "a header row read as data"])
+def test_headerless_file_that_does_not_match_its_names(cli, tmp_path, text, needles):
+    data = tmp_path / "dut"
+    data.mkdir()
+    (data / "log.txt").write_text(text)
+    (data / "dataset.toml").write_text('[format]\ndelimiter = "whitespace"\nheader = false\nnames = ["t", "u", "v", "w"]\n\n'
+                                       '[[capture]]\nfile = "log.txt"\n')
+    assert_one_line_error(cli("run", data, "--out", tmp_path / "o"), "log.txt", *needles)

@@ -68,10 +68,12 @@ def _read(source: bytes | Path, fmt: CsvFormat, dtypes: dict, columns: list[str]
         )
     names = list(fmt.names or ())
     keep = [i for i, n in enumerate(names) if n in columns]
+    # renamed after reading: polars' new_columns must name every column of the file, and a
+    # logger's file may carry more columns than [format] names lists
     frame = pl.read_csv(
-        src, separator=sep, comment_prefix="#", has_header=False, columns=keep,
-        new_columns=[names[i] for i in keep], infer_schema=False, raise_if_empty=False,
+        src, separator=sep, comment_prefix="#", has_header=False, columns=keep, infer_schema=False, raise_if_empty=False,
     )
+    frame = frame.rename(dict(zip(frame.columns, [names[i] for i in keep])))
     return frame.with_columns(pl.col(c).cast(dtypes.get(c, pl.String)) for c in frame.columns)
 
 
@@ -108,7 +110,10 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
     columns = list(dtypes) + ([pose_col] if pose_col else [])
     try:
         frame = _read(source, fmt, dtypes, columns)
-    except pl.exceptions.ComputeError as exc:
+    except pl.exceptions.ColumnNotFoundError:
+        raise InputError(f"the file has fewer columns than the {len(fmt.names or ())} that dataset.toml [format] names lists",
+                         path=path) from None
+    except (pl.exceptions.ComputeError, pl.exceptions.InvalidOperationError) as exc:  # parsing, or the cast of a file without header
         raise _bad_value(source, fmt, wanted, path) or InputError(
             f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path
         ) from None
