@@ -217,3 +217,9 @@ def test_headerless_file_that_does_not_match_its_names(cli, tmp_path, text, need
     (data / "dataset.toml").write_text('[format]\ndelimiter = "whitespace"\nheader = false\nnames = ["t", "u", "v", "w"]\n\n'
                                        '[[capture]]\nfile = "log.txt"\n')
     assert_one_line_error(cli("run", data, "--out", tmp_path / "o"), "log.txt", *needles)
+
+
+def test_pose_column_that_is_also_a_contract_column(cli, dataset, tmp_path):
+    (dataset / "dataset.toml").write_text((dataset / "dataset.toml").read_text() + '\n[format]\npose_column = "axis"\n')
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), first_csv(dataset).name,
+                          "dataset.toml [format] pose_column 'axis' is the file's 'axis' column too")

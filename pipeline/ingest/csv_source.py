@@ -106,6 +106,10 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
             path=path, hint="map the file's columns in dataset.toml [format] columns" if present else None,
         )
     pose_col = fmt.pose_column if fmt.pose_column in present else None
+    both = [name for name, file_col in wanted.items() if file_col == pose_col]
+    if both:
+        raise InputError(f"dataset.toml [format] pose_column {pose_col!r} is the file's {both[0]!r} column too: "
+                         "a column holds one kind of label", path=path)
     dtypes = {wanted[c]: (pl.String if c in TEXT else pl.Float64) for c in wanted}
     columns = list(dtypes) + ([pose_col] if pose_col else [])
     try:
