@@ -223,3 +223,21 @@ def test_pose_column_that_is_also_a_contract_column(cli, dataset, tmp_path):
     (dataset / "dataset.toml").write_text((dataset / "dataset.toml").read_text() + '\n[format]\npose_column = "axis"\n')
     assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), first_csv(dataset).name,
                           "dataset.toml [format] pose_column 'axis' is the file's 'axis' column too")
+
+
+@pytest.mark.parametrize("text, fmt", [
+    ("t,u,v,w\n0.00,10,20,30\n\n0.01,11,21,31\n\n\n", {}),
+    ("t,u,v,w\r\n0.00,10,20,30\r\n0.01,11,21,31\r\n\r\n", {}),
+    ("0.00 10 20 30\n0.01 11 21 31\n\n", {"delimiter": "whitespace", "header": False, "names": ("t", "u", "v", "w")}),
+], ids=["comma", "crlf", "headerless whitespace"])
+def test_blank_lines_are_not_samples(tmp_path, text, fmt):
+    """A logger's trailing (or stray) blank lines are no rows: they used to
+    stop the run as 'column 'u', row 3 is empty'."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.csv"
+    path.write_bytes(text.encode())
+    frame = read_csv_capture(path, CsvFormat(**fmt), None, Limits())
+    assert frame.select("t_ns", "u", "v", "w").rows() == [(0, 10.0, 20.0, 30.0), (10_000_000, 11.0, 21.0, 31.0)]

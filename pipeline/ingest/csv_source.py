@@ -121,6 +121,10 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
         raise _bad_value(source, fmt, wanted, path) or InputError(
             f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path
         ) from None
+    # blank lines (a logger's trailing newlines) come back as rows of nulls: no sample, no error
+    blank = pl.all_horizontal(pl.all().is_null())
+    if frame.select(blank.any()).item():
+        frame = frame.filter(~blank)
     frame = frame.rename({v: k for k, v in wanted.items()})
     if pose_col:
         frame = frame.rename({pose_col: "pose"})
