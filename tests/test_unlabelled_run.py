@@ -157,3 +157,17 @@ def test_one_unlabelled_file_per_segment(make_dataset, tmp_path):
     truth = truth_of(labelled)["intrinsic"]
     z = [np.abs((r.value - [truth[p] for p in truth]) / r.std_uncertainty).max() for r in outcome.results]
     assert len(z) == 5 and max(z) < 4
+
+
+def test_continuous_recording_of_static_steps_only(tmp_path):
+    """A plan without rotations writes no [plan] rates_hz (an empty list is
+    not a valid dataset.toml, and the run refused the simulator's own
+    output); the dwells give the static result."""
+    spec = SimulationSpec(plan=Plan(continuous=True, rates_hz=()))
+    data = write_dataset(simulate(spec, 2), spec, tmp_path / "d", "csv-unlabelled")
+    assert "[plan]" not in (data / "dataset.toml").read_text()
+    outcome = run_dataset(data, tmp_path / "out")
+    assert [r.rate_hz for r in outcome.results] == [0.0]
+    truth = truth_of(data)["intrinsic"]
+    res = outcome.results[0]
+    assert np.abs((res.value - [truth[p] for p in truth]) / res.std_uncertainty).max() < 4
