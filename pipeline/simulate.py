@@ -395,10 +395,19 @@ def table_messages(samples: pl.DataFrame, period_s: float = 0.1) -> pl.DataFrame
 def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: str = "/imu",
                table_topic: str = "/table/joint_states") -> Path:
     """One MCAP: the DUT on ``imu_topic`` (Imu in CDR, or JSON with t, u, v, w)
-    and the table on ``table_topic`` (JointState in CDR, or JSON)."""
+    and the table on ``table_topic`` (JointState in CDR, or JSON).
+
+    A continuous recording has no table messages: the table's messages
+    cover the plan's segments only, and a table silent through the
+    transitions (step moves, ramps, rests, the hand reorientation) would
+    label them as the segment before it (a label holds to the next
+    message, contract section 1) and bias every fit they join; its
+    segments are found from the signals, as in ``csv-unlabelled``."""
     from pipeline.mcap_writer import write_capture
 
     table = table_messages(sim.samples.filter(pl.col("plan_segment").is_not_null()))
+    if sim.truth["plan"]["continuous"]:
+        table = table.clear()
     return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)
 
 
