@@ -187,3 +187,14 @@ def test_continuous_mcap_recording_gives_the_truth(tmp_path, fmt):
     assert [r.rate_hz for r in outcome.results] == [0.0, 0.01, 0.05, 0.1, 0.5]
     for res in outcome.results:
         assert np.abs((res.value - [truth[p] for p in truth]) / res.std_uncertainty).max() < 4, res.rate_hz
+
+
+def test_plan_rate_without_a_rotation_in_the_signals_is_a_warning(tmp_path):
+    """6 s at 0.5 Hz is shorter than a constant rotation the signals can
+    show (10 s): the plan's rate is named as not found rather than dropped
+    without a word; the dwells still give the static result."""
+    spec = SimulationSpec(plan=Plan(continuous=True, rates_hz=(0.5,), rotation_samples=100))
+    data = write_dataset(simulate(spec, 1), spec, tmp_path / "d", "csv-unlabelled")
+    outcome = run_dataset(data, tmp_path / "out")
+    assert "[plan] rates_hz: no constant rotation at 0.5 Hz was found" in outcome.warnings
+    assert [r.rate_hz for r in outcome.results] == [0.0]
