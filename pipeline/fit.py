@@ -100,7 +100,9 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
     steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
     if kind == "static" and steps < 3:
         return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    span = float(np.ptp(theta_deg))
+    # the arc the angles cover on the circle, not their unwrapped range: a rotation sampled at a
+    # multiple of its rate (aliased) repeats one angle, however many turns it makes
+    span = min(float(np.ptp(theta_deg % 360.0)), float(np.ptp((theta_deg + 180.0) % 360.0)))
     if span < config.min_span_deg:
         return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
     return None

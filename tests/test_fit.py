@@ -85,3 +85,18 @@ def test_a_segment_saturated_by_centripetal_acceleration_leaves_the_rest_of_the_
     assert [r.rate_hz for r in outcome.results] == [0.0, 0.01, 0.05, 0.1, 0.5]
     response = pl.read_parquet(tmp_path / "out" / "frequency_response.parquet")
     assert response.filter(pl.col("quantity") == "offset_omega2_slope").height > 0
+
+
+def test_a_rotation_sampled_at_a_multiple_of_its_rate_is_refused():
+    """100 Hz sampled every 60 ms turns exactly 6 times between samples: the
+    commanded angles span 430,000 deg but repeat one angle on the circle, so
+    offset, sine and cosine cannot be separated (the fit stopped the run
+    with a singular matrix)."""
+    theta = 37.0 + 360.0 * 100.0 * 0.06 * np.arange(400)
+    y = np.random.default_rng(3).normal(0, 8, (400, 3))
+    fit = fit_segment(0, "rotation", 100.0, "commanded", theta, y, FitConfig())
+    assert fit.status == "failed"
+    assert fit.reason == "angle range 0.0 deg is below the 30 deg needed to separate offset and sine terms"
+    # an arc across 0 deg counts as the arc it is
+    assert refusal("rotation", "commanded", np.linspace(-10.0, 10.0, 100), FitConfig()).startswith("angle range 20.0 deg")
+    assert refusal("rotation", "commanded", np.linspace(-100.0, 100.0, 100), FitConfig()) is None
