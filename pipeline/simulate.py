@@ -53,6 +53,16 @@ class Plan:
     ramp_deg_s2: float = 10.0
     reorient_s: float = 8.0
 
+    def checked(self) -> "Plan":
+        """The plan, or a ConfigError naming the first value no plan can have."""
+        if not self.axes or any(a not in AXES for a in self.axes):
+            raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
+        _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
+                 not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
+        if not all(_is_number(f) for f in self.rates_hz):
+            raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
+        return self
+
 
 @dataclass(frozen=True)
 class DutSpec:
@@ -66,6 +76,32 @@ class DutSpec:
     noise_std: float = 8.0
     full_scale: float = 32767.0
     integer_output: bool = True
+
+    def checked(self) -> "DutSpec":
+        """The DUT spec, or a ConfigError naming the first value no DUT can have."""
+        _require(self, "dut", not_negative=("sensitivity_spread", "angle_spread_deg", "offset_range",
+                                            "misalignment_max_deg", "noise_std", "full_scale"))
+        if not _is_number(self.sensitivity) or self.sensitivity == 0:
+            raise ConfigError(f"dut: sensitivity = {self.sensitivity!r} must be a non-zero number")
+        if not isinstance(self.integer_output, bool):
+            raise ConfigError(f"dut: integer_output = {self.integer_output!r} must be true or false")
+        return self
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _require(spec, table: str, positive: tuple[str, ...] = (), not_negative: tuple[str, ...] = (),
+             counts: tuple[str, ...] = ()) -> None:
+    """A simulation table's values: numbers > 0, numbers >= 0, integers >= 1."""
+    for name in positive + not_negative + counts:
+        value = getattr(spec, name)
+        if name in counts:
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"{table}: {name} = {value!r} must be a whole number of at least 1")
+        elif not _is_number(value) or value < 0 or (name in positive and value == 0):
+            raise ConfigError(f"{table}: {name} = {value!r} must be a number {'> 0' if name in positive else '>= 0'}")
 
 
 @dataclass(frozen=True)
@@ -468,10 +504,17 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         name = entry.pop("name", None)
         if name not in EFFECT_NAMES:
             raise ConfigError(f"[[effect]] name {name!r} is not one of {', '.join(EFFECT_NAMES)}", path=path)
+        bad = [k for k, v in entry.items() if k not in ("axis", "channel") and not _is_number(v)]
+        if bad:
+            raise ConfigError(f"[[effect]] {name}: {bad[0]} = {entry[bad[0]]!r} is not a number", path=path)
         effects.append((name, tuple(sorted(entry.items()))))
+    try:
+        plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
+    except ConfigError as exc:
+        raise ConfigError(exc.problem, path=path) from None
     return SimulationSpec(
-        plan=build(Plan, doc.get("plan", {})),
-        dut=build(DutSpec, doc.get("dut", {})),
+        plan=plan,
+        dut=dut,
         g_local=site.get("g_local", 9.80101),
         g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
         output_unit=doc.get("output_unit", "bit"),

@@ -241,3 +241,22 @@ def test_blank_lines_are_not_samples(tmp_path, text, fmt):
     path.write_bytes(text.encode())
     frame = read_csv_capture(path, CsvFormat(**fmt), None, Limits())
     assert frame.select("t_ns", "u", "v", "w").rows() == [(0, 10.0, 20.0, 30.0), (10_000_000, 11.0, 21.0, 31.0)]
+
+
+@pytest.mark.parametrize("toml, needle", [
+    ('[plan]\nstep_deg = 0.0\n', "plan: step_deg = 0.0 must be a number > 0"),
+    ('[plan]\ndt_s = -0.06\n', "plan: dt_s = -0.06 must be a number > 0"),
+    ('[plan]\nrotation_samples = 0\n', "plan: rotation_samples = 0 must be a whole number of at least 1"),
+    ('[plan]\naxes = ["q"]\n', "plan: axes = ['q'] must be a non-empty list of x, y, z"),
+    ('[plan]\nrates_hz = "0.5"\n', "plan: rates_hz = '0.5' must be a list of numbers"),
+    ('[plan]\ncontinuous = true\nramp_deg_s2 = 0.0\n', "plan: ramp_deg_s2 = 0.0 must be a number > 0"),
+    ('[dut]\nsensitivity_spread = -4.0\n', "dut: sensitivity_spread = -4.0 must be a number >= 0"),
+    ('[[effect]]\nname = "centripetal"\naxis = "x"\nradius_m = "big"\n', "[[effect]] centripetal: radius_m = 'big' is not a number"),
+    ('[timebase]\ngap_count = 3\ngap_s = 100000.0\n', "timebase: 3 gaps of 100000 s leave no sample of the recording"),
+])
+def test_simulation_file_with_a_value_no_plan_can_have(cli, tmp_path, toml, needle):
+    """Each stopped rotcal simulate with a traceback (division by zero, an
+    empty array, a string multiplied by a float)."""
+    path = tmp_path / "sim.toml"
+    path.write_text(toml)
+    assert_one_line_error(cli("simulate", tmp_path / "d", "--config", path), needle)
