@@ -74,7 +74,7 @@ class DutSpec:
     offset_range: float = 600.0
     misalignment_max_deg: float = 4.0
     noise_std: float = 8.0
-    full_scale: float = 32767.0
+    full_scale: float = 32767.0   # 0: no limit (an output in g or m/s^2 need not have one)
     integer_output: bool = True
 
     def checked(self) -> "DutSpec":
@@ -168,7 +168,7 @@ def draw_dut(spec: DutSpec, rng: np.random.Generator) -> tuple[Dut, dict]:
     mount_axis = rng.standard_normal(3)
     mount_deg = rng.uniform(0.0, spec.misalignment_max_deg)
     unit = unit_vectors_from_angles(*phi) @ rotation_matrix(mount_axis, mount_deg).T
-    dut = Dut(unit * s[:, None], offsets, np.full(3, spec.noise_std), spec.full_scale, spec.integer_output)
+    dut = Dut(unit * s[:, None], offsets, np.full(3, spec.noise_std), spec.full_scale or None, spec.integer_output)
     mount = {"mount_axis": (mount_axis / np.linalg.norm(mount_axis)).tolist(), "mount_angle_deg": mount_deg}
     return dut, mount
 
