@@ -143,6 +143,9 @@ def test_topic_that_is_not_there(cli, mcap_dataset, tmp_path):
         ('[sitee]\ng_local = 9.8\n', ["dataset.toml", "unknown table or key 'sitee'"]),
         ('[site\ng_local = 9.8\n', ["dataset.toml", "not valid TOML"]),
         ('[[capture]]\nfile = "x.csv"\naxis = "q"\n', ["dataset.toml", "capture.0.axis"]),
+        # read twice, every record was a duplicate: the run ended "no rate can be determined" (exit 3)
+        ('[[capture]]\nfile = "x.csv"\n[[capture]]\nfile = "x.csv"\naxis = "x"\n',
+         ["dataset.toml", "[[capture]] file 'x.csv' is named twice"]),
     ],
 )
 def test_malformed_dataset_toml(cli, dataset, tmp_path, toml, needles):
