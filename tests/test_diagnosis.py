@@ -113,6 +113,17 @@ def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
     assert dict(zip(params["parameter"], params["value"])) == {"clip_low": -100.0, "clip_high": 0.0}
 
 
+@pytest.mark.parametrize("fitted, reported", [(715.0, -5.0), (725.0, 5.0), (-365.0, -5.0), (0.3, 0.3)])
+def test_axis_tilt_is_reported_within_half_a_turn(fitted, reported):
+    """The model holds the tilt through its sine and cosine, so the fit may
+    settle whole turns away; effect_parameters said tilt_deg = 715."""
+    from pipeline.diagnosis.candidates import Candidate, report_parameters
+
+    (param,) = report_parameters(Candidate("axis_tilt", "x", ("tilt.x_deg",), ((0, 1, 2),)), np.array([fitted]),
+                                 np.array([[1e-6]]), "bit")
+    assert (param.name, param.value, param.std_uncertainty, param.unit) == ("tilt_deg", pytest.approx(reported), 1e-3, "degree")
+
+
 def test_two_effects_at_once_are_both_named(tmp_path):
     _, _, findings, params = _diagnose(tmp_path, 42, effects=("centripetal:axis=x,radius_m=0.1",
                                                               "channel_delay:delay_v_s=0.002"))
