@@ -263,3 +263,18 @@ def test_simulation_file_with_a_value_no_plan_can_have(cli, tmp_path, toml, need
     path = tmp_path / "sim.toml"
     path.write_text(toml)
     assert_one_line_error(cli("simulate", tmp_path / "d", "--config", path), needle)
+
+
+def test_header_with_spaces_after_the_commas(tmp_path):
+    """'t, u, v, w' names the contract columns: the file was refused as
+    missing 'u', 'v', 'w' while listing u, v, w among the columns found."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.csv"
+    path.write_text("t, u, v, w, axis, rate_hz, angle_deg\n0.00, 10, 20, 30, x, 0, 15\n0.01, 11, 21, 31, x, 0, 15\n")
+    frame = read_csv_capture(path, CsvFormat(), None, Limits())
+    assert frame.select("t_ns", "u", "v", "w", "rate_hz", "angle_deg").rows() == [
+        (0, 10.0, 20.0, 30.0, 0.0, 15.0), (10_000_000, 11.0, 21.0, 31.0, 0.0, 15.0)]
+    assert frame["axis"].to_list() == ["x", "x"]

@@ -94,8 +94,9 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
         raise InputError("the file is empty", path=path)
     check_line_lengths(path, limits.max_line_bytes)
     source = _source_bytes(path, fmt)
-    present = set(_header(source, fmt, path))
-    wanted = {name: fmt.file_column(name) for name in (*NUMERIC, *TEXT) if fmt.file_column(name) in present}
+    # a header written "t, u, v, w" names its columns with the spaces around them
+    present = {c.strip(): c for c in _header(source, fmt, path)}
+    wanted = {name: present[fmt.file_column(name)] for name in (*NUMERIC, *TEXT) if fmt.file_column(name) in present}
     missing = [c for c in REQUIRED if c not in wanted]
     if "t" not in wanted and fmt.sample_rate_hz is None:
         missing.insert(0, "t")
@@ -105,10 +106,10 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
             f" (columns found: {', '.join(sorted(present)) or 'none'})",
             path=path, hint="map the file's columns in dataset.toml [format] columns" if present else None,
         )
-    pose_col = fmt.pose_column if fmt.pose_column in present else None
+    pose_col = present.get(fmt.pose_column)
     both = [name for name, file_col in wanted.items() if file_col == pose_col]
     if both:
-        raise InputError(f"dataset.toml [format] pose_column {pose_col!r} is the file's {both[0]!r} column too: "
+        raise InputError(f"dataset.toml [format] pose_column {fmt.pose_column!r} is the file's {both[0]!r} column too: "
                          "a column holds one kind of label", path=path)
     dtypes = {wanted[c]: (pl.String if c in TEXT else pl.Float64) for c in wanted}
     columns = list(dtypes) + ([pose_col] if pose_col else [])
