@@ -308,11 +308,16 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
         after = dwells[:, 0][dwells[:, 0] >= e]
         low = max(before.max() if before.size else 0, candidates[j - 1, 1] if j else 0, s - 2 * window)
         high = min(after.min() if after.size else n, candidates[j + 1, 0] if j + 1 < len(candidates) else n, e + 2 * window)
-        start, stop, search = s, e, True
+        # the fits grow from the candidate's middle half: its ends can be the last seconds of a ramp
+        # whose rate is within the steady tolerance of the rotation's (at 2 Hz a 10 deg/s^2 ramp's last
+        # 7 s), and their phase, lagging quadratically, would spoil the fit and lose the rotation
+        quarter = (e - s) // 4
+        core_start, core_stop = s + quarter, e - quarter
+        start, stop, search = core_start, core_stop, True
         for _ in range(2):
             fit = fit_sine(t_ns[start:stop], y[start:stop], f_guess, search)
             f_guess, search = fit.rate_hz, False
-            start, stop = _extend(s, e, low, high,
+            start, stop = _extend(core_start, core_stop, low, high,
                                   lambda i, f=fit: ((y[i] - f.model(t_ns[i])) ** 2 / f.sigma**2).mean(axis=1),
                                   config.cusum_kappa)
         fit = fit_sine(t_ns[start:stop], y[start:stop], f_guess, False)

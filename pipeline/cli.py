@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from pipeline.config import load_config
 from pipeline.crosssens import matrix_intrinsic
@@ -37,9 +38,9 @@ def _print_diagnosis(diagnosis, output_unit: str) -> None:
 
 def _print_outcome(outcome, quiet: bool = False) -> None:
     for note in outcome.notes:
-        err.print(f"[yellow]note:[/] {note}", highlight=False)
+        err.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
     for warning in outcome.warnings:
-        err.print(f"[yellow]warning:[/] {warning}", highlight=False)
+        err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
         out.print(summary_table(outcome.results, outcome.output_unit,
                                 f"{outcome.dataset}: intrinsic parameters, expanded uncertainty (k = 2)"))
@@ -50,7 +51,7 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
             out.print(pose_check_table(outcome.static.check, outcome.static.result.g_local,
                                        f"{outcome.dataset}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
     folder = outcome.written[0].parent if outcome.written else None
-    out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False)
+    out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False, markup=False)
 
 
 @app.command()
@@ -90,7 +91,7 @@ def simulate_cmd(
     if timebase:
         spec = spec.with_timebase(timebase)
     path = write_dataset(simulate(spec, seed), spec, directory, fmt)
-    out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False)
+    out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False, markup=False)
 
 
 @app.command()
@@ -102,7 +103,7 @@ def demo(
     """Simulate a default dataset and run the pipeline on it."""
     spec = _spec(None, effect)
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
-    out.print(f"simulated dataset in {data}", highlight=False)
+    out.print(f"simulated dataset in {data}", highlight=False, markup=False)
     from pipeline.run import run_dataset
 
     config = load_config(None)
@@ -119,7 +120,7 @@ def intrinsic(
     """Intrinsic sensitivities and angles of a cross-sensitivity matrix another lab reports."""
     frame, path = matrix_intrinsic(matrix, out_dir, unit)
     out.print(matrix_table(frame, f"{matrix.name}: intrinsic parameters, expanded uncertainty (k = 2)"))
-    out.print(f"written to {path}", highlight=False)
+    out.print(f"written to {path}", highlight=False, markup=False)
 
 
 def main() -> None:
@@ -127,7 +128,8 @@ def main() -> None:
     try:
         app()
     except RotcalError as exc:
-        err.print(f"rotcal: error: {exc}", highlight=False, soft_wrap=True)
+        # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
+        err.print(f"rotcal: error: {exc}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(exc.exit_code)
 
 

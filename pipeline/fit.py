@@ -100,9 +100,22 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
     steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
     if kind == "static" and steps < 3:
         return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    span = float(np.ptp(theta_deg))
+    # the arc the angles cover on the circle, not their unwrapped range: a rotation sampled at a
+    # multiple of its rate (aliased) repeats one angle, however many turns it makes
+    span = min(float(np.ptp(theta_deg % 360.0)), float(np.ptp((theta_deg + 180.0) % 360.0)))
     if span < config.min_span_deg:
         return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
+    return None
+
+
+def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:
+    """Why a segment's samples cannot be fitted: a channel that holds one
+    value throughout (pinned at full scale, or dead) has no residual
+    scatter, so its fit would claim zero uncertainty and outweigh every
+    other segment in the combination."""
+    for channel, y in zip(CHANNELS, channels):
+        if y.min() == y.max():
+            return f"channel {channel} holds {y[0]:g} in every sample (stuck or saturated): nothing to fit"
     return None
 
 
@@ -115,7 +128,7 @@ def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, thet
 
 def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
                   channels: tuple[np.ndarray, ...], config: FitConfig) -> SegmentFit:
-    reason = refusal(kind, angle_source, theta_deg, config)
+    reason = refusal(kind, angle_source, theta_deg, config) or stuck_channel(channels)
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)
     n = theta_deg.size

@@ -116,6 +116,11 @@ def load_meta(path: Path | None) -> DatasetMeta:
     )
     if not csv_format.header and csv_format.names is None:
         raise InputError("invalid dataset.toml value: [format] header = false needs names = [...]", path=path)
+    files = [c["file"] for c in doc.get("capture", ())]
+    twice = sorted({f for f in files if files.count(f) > 1})
+    if twice:
+        # read twice, every record would be a duplicate of itself
+        raise InputError(f"invalid dataset.toml value: [[capture]] file {twice[0]!r} is named twice", path=path)
     return DatasetMeta(
         device_id=device.get("id"),
         output_unit=device.get("output_unit", "bit"),

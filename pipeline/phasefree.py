@@ -154,7 +154,11 @@ def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: floa
         missing = [STATE[3 * r + c] for r in range(3) for c in range(3)
                    if all(c not in _plane(ax) for ax in axes)]
         seen = ", ".join(sorted(axes)) or "none"
-        return CombineFailure(rate_hz, f"segments about axes {seen} leave {', '.join(missing)} unmeasured")
+        if missing:
+            return CombineFailure(rate_hz, f"segments about axes {seen} leave {', '.join(missing)} unmeasured")
+        # two axes measure every component, but not the unknown starting angles as well
+        return CombineFailure(rate_hz, f"segments about axes {seen} only: rotations without a table angle need all "
+                                       "three axes to solve their unknown starting angles")
     rho = _start(segments)
     fixed = [s for s in segments if s.fixed]
     if fixed:

@@ -53,6 +53,16 @@ class Plan:
     ramp_deg_s2: float = 10.0
     reorient_s: float = 8.0
 
+    def checked(self) -> "Plan":
+        """The plan, or a ConfigError naming the first value no plan can have."""
+        if not self.axes or any(a not in AXES for a in self.axes):
+            raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
+        _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
+                 not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
+        if not all(_is_number(f) for f in self.rates_hz):
+            raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
+        return self
+
 
 @dataclass(frozen=True)
 class DutSpec:
@@ -64,8 +74,34 @@ class DutSpec:
     offset_range: float = 600.0
     misalignment_max_deg: float = 4.0
     noise_std: float = 8.0
-    full_scale: float = 32767.0
+    full_scale: float = 32767.0   # 0: no limit (an output in g or m/s^2 need not have one)
     integer_output: bool = True
+
+    def checked(self) -> "DutSpec":
+        """The DUT spec, or a ConfigError naming the first value no DUT can have."""
+        _require(self, "dut", not_negative=("sensitivity_spread", "angle_spread_deg", "offset_range",
+                                            "misalignment_max_deg", "noise_std", "full_scale"))
+        if not _is_number(self.sensitivity) or self.sensitivity == 0:
+            raise ConfigError(f"dut: sensitivity = {self.sensitivity!r} must be a non-zero number")
+        if not isinstance(self.integer_output, bool):
+            raise ConfigError(f"dut: integer_output = {self.integer_output!r} must be true or false")
+        return self
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _require(spec, table: str, positive: tuple[str, ...] = (), not_negative: tuple[str, ...] = (),
+             counts: tuple[str, ...] = ()) -> None:
+    """A simulation table's values: numbers > 0, numbers >= 0, integers >= 1."""
+    for name in positive + not_negative + counts:
+        value = getattr(spec, name)
+        if name in counts:
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"{table}: {name} = {value!r} must be a whole number of at least 1")
+        elif not _is_number(value) or value < 0 or (name in positive and value == 0):
+            raise ConfigError(f"{table}: {name} = {value!r} must be a number {'> 0' if name in positive else '>= 0'}")
 
 
 @dataclass(frozen=True)
@@ -132,7 +168,7 @@ def draw_dut(spec: DutSpec, rng: np.random.Generator) -> tuple[Dut, dict]:
     mount_axis = rng.standard_normal(3)
     mount_deg = rng.uniform(0.0, spec.misalignment_max_deg)
     unit = unit_vectors_from_angles(*phi) @ rotation_matrix(mount_axis, mount_deg).T
-    dut = Dut(unit * s[:, None], offsets, np.full(3, spec.noise_std), spec.full_scale, spec.integer_output)
+    dut = Dut(unit * s[:, None], offsets, np.full(3, spec.noise_std), spec.full_scale or None, spec.integer_output)
     mount = {"mount_axis": (mount_axis / np.linalg.norm(mount_axis)).tolist(), "mount_angle_deg": mount_deg}
     return dut, mount
 
@@ -395,10 +431,19 @@ def table_messages(samples: pl.DataFrame, period_s: float = 0.1) -> pl.DataFrame
 def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: str = "/imu",
                table_topic: str = "/table/joint_states") -> Path:
     """One MCAP: the DUT on ``imu_topic`` (Imu in CDR, or JSON with t, u, v, w)
-    and the table on ``table_topic`` (JointState in CDR, or JSON)."""
+    and the table on ``table_topic`` (JointState in CDR, or JSON).
+
+    A continuous recording has no table messages: the table's messages
+    cover the plan's segments only, and a table silent through the
+    transitions (step moves, ramps, rests, the hand reorientation) would
+    label them as the segment before it (a label holds to the next
+    message, contract section 1) and bias every fit they join; its
+    segments are found from the signals, as in ``csv-unlabelled``."""
     from pipeline.mcap_writer import write_capture
 
     table = table_messages(sim.samples.filter(pl.col("plan_segment").is_not_null()))
+    if sim.truth["plan"]["continuous"]:
+        table = table.clear()
     return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)
 
 
@@ -416,7 +461,8 @@ def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: s
         raise ConfigError(f"unknown format {fmt!r} (csv, csv-unlabelled, mcap-cdr, mcap-json)")
     full_scale = f"full_scale = {spec.dut.full_scale:g}\n" if spec.dut.full_scale else ""
     # a continuous recording comes with the plan's nominal rates, as a lab would write them down
-    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if spec.plan.continuous else ""
+    # (a plan of static steps only has none to write: dataset.toml's rates_hz is never empty)
+    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if spec.plan.continuous and spec.plan.rates_hz else ""
     (directory / "dataset.toml").write_text(
         f'[device]\nid = "{device_id or directory.name}"\noutput_unit = "{spec.output_unit}"\n{full_scale}'
         f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n{plan}"
@@ -458,10 +504,17 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         name = entry.pop("name", None)
         if name not in EFFECT_NAMES:
             raise ConfigError(f"[[effect]] name {name!r} is not one of {', '.join(EFFECT_NAMES)}", path=path)
+        bad = [k for k, v in entry.items() if k not in ("axis", "channel") and not _is_number(v)]
+        if bad:
+            raise ConfigError(f"[[effect]] {name}: {bad[0]} = {entry[bad[0]]!r} is not a number", path=path)
         effects.append((name, tuple(sorted(entry.items()))))
+    try:
+        plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
+    except ConfigError as exc:
+        raise ConfigError(exc.problem, path=path) from None
     return SimulationSpec(
-        plan=build(Plan, doc.get("plan", {})),
-        dut=build(DutSpec, doc.get("dut", {})),
+        plan=plan,
+        dut=dut,
         g_local=site.get("g_local", 9.80101),
         g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
         output_unit=doc.get("output_unit", "bit"),

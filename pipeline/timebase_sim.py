@@ -75,7 +75,11 @@ def apply_defects(samples: pl.DataFrame, defects: TimebaseDefects, rng: np.rando
     for start in rng.integers(0, max(n - gap_len, 1), defects.gap_count):
         in_gap[start : start + gap_len] = True
     keep &= ~in_gap
+    if not keep.any():
+        raise ConfigError(f"timebase: {defects.gap_count} gaps of {defects.gap_s:g} s leave no sample of the recording")
     stamps = np.round(t_ns * defects.clock_factor + rng.standard_normal(n) * defects.jitter_s * 1e9).astype(np.int64)
+    # the logger's clock starts at 0: jitter never stamps a sample before it (MCAP log times are unsigned)
+    np.maximum(stamps, 0, out=stamps)
     rows = samples.with_columns(t_ns=pl.Series(stamps)).filter(pl.Series(keep))
     stamps = rows["t_ns"].to_numpy()
     # a repeated stamp copies the last stamp that was not itself repeated

@@ -29,7 +29,7 @@ from pipeline.ingest.labels import canonical_rate
 from pipeline.multiposition import OrientationFreeFit, orientation_free, pose_table
 from pipeline.phasefree import PhaseSegment, solve_phase_free
 from pipeline.physics import CHANNELS
-from pipeline.rates import clock_drift, nominal_rate, rate_classes
+from pipeline.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
 from pipeline.sinefit import SineFit, fit_sine
 from pipeline.tables import conform, schema
 
@@ -170,6 +170,16 @@ def _outputs(samples: pl.DataFrame, rows: np.ndarray) -> np.ndarray:
     return np.column_stack([samples[c].to_numpy()[rows] for c in CHANNELS])
 
 
+def _plan_rates_not_found(plan_rates: tuple[float, ...], segments: pl.DataFrame) -> list[str]:
+    """The plan's nominal rates that no rotation segment has: a rotation the
+    signals did not show (too short, or not constant) is otherwise lost
+    without a word."""
+    seen = np.abs(segments.filter(pl.col("kind") == "rotation")["rate_hz"].to_numpy())
+    missing = [f for f in sorted({abs(p) for p in plan_rates if p != 0})
+               if not np.any(np.abs(seen / f - 1.0) <= PLAN_MATCH)]
+    return [f"[plan] rates_hz: no constant rotation at {', '.join(f'{f:g}' for f in missing)} Hz was found"] if missing else []
+
+
 def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, plan_rates: tuple[float, ...] = (),
                    unrepairable: dict[str, str] | None = None, config: BlindConfig = BlindConfig()) -> Inference:
     """Add the segments that labels do not give; fit rotations without an
@@ -202,6 +212,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         kept = kept.update(pl.DataFrame(updates, schema_overrides={"segment": pl.Int32}), on="segment")
     new = pl.DataFrame(found.rows + rows, schema=schema("segments").polars_schema) if found.rows or rows else schema("segments").empty()
     every = pl.concat([conform(kept, "segments"), new]).with_columns(rate_hz=canonical_rate(pl.col("rate_hz")))
+    warnings += _plan_rates_not_found(plan_rates, every)
     # number every segment in time order
     order = every.sort("t_start_ns", "segment")["segment"].to_numpy()
     lookup = np.full(int(order.max(initial=-1)) + 2, -1, np.int32)  # the last entry serves -1: no segment

@@ -54,6 +54,14 @@ def test_missing_required_column(cli, dataset, tmp_path):
     assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), csv.name, "missing required column 'v'")
 
 
+def test_message_keeps_the_dataset_toml_table_it_names(cli, dataset, tmp_path):
+    """A message quoting [format] (or a path with brackets) is printed as it
+    is, not read as console markup and dropped."""
+    csv = first_csv(dataset)
+    pl.read_csv(csv).drop("v").write_csv(csv)
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), "(map the file's columns in dataset.toml [format] columns)")
+
+
 def test_non_numeric_value(cli, dataset, tmp_path):
     csv = first_csv(dataset)
     rewrite(csv, lambda lines: lines[:5] + [lines[5].replace(lines[5].split(",")[1], "12x4", 1)] + lines[6:])
@@ -135,6 +143,9 @@ def test_topic_that_is_not_there(cli, mcap_dataset, tmp_path):
         ('[sitee]\ng_local = 9.8\n', ["dataset.toml", "unknown table or key 'sitee'"]),
         ('[site\ng_local = 9.8\n', ["dataset.toml", "not valid TOML"]),
         ('[[capture]]\nfile = "x.csv"\naxis = "q"\n', ["dataset.toml", "capture.0.axis"]),
+        # read twice, every record was a duplicate: the run ended "no rate can be determined" (exit 3)
+        ('[[capture]]\nfile = "x.csv"\n[[capture]]\nfile = "x.csv"\naxis = "x"\n',
+         ["dataset.toml", "[[capture]] file 'x.csv' is named twice"]),
     ],
 )
 def test_malformed_dataset_toml(cli, dataset, tmp_path, toml, needles):
@@ -182,3 +193,88 @@ def test_run_fails_only_when_nothing_can_be_determined(cli, dataset, tmp_path):
 
 def test_missing_dataset(cli, tmp_path):
     assert_one_line_error(cli("run", tmp_path / "absent", "--out", tmp_path / "o"), "absent", "dataset not found")
+
+
+def test_headerless_file_wider_than_its_names(tmp_path):
+    """[format] names may list the first columns only: the logger's further
+    columns are left out, as a header file's unknown columns are."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.txt"
+    path.write_text("0.00  10 20 30  7 8\n0.01  11 21 31  7 8\n")
+    fmt = CsvFormat(delimiter="whitespace", header=False, names=("t", "u", "v", "w"))
+    frame = read_csv_capture(path, fmt, None, Limits())
+    assert frame.select("t_ns", "u", "v", "w").rows() == [(0, 10.0, 20.0, 30.0), (10_000_000, 11.0, 21.0, 31.0)]
+
+
+@pytest.mark.parametrize("text, needles", [
+    ("0.00 10 20\n0.01 11 21\n", ("fewer columns than the 4 that dataset.toml [format] names lists",)),
+    ("t u v w\n0.00 10 20 30\n", ("column 't', row 1: 't' is not a number",)),
+], ids=["narrower than its names", "a header row read as data"])
+def test_headerless_file_that_does_not_match_its_names(cli, tmp_path, text, needles):
+    data = tmp_path / "dut"
+    data.mkdir()
+    (data / "log.txt").write_text(text)
+    (data / "dataset.toml").write_text('[format]\ndelimiter = "whitespace"\nheader = false\nnames = ["t", "u", "v", "w"]\n\n'
+                                       '[[capture]]\nfile = "log.txt"\n')
+    assert_one_line_error(cli("run", data, "--out", tmp_path / "o"), "log.txt", *needles)
+
+
+def test_pose_column_that_is_also_a_contract_column(cli, dataset, tmp_path):
+    (dataset / "dataset.toml").write_text((dataset / "dataset.toml").read_text() + '\n[format]\npose_column = "axis"\n')
+    assert_one_line_error(cli("run", dataset, "--out", tmp_path / "o"), first_csv(dataset).name,
+                          "dataset.toml [format] pose_column 'axis' is the file's 'axis' column too")
+
+
+@pytest.mark.parametrize("text, fmt", [
+    ("t,u,v,w\n0.00,10,20,30\n\n0.01,11,21,31\n\n\n", {}),
+    ("t,u,v,w\r\n0.00,10,20,30\r\n0.01,11,21,31\r\n\r\n", {}),
+    ("0.00 10 20 30\n0.01 11 21 31\n\n", {"delimiter": "whitespace", "header": False, "names": ("t", "u", "v", "w")}),
+], ids=["comma", "crlf", "headerless whitespace"])
+def test_blank_lines_are_not_samples(tmp_path, text, fmt):
+    """A logger's trailing (or stray) blank lines are no rows: they used to
+    stop the run as 'column 'u', row 3 is empty'."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.csv"
+    path.write_bytes(text.encode())
+    frame = read_csv_capture(path, CsvFormat(**fmt), None, Limits())
+    assert frame.select("t_ns", "u", "v", "w").rows() == [(0, 10.0, 20.0, 30.0), (10_000_000, 11.0, 21.0, 31.0)]
+
+
+@pytest.mark.parametrize("toml, needle", [
+    ('[plan]\nstep_deg = 0.0\n', "plan: step_deg = 0.0 must be a number > 0"),
+    ('[plan]\ndt_s = -0.06\n', "plan: dt_s = -0.06 must be a number > 0"),
+    ('[plan]\nrotation_samples = 0\n', "plan: rotation_samples = 0 must be a whole number of at least 1"),
+    ('[plan]\naxes = ["q"]\n', "plan: axes = ['q'] must be a non-empty list of x, y, z"),
+    ('[plan]\nrates_hz = "0.5"\n', "plan: rates_hz = '0.5' must be a list of numbers"),
+    ('[plan]\ncontinuous = true\nramp_deg_s2 = 0.0\n', "plan: ramp_deg_s2 = 0.0 must be a number > 0"),
+    ('[dut]\nsensitivity_spread = -4.0\n', "dut: sensitivity_spread = -4.0 must be a number >= 0"),
+    ('[[effect]]\nname = "centripetal"\naxis = "x"\nradius_m = "big"\n', "[[effect]] centripetal: radius_m = 'big' is not a number"),
+    ('[timebase]\ngap_count = 3\ngap_s = 100000.0\n', "timebase: 3 gaps of 100000 s leave no sample of the recording"),
+])
+def test_simulation_file_with_a_value_no_plan_can_have(cli, tmp_path, toml, needle):
+    """Each stopped rotcal simulate with a traceback (division by zero, an
+    empty array, a string multiplied by a float)."""
+    path = tmp_path / "sim.toml"
+    path.write_text(toml)
+    assert_one_line_error(cli("simulate", tmp_path / "d", "--config", path), needle)
+
+
+def test_header_with_spaces_after_the_commas(tmp_path):
+    """'t, u, v, w' names the contract columns: the file was refused as
+    missing 'u', 'v', 'w' while listing u, v, w among the columns found."""
+    from pipeline.config import Limits
+    from pipeline.ingest.csv_source import read_csv_capture
+    from pipeline.meta import CsvFormat
+
+    path = tmp_path / "log.csv"
+    path.write_text("t, u, v, w, axis, rate_hz, angle_deg\n0.00, 10, 20, 30, x, 0, 15\n0.01, 11, 21, 31, x, 0, 15\n")
+    frame = read_csv_capture(path, CsvFormat(), None, Limits())
+    assert frame.select("t_ns", "u", "v", "w", "rate_hz", "angle_deg").rows() == [
+        (0, 10.0, 20.0, 30.0, 0.0, 15.0), (10_000_000, 11.0, 21.0, 31.0, 0.0, 15.0)]
+    assert frame["axis"].to_list() == ["x", "x"]

@@ -47,6 +47,21 @@ def test_one_axis_recording_without_dwells_between_rates():
     assert [(r.axis, round(r.fit.rate_hz, 6)) for r in blind.rotations] == [("z", 0.005), ("z", 0.02), ("z", 1.0)]
 
 
+def test_fast_rotation_whose_ramp_looks_steady_is_found():
+    """At 2 Hz the last seconds of a 10 deg/s^2 ramp change the rate by less
+    than the steady tolerance, so the candidate holds them; fitted whole, its
+    quadratic phase lag failed the residual test and the rotations were
+    lost without a word. The fit grows from the candidate's middle instead,
+    and the edges stop where the ramp begins (167 s to 419 s on x)."""
+    sim = simulate(SimulationSpec(plan=Plan(continuous=True, rates_hz=(2.0,))), 1)
+    t, y = _arrays(sim)
+    blind = segment_blind(t, y)
+    assert [(r.axis, round(r.fit.rate_hz, 6)) for r in blind.rotations] == [("x", 2.0), ("y", 2.0), ("z", 2.0)]
+    first = blind.rotations[0]
+    assert abs(t[first.start] / 1e9 - 167.0) < 1.0 and abs(t[first.stop - 1] / 1e9 - 419.0) < 1.0
+    assert first.chi2_reduced < 1.1
+
+
 def test_rough_calibration_finds_the_offset():
     sim = simulate(SimulationSpec(plan=Plan(continuous=True)), 5)
     _, y = _arrays(sim)

@@ -103,6 +103,40 @@ def test_refined_parameters_correct_a_biased_baseline(tmp_path):
     assert intrinsic.filter(pl.col("model") == "refined")["z"].abs().max() < 3
 
 
+def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
+    """A converter clipped to a band 100 counts wide: every sample has some
+    channel at a limit, so the offset-step scan has no sample to scan and a
+    rotation's channel no stretch for the tone scan (both used to stop the
+    run with a traceback). The clipping is a finding with its limits."""
+    _, _, findings, params = _diagnose(tmp_path, 45, effects=("clipping:clip_high=0,clip_low=-100",))
+    assert findings.filter(pl.col("effect") == "clipping")["detected"].item()
+    assert dict(zip(params["parameter"], params["value"])) == {"clip_low": -100.0, "clip_high": 0.0}
+
+
+@pytest.mark.parametrize("fitted, reported", [(715.0, -5.0), (725.0, 5.0), (-365.0, -5.0), (0.3, 0.3)])
+def test_axis_tilt_is_reported_within_half_a_turn(fitted, reported):
+    """The model holds the tilt through its sine and cosine, so the fit may
+    settle whole turns away; effect_parameters said tilt_deg = 715."""
+    from pipeline.diagnosis.candidates import Candidate, report_parameters
+
+    (param,) = report_parameters(Candidate("axis_tilt", "x", ("tilt.x_deg",), ((0, 1, 2),)), np.array([fitted]),
+                                 np.array([[1e-6]]), "bit")
+    assert (param.name, param.value, param.std_uncertainty, param.unit) == ("tilt_deg", pytest.approx(reported), 1e-3, "degree")
+
+
+def test_offset_step_that_only_mimics_an_axis_tilt_is_dropped(tmp_path):
+    """A 5 deg tilt of x: forward selection takes an offset step at the end of
+    the x segments first, and the tilt added next settles at -5 deg with a
+    step of twice the size making up for it (every refined offset of u 2950
+    sigma off). Refitted without the step, the model is better by BIC."""
+    _, truth, findings, params = _diagnose(tmp_path, 1, effects=("axis_tilt:axis=x,tilt_deg=5",))
+    assert set(findings.filter(pl.col("detected"))["effect"]) == {"axis_tilt"}
+    assert params["value"].item() == pytest.approx(5.0, abs=0.01)
+    intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet").with_columns(
+        z=(pl.col("value") - pl.col("parameter").replace_strict(truth["intrinsic"])) / pl.col("std_uncertainty"))
+    assert intrinsic.filter(pl.col("model") == "refined")["z"].abs().max() < 4
+
+
 def test_two_effects_at_once_are_both_named(tmp_path):
     _, _, findings, params = _diagnose(tmp_path, 42, effects=("centripetal:axis=x,radius_m=0.1",
                                                               "channel_delay:delay_v_s=0.002"))

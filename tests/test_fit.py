@@ -2,9 +2,12 @@
 closed-form truth and against repeated simulation."""
 
 import numpy as np
+import polars as pl
 
-from pipeline.config import FitConfig
+from pipeline.config import FitConfig, RunConfig
 from pipeline.fit import design, fit_segment, linear_fit, refusal
+from pipeline.run import run_dataset
+from pipeline.simulate import SimulationSpec, simulate, write_dataset
 
 
 def test_noise_free_coefficients_are_exact():
@@ -55,3 +58,45 @@ def test_refusals_name_the_reason():
     assert "only 2 static angles" in refusal("static", "commanded", np.repeat([0.0, 90.0], 20), cfg)
     assert "angle range" in refusal("rotation", "commanded", np.linspace(0, 10, 100), cfg)
     assert refusal("rotation", "commanded", np.linspace(0, 400, 100), cfg) is None
+
+
+def test_a_channel_pinned_at_one_value_is_a_failure_not_a_zero_uncertainty_fit():
+    """A channel saturated through a whole segment has no scatter: fitted, it
+    would claim zero uncertainty and outweigh every other segment."""
+    theta = np.linspace(0.0, 720.0, 400)
+    y = design(theta) @ np.array([[100.0, 2000.0, -1500.0]] * 3).T + np.random.default_rng(2).normal(0, 8, (400, 3))
+    y[:, 2] = -32768.0
+    fit = fit_segment(0, "rotation", 0.5, "commanded", theta, y, FitConfig())
+    assert fit.status == "failed"
+    assert fit.reason == "channel w holds -32768 in every sample (stuck or saturated): nothing to fit"
+
+
+def test_a_segment_saturated_by_centripetal_acceleration_leaves_the_rest_of_the_run(tmp_path):
+    """5 m off the y axis, 0.5 Hz gives 49 m/s^2 (5 g) along w: w sits at
+    -32768 through the whole y rotation at 0.5 Hz. That segment fails with a
+    warning (it used to reach the frequency response's omega^2 fit with a
+    zero uncertainty and stop the run with a singular matrix); 0.5 Hz is
+    still determined by the x and z rotations."""
+    spec = SimulationSpec().with_effects("centripetal:axis=y,radius_m=5.0")
+    data = write_dataset(simulate(spec, 1), spec, tmp_path / "data")
+    outcome = run_dataset(data, tmp_path / "out", config=RunConfig(workers=1))
+    assert [w for w in outcome.warnings if "stuck or saturated" in w] == [
+        "segment 9 (y, 0.5 Hz): channel w holds -32768 in every sample (stuck or saturated): nothing to fit"]
+    assert [r.rate_hz for r in outcome.results] == [0.0, 0.01, 0.05, 0.1, 0.5]
+    response = pl.read_parquet(tmp_path / "out" / "frequency_response.parquet")
+    assert response.filter(pl.col("quantity") == "offset_omega2_slope").height > 0
+
+
+def test_a_rotation_sampled_at_a_multiple_of_its_rate_is_refused():
+    """100 Hz sampled every 60 ms turns exactly 6 times between samples: the
+    commanded angles span 430,000 deg but repeat one angle on the circle, so
+    offset, sine and cosine cannot be separated (the fit stopped the run
+    with a singular matrix)."""
+    theta = 37.0 + 360.0 * 100.0 * 0.06 * np.arange(400)
+    y = np.random.default_rng(3).normal(0, 8, (400, 3))
+    fit = fit_segment(0, "rotation", 100.0, "commanded", theta, y, FitConfig())
+    assert fit.status == "failed"
+    assert fit.reason == "angle range 0.0 deg is below the 30 deg needed to separate offset and sine terms"
+    # an arc across 0 deg counts as the arc it is
+    assert refusal("rotation", "commanded", np.linspace(-10.0, 10.0, 100), FitConfig()).startswith("angle range 20.0 deg")
+    assert refusal("rotation", "commanded", np.linspace(-100.0, 100.0, 100), FitConfig()) is None

@@ -179,3 +179,14 @@ def test_repaired_table_keeps_rows_in_time_and_capture_order():
     assert both.filter(pl.col("t_ns") == shared["t_ns"][0])["capture"].to_list() == ["b.csv", "a.csv"]
     assert shared["capture"].to_list() == ["a.csv", "b.csv"]
     assert out.findings.filter(pl.col("check") == "duplicated_samples").select("capture", "value").rows() == [("a.csv", 0.0), ("b.csv", 1.0)]
+
+
+def test_jitter_never_stamps_a_sample_before_the_logger_starts(cli, tmp_path):
+    """Stamp jitter larger than the first samples' times would give negative
+    stamps, which an MCAP log time cannot hold (rotcal simulate stopped with
+    struct.error); the logger's clock starts at 0."""
+    spec = SimulationSpec().with_timebase("jitter_s=0.1")
+    stamps = simulate(spec, 1).samples["t_ns"].to_numpy()
+    assert stamps.min() == 0
+    code, _, err = cli("simulate", tmp_path / "d", "--format", "mcap-json", "--timebase", "jitter_s=0.1")
+    assert code == 0, err

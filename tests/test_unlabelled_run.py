@@ -157,3 +157,44 @@ def test_one_unlabelled_file_per_segment(make_dataset, tmp_path):
     truth = truth_of(labelled)["intrinsic"]
     z = [np.abs((r.value - [truth[p] for p in truth]) / r.std_uncertainty).max() for r in outcome.results]
     assert len(z) == 5 and max(z) < 4
+
+
+def test_continuous_recording_of_static_steps_only(tmp_path):
+    """A plan without rotations writes no [plan] rates_hz (an empty list is
+    not a valid dataset.toml, and the run refused the simulator's own
+    output); the dwells give the static result."""
+    spec = SimulationSpec(plan=Plan(continuous=True, rates_hz=()))
+    data = write_dataset(simulate(spec, 2), spec, tmp_path / "d", "csv-unlabelled")
+    assert "[plan]" not in (data / "dataset.toml").read_text()
+    outcome = run_dataset(data, tmp_path / "out")
+    assert [r.rate_hz for r in outcome.results] == [0.0]
+    truth = truth_of(data)["intrinsic"]
+    res = outcome.results[0]
+    assert np.abs((res.value - [truth[p] for p in truth]) / res.std_uncertainty).max() < 4
+
+
+@pytest.mark.parametrize("fmt", ["mcap-cdr", "mcap-json"])
+def test_continuous_mcap_recording_gives_the_truth(tmp_path, fmt):
+    """A continuous recording as MCAP: its transitions join no segment. The
+    table messages used to cover the plan's segments only, so step moves,
+    ramps, rests and the hand reorientation took the label of the segment
+    before them and biased its fit (phi_uv at 0 Hz 8 sigma off, s_w at
+    0.5 Hz 25 sigma off on seed 1)."""
+    spec = SimulationSpec(plan=Plan(continuous=True))
+    data = write_dataset(simulate(spec, 1), spec, tmp_path / "d", fmt)
+    outcome = run_dataset(data, tmp_path / "out")
+    truth = truth_of(data)["intrinsic"]
+    assert [r.rate_hz for r in outcome.results] == [0.0, 0.01, 0.05, 0.1, 0.5]
+    for res in outcome.results:
+        assert np.abs((res.value - [truth[p] for p in truth]) / res.std_uncertainty).max() < 4, res.rate_hz
+
+
+def test_plan_rate_without_a_rotation_in_the_signals_is_a_warning(tmp_path):
+    """6 s at 0.5 Hz is shorter than a constant rotation the signals can
+    show (10 s): the plan's rate is named as not found rather than dropped
+    without a word; the dwells still give the static result."""
+    spec = SimulationSpec(plan=Plan(continuous=True, rates_hz=(0.5,), rotation_samples=100))
+    data = write_dataset(simulate(spec, 1), spec, tmp_path / "d", "csv-unlabelled")
+    outcome = run_dataset(data, tmp_path / "out")
+    assert "[plan] rates_hz: no constant rotation at 0.5 Hz was found" in outcome.warnings
+    assert [r.rate_hz for r in outcome.results] == [0.0]

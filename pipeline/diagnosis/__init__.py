@@ -187,10 +187,23 @@ def _exchange(fit: ModelFit, candidates: tuple[Candidate, ...]) -> ModelFit:
         fit = trial
 
 
+def _without_needless_step(fit: ModelFit) -> ModelFit:
+    """The model refitted without its offset step where that lowers BIC. A
+    step chosen early can hold the catalogue effect it mimics at a wrong
+    optimum where the step looks needed: a step taken before the axis tilt
+    of the first axis's segments leaves the tilt's sign free (it converged
+    to -5 deg for +5), and at that optimum the step's Wald test keeps it."""
+    if STEP not in fit.active:
+        return fit
+    trial = without(fit, (STEP,))
+    return trial if trial.bic < fit.bic else fit
+
+
 def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> ModelFit:
     """Forward selection by BIC among extensions significant at ``alpha``,
-    an exchange pass (``_exchange``), then backward elimination (Wald) of any
-    extension the others made redundant."""
+    an exchange pass (``_exchange``), the offset step refitted away where
+    BIC prefers (``_without_needless_step``), then backward elimination
+    (Wald) of any extension the others made redundant."""
     while True:
         scores: list[Score] = [score(fit, (c,)) for c in candidates if c not in fit.active]
         if STEP not in fit.active:
@@ -201,7 +214,7 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
         best = min(eligible, key=lambda s: (s.delta_bic, s.candidate.key))
         structure = Structure(step_t_s=best.step_t_s) if isinstance(best, StepScore) else fit.structure
         fit = fit_model(fit.obs, fit.layout, fit.beta, fit.active + (best.candidate,), fit.clip, structure, fit.use)
-    fit = _exchange(fit, candidates)
+    fit = _without_needless_step(_exchange(fit, candidates))
     while fit.active:
         wald = []
         for c in fit.active:

@@ -123,6 +123,8 @@ def report_parameters(cand: Candidate, value: np.ndarray, cov: np.ndarray, outpu
             ReportedParameter("ripple_phase_deg", float(np.degrees(np.arctan2(beta, alpha)) % 360.0),
                               float(np.sqrt(g_phase @ cov @ g_phase)), "degree"),
         ]
-    units = {"axis_tilt": "degree", "channel_delay": "s", "offset_drift": f"{output_unit} per s"}
-    names = {"axis_tilt": ("tilt_deg",)}.get(cand.effect, cand.names)
-    return [ReportedParameter(n, float(v), float(s), units.get(cand.effect, "1")) for n, v, s in zip(names, value, u)]
+    if cand.effect == "axis_tilt":
+        # the model holds the tilt through its sine and cosine, so the fit may settle a whole turn away
+        return [ReportedParameter("tilt_deg", float((value[0] + 180.0) % 360.0 - 180.0), float(u[0]), "degree")]
+    units = {"channel_delay": "s", "offset_drift": f"{output_unit} per s"}
+    return [ReportedParameter(n, float(v), float(s), units.get(cand.effect, "1")) for n, v, s in zip(cand.names, value, u)]

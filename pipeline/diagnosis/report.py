@@ -61,12 +61,15 @@ def residual_figure(diag: Diagnosis, name: str, path: Path, output_unit: str) ->
     for ax, resid, title in ((axes[0], before, f"without {name}"), (axes[1], after, "final model")):
         for r, c in enumerate(CHANNELS):
             keep = use[at, r]
+            if not keep.any():  # clipped throughout this segment: nothing of the channel to draw
+                continue
             x, mean, err = _binned(t[keep], resid[at, r][keep])
             ax.errorbar(x - t[0], mean, err, color=COLORS[r], lw=1, ms=2, marker="o", label=c)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_ylabel(f"mean residual ({output_unit})")
         ax.set_title(title, fontsize=9)
-    axes[0].legend(fontsize=8, ncol=3)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=8, ncol=3)
     axes[1].set_xlabel(f"time in segment {seg} (s)")
     rate = obs.motion.rate_hz[at][0]
     where = f"segment {seg}: axis {AXES[obs.motion.axis_idx[at][0]]}, {'static' if rate == 0 else f'{rate:g} Hz'}"

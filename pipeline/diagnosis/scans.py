@@ -75,19 +75,27 @@ def step_scan_p(statistic: float, n: int, dof: int = 3) -> float:
 def step_scan(res: Residuals) -> tuple[float, float, float]:
     """The most likely time of a step in the mean of all channels together:
     (time in s, statistic, p-value). Positions within 10 samples of the ends
-    are not scanned."""
+    are not scanned; where fewer samples than that have all three channels
+    usable (clipping sets different channels aside at different times),
+    there is no position to test and the p-value is 1."""
     order = np.argsort(res.t_s, kind="stable")
     both = res.use[order].all(axis=1)
     e = res.resid[order][both] / res.sigma[None, :]
     n = e.shape[0]
+    if n < 22:
+        return float(np.median(res.t_s)), 0.0, 1.0
     k = np.arange(1, n)
     s = np.cumsum(e, axis=0)[:-1]
-    centred = s - (k / n)[:, None] * s[-1] if n > 1 else s
+    centred = s - (k / n)[:, None] * s[-1]
     stat = (centred**2).sum(axis=1) / (k * (n - k) / n)
-    inner = slice(10, max(n - 11, 11))
+    inner = slice(10, n - 11)
     j = int(np.argmax(stat[inner])) + inner.start
     t = res.t_s[order][both]
     return float(0.5 * (t[j] + t[j + 1])), float(stat[j]), step_scan_p(float(stat[j]), n)
+
+
+# fewest usable samples of one segment and channel whose periodogram the tone scan sums
+TONE_MIN_SAMPLES = 64
 
 
 def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplained]:
@@ -95,7 +103,7 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
     segments' residuals, summed per channel on a common frequency grid
     (each ordinate ~ Exp(1) for white noise, a sum over m segments ~ Gamma(m)),
     with rotation harmonics and the lowest frequencies left out."""
-    segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and part.stop - part.start > 64]
+    segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and part.stop - part.start > TONE_MIN_SAMPLES]
     if not segs:
         return []
     dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
@@ -110,6 +118,8 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
             use = res.use[part, r]
             e = np.where(use, res.resid[part, r] / res.sigma[r], 0.0)
             n = int(use.sum())
+            if n <= TONE_MIN_SAMPLES:  # a channel clipped through most of the segment leaves no spectrum
+                continue
             power = np.abs(np.fft.rfft(e, n_pad)) ** 2 / max(n, 1)
             duration = n * dt
             rate = abs(res.rate_hz[part.start])

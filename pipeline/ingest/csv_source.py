@@ -68,10 +68,12 @@ def _read(source: bytes | Path, fmt: CsvFormat, dtypes: dict, columns: list[str]
         )
     names = list(fmt.names or ())
     keep = [i for i, n in enumerate(names) if n in columns]
+    # renamed after reading: polars' new_columns must name every column of the file, and a
+    # logger's file may carry more columns than [format] names lists
     frame = pl.read_csv(
-        src, separator=sep, comment_prefix="#", has_header=False, columns=keep,
-        new_columns=[names[i] for i in keep], infer_schema=False, raise_if_empty=False,
+        src, separator=sep, comment_prefix="#", has_header=False, columns=keep, infer_schema=False, raise_if_empty=False,
     )
+    frame = frame.rename(dict(zip(frame.columns, [names[i] for i in keep])))
     return frame.with_columns(pl.col(c).cast(dtypes.get(c, pl.String)) for c in frame.columns)
 
 
@@ -92,8 +94,9 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
         raise InputError("the file is empty", path=path)
     check_line_lengths(path, limits.max_line_bytes)
     source = _source_bytes(path, fmt)
-    present = set(_header(source, fmt, path))
-    wanted = {name: fmt.file_column(name) for name in (*NUMERIC, *TEXT) if fmt.file_column(name) in present}
+    # a header written "t, u, v, w" names its columns with the spaces around them
+    present = {c.strip(): c for c in _header(source, fmt, path)}
+    wanted = {name: present[fmt.file_column(name)] for name in (*NUMERIC, *TEXT) if fmt.file_column(name) in present}
     missing = [c for c in REQUIRED if c not in wanted]
     if "t" not in wanted and fmt.sample_rate_hz is None:
         missing.insert(0, "t")
@@ -103,15 +106,26 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
             f" (columns found: {', '.join(sorted(present)) or 'none'})",
             path=path, hint="map the file's columns in dataset.toml [format] columns" if present else None,
         )
-    pose_col = fmt.pose_column if fmt.pose_column in present else None
+    pose_col = present.get(fmt.pose_column)
+    both = [name for name, file_col in wanted.items() if file_col == pose_col]
+    if both:
+        raise InputError(f"dataset.toml [format] pose_column {fmt.pose_column!r} is the file's {both[0]!r} column too: "
+                         "a column holds one kind of label", path=path)
     dtypes = {wanted[c]: (pl.String if c in TEXT else pl.Float64) for c in wanted}
     columns = list(dtypes) + ([pose_col] if pose_col else [])
     try:
         frame = _read(source, fmt, dtypes, columns)
-    except pl.exceptions.ComputeError as exc:
+    except pl.exceptions.ColumnNotFoundError:
+        raise InputError(f"the file has fewer columns than the {len(fmt.names or ())} that dataset.toml [format] names lists",
+                         path=path) from None
+    except (pl.exceptions.ComputeError, pl.exceptions.InvalidOperationError) as exc:  # parsing, or the cast of a file without header
         raise _bad_value(source, fmt, wanted, path) or InputError(
             f"cannot be read as CSV: {str(exc).splitlines()[0]}", path=path
         ) from None
+    # blank lines (a logger's trailing newlines) come back as rows of nulls: no sample, no error
+    blank = pl.all_horizontal(pl.all().is_null())
+    if frame.select(blank.any()).item():
+        frame = frame.filter(~blank)
     frame = frame.rename({v: k for k, v in wanted.items()})
     if pose_col:
         frame = frame.rename({pose_col: "pose"})
