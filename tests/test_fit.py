@@ -3,9 +3,10 @@ closed-form truth and against repeated simulation."""
 
 import numpy as np
 import polars as pl
+import pytest
 
 from pipeline.config import FitConfig, RunConfig
-from pipeline.fit import design, fit_segment, linear_fit, refusal
+from pipeline.fit import arc_deg, design, fit_segment, linear_fit, refusal
 from pipeline.run import run_dataset
 from pipeline.simulate import SimulationSpec, simulate, write_dataset
 
@@ -100,3 +101,15 @@ def test_a_rotation_sampled_at_a_multiple_of_its_rate_is_refused():
     # an arc across 0 deg counts as the arc it is
     assert refusal("rotation", "commanded", np.linspace(-10.0, 10.0, 100), FitConfig()).startswith("angle range 20.0 deg")
     assert refusal("rotation", "commanded", np.linspace(-100.0, 100.0, 100), FitConfig()) is None
+
+
+@pytest.mark.parametrize("theta, arc", [
+    (np.repeat(np.arange(0.0, 360.0, 15.0), 50), 345.0),   # Geist's steps
+    (np.array([0.0, 359.0] * 5), 1.0),                      # two angles 1 deg apart across 0
+    (np.array([350.0, 370.0, -10.0, 725.0]), 20.0),         # wound and unwound
+    (np.array([0.0, 360.0, 720.0, -1080.0]), 0.0),          # whole turns: one angle
+    (36.0 * np.arange(1000) * 100.0 * 0.06 * 10, 0.0),      # 100 Hz sampled every 60 ms: aliased
+    (37.0 + 0.0605 * np.arange(30_000), 360.0),            # a constant rotation of several turns
+])
+def test_arc_the_angles_cover_on_the_circle(theta, arc):
+    assert arc_deg(theta) == pytest.approx(arc, abs=0.0605)  # within one step of the rotation
