@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
 
 def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
@@ -29,7 +29,7 @@ def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
     its pool workers) and CPU time (user + system, s; with its workers) of
     one ``rotcal batch``."""
     start = time.perf_counter()
-    run = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, "-m", "pipeline", "batch", str(root),
+    run = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, "-m", "rotcal", "batch", str(root),
                           "--out", str(out), "--json", *args], capture_output=True, text=True)
     wall = time.perf_counter() - start
     if run.returncode not in (0, 4):
@@ -69,7 +69,7 @@ def main() -> None:
         noop.append(wall)
         cpu.append(seconds)
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "pipeline", "--help"], capture_output=True)
+    subprocess.run([sys.executable, "-m", "rotcal", "--help"], capture_output=True)
     print(f"no-op run ({opts.datasets} datasets unchanged): median {statistics.median(noop):.2f} s wall "
           f"(min {min(noop):.2f}, max {max(noop):.2f}), median CPU {statistics.median(cpu):.2f} s; "
           f"`rotcal --help` alone: {time.perf_counter() - start:.2f} s wall")

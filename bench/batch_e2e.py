@@ -23,7 +23,7 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
 
 def _simulate(args: tuple[int, Path]) -> None:
@@ -55,7 +55,7 @@ def main() -> None:
         no_diagnosis.write_text("[diagnosis]\nenabled = false\n")
         for label, config in (("without diagnosis", no_diagnosis), ("with diagnosis", None)):
             out = Path(tmp) / f"out_{label.split()[0]}"
-            command = [sys.executable, "-m", "pipeline", "batch", str(root), "--out", str(out), "--workers", str(args.workers)]
+            command = [sys.executable, "-m", "rotcal", "batch", str(root), "--out", str(out), "--workers", str(args.workers)]
             load, cpu, start = os.getloadavg()[0], _children_cpu(), time.perf_counter()
             subprocess.run(command + (["--config", str(config)] if config else []), check=True, capture_output=True)
             seconds, cpu = time.perf_counter() - start, _children_cpu() - cpu

@@ -18,10 +18,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import polars as pl  # noqa: E402
 from common import best_of, report  # noqa: E402
 
-from pipeline.config import Limits  # noqa: E402
-from pipeline.ingest.csv_source import read_csv_capture  # noqa: E402
-from pipeline.meta import CsvFormat  # noqa: E402
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_csv_single  # noqa: E402
+from rotcal.config import Limits  # noqa: E402
+from rotcal.ingest.csv_source import read_csv_capture  # noqa: E402
+from rotcal.ingest.meta import CsvFormat  # noqa: E402
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_csv_single  # noqa: E402
 
 
 def main() -> None:

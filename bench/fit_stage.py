@@ -26,12 +26,12 @@ from common import best_of, report  # noqa: E402
 from scipy.optimize import curve_fit  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from pipeline.config import FitConfig  # noqa: E402
-from pipeline.fit import fit_segments, segment_rows  # noqa: E402
-from pipeline.ingest.labels import label_columns  # noqa: E402
-from pipeline.segment import segment_by_labels  # noqa: E402
-from pipeline.simulate import Plan, SimulationSpec, simulate  # noqa: E402
-from pipeline.tables import conform  # noqa: E402
+from rotcal.config import FitConfig  # noqa: E402
+from rotcal.fit.segments import fit_segments, segment_rows  # noqa: E402
+from rotcal.ingest.labels import label_columns  # noqa: E402
+from rotcal.segment.labelled import segment_by_labels  # noqa: E402
+from rotcal.simulate.core import Plan, SimulationSpec, simulate  # noqa: E402
+from rotcal.tables import conform  # noqa: E402
 
 
 def stage_input(rotation_samples: int) -> tuple[pl.DataFrame, pl.DataFrame]:

@@ -23,10 +23,10 @@ from common import best_of, report  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
-from pipeline.config import Limits  # noqa: E402
-from pipeline.ingest.mcap_source import read_mcap_capture  # noqa: E402
-from pipeline.meta import load_meta  # noqa: E402
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402
+from rotcal.config import Limits  # noqa: E402
+from rotcal.ingest.mcap_source import read_mcap_capture  # noqa: E402
+from rotcal.ingest.meta import load_meta  # noqa: E402
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402
 
 
 def reference_cdr(path: Path) -> list:

@@ -1,5 +1,5 @@
-"""``python -m pipeline``: the rotcal command line."""
+"""``python -m rotcal``: the rotcal command line."""
 
-from pipeline.cli import main
+from rotcal.cli import main
 
 main()

@@ -13,11 +13,11 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from pipeline.config import load_config
-from pipeline.crosssens import matrix_intrinsic
-from pipeline.errors import RotcalError
-from pipeline.report import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
-from pipeline.simulate import SimulationSpec, simulate, spec_from_toml, write_dataset
+from rotcal.config import load_config
+from rotcal.metrology.crosssens import matrix_intrinsic
+from rotcal.errors import RotcalError
+from rotcal.report.summary import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
+from rotcal.simulate.core import SimulationSpec, simulate, spec_from_toml, write_dataset
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Rotation-table calibration of three-axis accelerometers.")
@@ -63,7 +63,7 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
-    from pipeline.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
+    from rotcal.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
 
     _print_outcome(run_dataset(dataset, out_dir, meta, load_config(config)), quiet)
 
@@ -104,7 +104,7 @@ def demo(
     spec = _spec(None, effect)
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False, markup=False)
-    from pipeline.run import run_dataset
+    from rotcal.run import run_dataset
 
     config = load_config(None)
     config = replace(config, uncertainty=replace(config.uncertainty, monte_carlo=True))  # the demo shows every table
@@ -147,7 +147,7 @@ def batch(
     import dataclasses
     import json
 
-    from pipeline.batch import Reporter, run_batch
+    from rotcal.batch.runner import Reporter, run_batch
 
     cfg = load_config(config)
     cfg = dataclasses.replace(cfg, batch=dataclasses.replace(

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import jsonschema
 
-from pipeline.errors import ConfigError
-from pipeline.tables import schema_text
+from rotcal.errors import ConfigError
+from rotcal.tables import schema_text
 
 
 @dataclass(frozen=True)

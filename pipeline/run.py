@@ -12,28 +12,28 @@ from typing import TYPE_CHECKING
 import polars as pl
 from threadpoolctl import threadpool_limits
 
-from pipeline.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
-from pipeline.combine import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
-from pipeline.config import RunConfig
-from pipeline.consistency import consistency_frame, consistency_note
-from pipeline.crosssens import cross_sensitivity_frame
-from pipeline.errors import UndeterminedError
-from pipeline.fit import fit_segments, fits_frame
-from pipeline.gaitan import gaitan_frame
-from pipeline.ingest import load_dataset
-from pipeline.multiposition import PoseFailure
-from pipeline.poses import table_step_poses
-from pipeline.response import frequency_response_frame
-from pipeline.segment import segment_by_labels
-from pipeline.simultaneous import simultaneous, simultaneous_frame
-from pipeline.static import StaticReduction, reduce_static
-from pipeline.tables import write_parquet
-from pipeline.timebase import findings_frame, repair_timebase
-from pipeline.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
-from pipeline.unlabelled import infer_segments, reduce_unreferenced
+from rotcal.metrology.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
+from rotcal.combine.labelled import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
+from rotcal.config import RunConfig
+from rotcal.metrology.consistency import consistency_frame, consistency_note
+from rotcal.metrology.crosssens import cross_sensitivity_frame
+from rotcal.errors import UndeterminedError
+from rotcal.fit.segments import fit_segments, fits_frame
+from rotcal.metrology.gaitan import gaitan_frame
+from rotcal.ingest import load_dataset
+from rotcal.combine.multiposition import PoseFailure
+from rotcal.combine.poses import table_step_poses
+from rotcal.metrology.response import frequency_response_frame
+from rotcal.segment.labelled import segment_by_labels
+from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
+from rotcal.combine.static import StaticReduction, reduce_static
+from rotcal.tables import write_parquet
+from rotcal.timebase.check import findings_frame, repair_timebase
+from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
+from rotcal.segment.unlabelled import infer_segments, reduce_unreferenced
 
 if TYPE_CHECKING:
-    from pipeline.diagnosis import Diagnosis
+    from rotcal.diagnose import Diagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,7 +124,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     if replaced:
         notes += ("diagnosis skipped: segments without a table angle (its models need the angle)",)
     elif config.diagnosis.enabled and static is None:
-        from pipeline.diagnosis import diagnose  # scipy.stats loads when diagnosing, after the large stages
+        from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
         diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
                              ds.meta.angle_source == "measured", config.diagnosis)
@@ -136,7 +136,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         written += [write_parquet(diagnosis.findings, out / "diagnosis.parquet", "diagnosis"),
                     write_parquet(diagnosis.parameters, out / "effect_parameters.parquet", "effect_parameters")]
         if config.diagnosis.report:
-            from pipeline.diagnosis.report import write_report  # matplotlib only when a report is wanted
+            from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
 
             written.append(write_report(diagnosis, fits, results, ds.name, unit, out, config.report.figures))
     written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
@@ -182,7 +182,7 @@ def _metrology_tables(samples: pl.DataFrame, fits: pl.DataFrame, results: list[I
         write_parquet(response, out / "frequency_response.parquet", "frequency_response"),
     ]
     if config.report.figures:
-        from pipeline.plot import frequency_response_png  # matplotlib only when there is a plot to draw
+        from rotcal.report.plot import frequency_response_png  # matplotlib only when there is a plot to draw
 
         png = frequency_response_png(response, out / "frequency_response.png", dataset)
         written += [png] if png else []

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline import __version__
+from rotcal import __version__
 
 _DTYPES: dict[str, pl.DataType] = {
     "string": pl.String(),

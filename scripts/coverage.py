@@ -18,9 +18,9 @@ import os
 import sys
 import time
 
-from pipeline.config import FitConfig
-from pipeline.coverage import coverage_frame, simulate_errors
-from pipeline.simulate import SimulationSpec
+from rotcal.config import FitConfig
+from rotcal.metrology.coverage import coverage_frame, simulate_errors
+from rotcal.simulate.core import SimulationSpec
 
 
 def main() -> int:

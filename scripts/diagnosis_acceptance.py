@@ -4,7 +4,7 @@ refined against baseline, unexplained structures, and the Gaitan 2021 case.
 
     python scripts/diagnosis_acceptance.py [--seeds 10] [--clean 20] [--workers 2] [--out DIR]
 
-Sizes are drawn across the ranges of effects.md (pipeline.diagnosis.scenarios).
+Sizes are drawn across the ranges of effects.md (rotcal.diagnose.scenarios).
 Prints a Markdown report (the tables in docs/measured.md come from it).
 """
 
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from pipeline.config import RunConfig
-from pipeline.diagnosis.scenarios import RANGES, draw_effect, draw_foreign
-from pipeline.physics import INTRINSIC
-from pipeline.run import run_dataset
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.config import RunConfig
+from rotcal.diagnose.scenarios import RANGES, draw_effect, draw_foreign
+from rotcal.model.physics import INTRINSIC
+from rotcal.run import run_dataset
+from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
 PAIRS = (("centripetal", "channel_delay"), ("cubic_nonlinearity", "axis_tilt"),
          ("quadratic_nonlinearity", "rate_ripple"), ("offset_drift", "axis_tilt"), ("rate_error", "clipping"))

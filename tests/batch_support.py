@@ -12,8 +12,8 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.config import BatchConfig, DiagnosisConfig, RunConfig
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.config import BatchConfig, DiagnosisConfig, RunConfig
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 
 # One rate and short segments: a dataset of 8 small CSVs.
 SMALL = SimulationSpec(plan=Plan(step_samples=10, rates_hz=(0.5,), rotation_samples=200))
@@ -75,7 +75,7 @@ def assert_clean(out: Path) -> None:
 
 def run_cli(*args, timeout: float = 120, **popen) -> subprocess.CompletedProcess:
     """``rotcal`` in a subprocess of this interpreter."""
-    return subprocess.run([sys.executable, "-m", "pipeline", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "rotcal", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=REPO, **popen)
 
 

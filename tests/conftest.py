@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("ROTCAL_SHARED", REPO.parent / "shared"))
@@ -44,7 +44,7 @@ def truth_of(dataset: Path) -> dict:
 @pytest.fixture
 def cli(monkeypatch, capsys):
     """Run the ``rotcal`` entry point in-process: returns (exit code, stdout, stderr)."""
-    from pipeline.cli import main
+    from rotcal.cli import main
 
     def invoke(*args: str) -> tuple[int, str, str]:
         monkeypatch.setattr(sys, "argv", ["rotcal", *map(str, args)])

@@ -1,5 +1,5 @@
 """Simulated hand-placed static poses of random orientation, from the forward
-model of ``pipeline.physics`` (a DUT drawn as ``simulate`` draws one; noise,
+model of ``rotcal.model.physics`` (a DUT drawn as ``simulate`` draws one; noise,
 rounding and clipping by ``observe``)."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from pipeline.physics import CHANNELS, INTRINSIC, Effects, intrinsic_from_vectors, observe
-from pipeline.simulate import DutSpec, draw_dut
+from rotcal.model.physics import CHANNELS, INTRINSIC, Effects, intrinsic_from_vectors, observe
+from rotcal.simulate.core import DutSpec, draw_dut
 
 G_LOCAL = 9.80101
 

@@ -6,11 +6,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.an4399 import (
+from rotcal.metrology.an4399 import (
     COEFFICIENTS, apply_correction, fit_channel, fit_corrections, interpolate, temperature_polynomials,
 )
-from pipeline.run import run_dataset
-from pipeline.tables import schema
+from rotcal.run import run_dataset
+from rotcal.tables import schema
 from tests.conftest import truth_of
 from tests.posesim import G_LOCAL, hand_placed, random_directions
 

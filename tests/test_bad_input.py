@@ -7,7 +7,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from pipeline.simulate import Plan, SimulationSpec
+from rotcal.simulate.core import Plan, SimulationSpec
 
 SMALL = SimulationSpec(plan=Plan(rates_hz=(0.1,), rotation_samples=600, step_samples=10))
 
@@ -198,9 +198,9 @@ def test_missing_dataset(cli, tmp_path):
 def test_headerless_file_wider_than_its_names(tmp_path):
     """[format] names may list the first columns only: the logger's further
     columns are left out, as a header file's unknown columns are."""
-    from pipeline.config import Limits
-    from pipeline.ingest.csv_source import read_csv_capture
-    from pipeline.meta import CsvFormat
+    from rotcal.config import Limits
+    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.txt"
     path.write_text("0.00  10 20 30  7 8\n0.01  11 21 31  7 8\n")
@@ -236,9 +236,9 @@ def test_pose_column_that_is_also_a_contract_column(cli, dataset, tmp_path):
 def test_blank_lines_are_not_samples(tmp_path, text, fmt):
     """A logger's trailing (or stray) blank lines are no rows: they used to
     stop the run as 'column 'u', row 3 is empty'."""
-    from pipeline.config import Limits
-    from pipeline.ingest.csv_source import read_csv_capture
-    from pipeline.meta import CsvFormat
+    from rotcal.config import Limits
+    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.csv"
     path.write_bytes(text.encode())
@@ -268,9 +268,9 @@ def test_simulation_file_with_a_value_no_plan_can_have(cli, tmp_path, toml, need
 def test_header_with_spaces_after_the_commas(tmp_path):
     """'t, u, v, w' names the contract columns: the file was refused as
     missing 'u', 'v', 'w' while listing u, v, w among the columns found."""
-    from pipeline.config import Limits
-    from pipeline.ingest.csv_source import read_csv_capture
-    from pipeline.meta import CsvFormat
+    from rotcal.config import Limits
+    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.csv"
     path.write_text("t, u, v, w, axis, rate_hz, angle_deg\n0.00, 10, 20, 30, x, 0, 15\n0.01, 11, 21, 31, x, 0, 15\n")

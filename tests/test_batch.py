@@ -9,11 +9,11 @@ from dataclasses import replace
 import jsonschema
 from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
-from pipeline.batch import dataset_id, discover, run_batch
-from pipeline.config import BatchConfig, RunConfig
-from pipeline.manifest import run_lock
-from pipeline.simulate import simulate, write_dataset
-from pipeline.tables import schema_text
+from rotcal.batch.runner import dataset_id, discover, run_batch
+from rotcal.config import BatchConfig, RunConfig
+from rotcal.batch.manifest import run_lock
+from rotcal.simulate.core import simulate, write_dataset
+from rotcal.tables import schema_text
 
 
 def test_dataset_ids_are_unique_safe_and_readable():
@@ -55,7 +55,7 @@ def hash_times(out):
 def test_second_run_does_nothing_and_a_change_reprocesses_exactly_its_dataset(tmp_path, monkeypatch):
     # Files are only minutes old in a test: trust the cache at once, so that
     # what detects the change below is the stat comparison, not the racy rule.
-    monkeypatch.setattr("pipeline.manifest.RACY_NS", 0)
+    monkeypatch.setattr("rotcal.batch.manifest.RACY_NS", 0)
     root, out = tmp_path / "root", tmp_path / "out"
     paths = make_root(root, range(1, 7))
     first = run_batch(root, out, SERIAL)

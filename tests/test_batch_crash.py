@@ -14,7 +14,7 @@ from pathlib import Path
 from batch_support import (REPO, SERIAL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables,
                            run_cli, summary_of)
 
-from pipeline.batch import run_batch
+from rotcal.batch.runner import run_batch
 
 
 def published(out: Path) -> int:
@@ -57,7 +57,7 @@ def test_killed_worker_and_sigkilled_run_then_restart_give_the_uninterrupted_tab
     run_batch(root, ref, SERIAL)  # one process, fit threads on every core
     config = config_file(tmp_path)
 
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "batch", root, "--out", out, "--workers", "2", "--config", config],
+    proc = subprocess.Popen([sys.executable, "-m", "rotcal", "batch", root, "--out", out, "--workers", "2", "--config", config],
                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: set[int] = set()
 

@@ -8,8 +8,8 @@ from dataclasses import replace
 from distributed import LocalCluster
 from batch_support import NO_DIAGNOSIS, SERIAL, assert_same_tables, make_root, manifest_rows, result_tables
 
-from pipeline.batch import run_batch
-from pipeline.config import BatchConfig, load_config
+from rotcal.batch.runner import run_batch
+from rotcal.config import BatchConfig, load_config
 
 TIMING = {"run_id", "started_at", "finished_at", "duration_s"}
 

@@ -17,7 +17,7 @@ from batch_support import NO_DIAGNOSIS, REPO, SMALL, make_root
 from mcap.data_stream import RecordBuilder
 from mcap.records import Chunk, Header
 
-from pipeline.simulate import simulate, write_dataset
+from rotcal.simulate.core import simulate, write_dataset
 
 MAGIC = b"\x89MCAP0\r\n"
 LIMIT = 1 << 20  # the test's limits: 1 MiB lines, records, chunks and dataset.toml
@@ -37,8 +37,8 @@ def hook(event, args):
             seen.append(f"{event} {os.fsdecode(args[0])}")
     elif event in ("pickle.find_class", "subprocess.Popen", "os.system", "os.exec", "os.posix_spawn"):
         seen.append(f"{event} {args!r}")
-from pipeline.batch import run_batch
-from pipeline.config import load_config
+from rotcal.batch.runner import run_batch
+from rotcal.config import load_config
 cfg = load_config(Path(config))
 run_batch(Path(warm), Path(out) / "warm", cfg)
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

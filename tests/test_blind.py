@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from pipeline.blind import axis_from_normal, rough_calibration, segment_blind
-from pipeline.ingest import load_dataset
-from pipeline.simulate import Plan, SimulationSpec, simulate
+from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
+from rotcal.ingest import load_dataset
+from rotcal.simulate.core import Plan, SimulationSpec, simulate
 from tests.conftest import REAL, REPO
 
 
@@ -94,8 +94,8 @@ def test_driving_robot_dwells_never_overlap_and_the_run_refuses_in_one_line(tmp_
     own mean, both reached into the samples between them (they overlapped at
     samples 2298 to 2317, and the pose table failed with a traceback). Dwells
     now tile without overlap, and the run says why it cannot calibrate."""
-    from pipeline.errors import UndeterminedError
-    from pipeline.run import run_dataset
+    from rotcal.errors import UndeterminedError
+    from rotcal.run import run_dataset
 
     s = load_dataset(REAL / "jackal_mcap" / "test2_ros2.mcap").samples
     dwells = segment_blind(s["t_ns"].to_numpy(), s.select("u", "v", "w").to_numpy()).dwells
@@ -108,8 +108,8 @@ def test_driving_robot_dwells_never_overlap_and_the_run_refuses_in_one_line(tmp_
 def test_a_recording_that_never_rests_has_no_still_intervals():
     """One constant rotation: no window is quiet, so the percentile floor
     alone would call it all still; the second-difference noise floor does not."""
-    from pipeline.fit import design
-    from pipeline.stillness import still_intervals
+    from rotcal.fit.segments import design
+    from rotcal.segment.stillness import still_intervals
 
     rng = np.random.default_rng(6)
     t_ns = np.arange(4200, dtype=np.int64) * 60_000_000
@@ -119,7 +119,7 @@ def test_a_recording_that_never_rests_has_no_still_intervals():
 
 def test_still_runs_split_at_time_gaps():
     """A gap inside a still run, and one right where a run starts, both split it."""
-    from pipeline.stillness import still_intervals
+    from rotcal.segment.stillness import still_intervals
 
     t_ns = np.r_[np.arange(300), 400 + np.arange(300), 1000 + np.arange(300)].astype(np.int64) * 10_000_000
     y = np.random.default_rng(7).normal(0, 3, (900, 3)).round()

@@ -5,10 +5,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.combine import SegmentCoefficients, combine_rate, intrinsic_jacobian, segment_coefficients
-from pipeline.coverage import simulate_errors
-from pipeline.run import run_dataset
-from pipeline.simulate import DutSpec, SimulationSpec
+from rotcal.combine.labelled import SegmentCoefficients, combine_rate, intrinsic_jacobian, segment_coefficients
+from rotcal.metrology.coverage import simulate_errors
+from rotcal.run import run_dataset
+from rotcal.simulate.core import DutSpec, SimulationSpec
 from tests.conftest import truth_of
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
@@ -60,7 +60,7 @@ def test_budget_adds_up_to_the_variance(make_dataset, tmp_path):
 def test_normalised_errors_over_ten_seeded_datasets():
     """Issue 2 acceptance: z = (estimate - truth) / u of all nine parameters
     at all five rates over 10 clean datasets: RMS in [0.8, 1.25], none
-    beyond 4.5. (The stages in memory: ``pipeline.coverage``.)"""
+    beyond 4.5. (The stages in memory: ``rotcal.metrology.coverage``.)"""
     z = simulate_errors(10, first_seed=100)
     assert z.shape == (10, 5, 9)
     rms = float(np.sqrt(np.mean(z**2)))
@@ -72,10 +72,10 @@ def test_normalised_errors_over_ten_seeded_datasets():
 def test_fits_table_round_trip_gives_each_segments_vector_and_covariance(make_dataset):
     """The fits table's columns rebuild exactly what the fit computed: the
     9-vector (channel-major C, A, B) and the 9 x 9 covariance."""
-    from pipeline.config import FitConfig
-    from pipeline.fit import fit_segments, fits_frame
-    from pipeline.ingest import load_dataset
-    from pipeline.segment import segment_by_labels
+    from rotcal.config import FitConfig
+    from rotcal.fit.segments import fit_segments, fits_frame
+    from rotcal.ingest import load_dataset
+    from rotcal.segment.labelled import segment_by_labels
 
     ds = load_dataset(make_dataset(6))
     samples, segments = segment_by_labels(ds.samples, ds.name)

@@ -7,7 +7,7 @@ datasets, for every parameter pooled over rates, the fraction with
 import numpy as np
 import pytest
 
-from pipeline.coverage import coverage_frame, simulate_errors
+from rotcal.metrology.coverage import coverage_frame, simulate_errors
 
 
 def test_binomial_interval_accepts_honest_and_rejects_dishonest_uncertainties():

@@ -8,9 +8,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.crosssens import cross_sensitivity, intrinsic_from_matrix, inverse_jacobian
-from pipeline.physics import rotation_matrix
-from pipeline.run import run_dataset
+from rotcal.metrology.crosssens import cross_sensitivity, intrinsic_from_matrix, inverse_jacobian
+from rotcal.model.physics import rotation_matrix
+from rotcal.run import run_dataset
 from tests.conftest import REAL, REPO, truth_of
 
 

@@ -11,13 +11,13 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.config import DiagnosisConfig, RunConfig
-from pipeline.diagnosis import STEP, catalogue, kept_per_segment, observations, _start
-from pipeline.diagnosis.fitting import fit_model
-from pipeline.diagnosis.model import Layout, Structure, evaluate, predict
-from pipeline.diagnosis.scans import step_scan_p
-from pipeline.run import run_dataset
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.config import DiagnosisConfig, RunConfig
+from rotcal.diagnose import STEP, catalogue, kept_per_segment, observations, _start
+from rotcal.diagnose.fitting import fit_model
+from rotcal.diagnose.model import Layout, Structure, evaluate, predict
+from rotcal.diagnose.scans import step_scan_p
+from rotcal.run import run_dataset
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 
 ONE_WORKER = RunConfig(workers=1)
 
@@ -117,7 +117,7 @@ def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
 def test_axis_tilt_is_reported_within_half_a_turn(fitted, reported):
     """The model holds the tilt through its sine and cosine, so the fit may
     settle whole turns away; effect_parameters said tilt_deg = 715."""
-    from pipeline.diagnosis.candidates import Candidate, report_parameters
+    from rotcal.diagnose.candidates import Candidate, report_parameters
 
     (param,) = report_parameters(Candidate("axis_tilt", "x", ("tilt.x_deg",), ((0, 1, 2),)), np.array([fitted]),
                                  np.array([[1e-6]]), "bit")
@@ -172,12 +172,12 @@ def test_gaitan_case_centripetal_22_cm(tmp_path):
 def test_jacobian_matches_finite_differences(make_dataset):
     """Every parameter's analytic Jacobian column against central
     differences of the forward model, at a state with every effect on."""
-    from pipeline.run import run_dataset as _run  # noqa: F401
-    from pipeline.combine import IntrinsicResult, combine
-    from pipeline.config import FitConfig
-    from pipeline.fit import fit_segments, fits_frame
-    from pipeline.ingest import load_dataset
-    from pipeline.segment import segment_by_labels
+    from rotcal.run import run_dataset as _run  # noqa: F401
+    from rotcal.combine.labelled import IntrinsicResult, combine
+    from rotcal.config import FitConfig
+    from rotcal.fit.segments import fit_segments, fits_frame
+    from rotcal.ingest import load_dataset
+    from rotcal.segment.labelled import segment_by_labels
 
     ds = load_dataset(make_dataset(45))
     samples, segments = segment_by_labels(ds.samples, ds.name)
@@ -235,7 +235,7 @@ def test_step_scan_false_alarm_rate_is_conservative():
 
 
 def test_diagnosis_can_be_switched_off(make_dataset, tmp_path):
-    from pipeline.config import DiagnosisConfig
+    from rotcal.config import DiagnosisConfig
 
     outcome = run_dataset(make_dataset(46), tmp_path, config=RunConfig(diagnosis=DiagnosisConfig(enabled=False)))
     assert outcome.diagnosis is None and not (tmp_path / "diagnosis.parquet").exists()
@@ -248,7 +248,7 @@ def test_demo_with_an_effect_shows_the_finding(cli, tmp_path):
 
 
 def _white_residuals(rng, rotating: bool, n_segments: int = 6, n: int = 1200):
-    from pipeline.diagnosis.scans import Residuals
+    from rotcal.diagnose.scans import Residuals
 
     t = np.concatenate([1000.0 * k + 0.06 * np.arange(n) for k in range(n_segments)])
     seg = np.repeat(np.arange(n_segments), n)
@@ -264,7 +264,7 @@ def test_residual_scans_keep_their_false_alarm_rate(scan):
     """On white, integer-rounded noise each scan's family-wise p-value is
     (at worst slightly conservatively) uniform: at alpha = 0.1 it fires in
     about 10 % of 60 trials, not more."""
-    from pipeline.diagnosis.scans import harmonic_scan, static_step_scan, tone_scan
+    from rotcal.diagnose.scans import harmonic_scan, static_step_scan, tone_scan
 
     rng = np.random.default_rng({"static_steps": 1, "tone": 2, "harmonic": 3}[scan])
     fired = 0

@@ -7,11 +7,11 @@ degrees), where the errors of the printed forms show."""
 import numpy as np
 import pytest
 
-from pipeline.combine import SegmentCoefficients, combine_rate, linear_stage
-from pipeline.config import FitConfig
-from pipeline.fit import fit_segment
-from pipeline.gaitan import gaitan_rate
-from pipeline.physics import ANGLE_PAIRS, gravity_direction, rotation_matrix, unit_vectors_from_angles
+from rotcal.combine.labelled import SegmentCoefficients, combine_rate, linear_stage
+from rotcal.config import FitConfig
+from rotcal.fit.segments import fit_segment
+from rotcal.metrology.gaitan import gaitan_rate
+from rotcal.model.physics import ANGLE_PAIRS, gravity_direction, rotation_matrix, unit_vectors_from_angles
 
 G = 9.80101
 N_SAMPLES = 600

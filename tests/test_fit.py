@@ -5,10 +5,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.config import FitConfig, RunConfig
-from pipeline.fit import arc_deg, design, fit_segment, linear_fit, refusal
-from pipeline.run import run_dataset
-from pipeline.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.config import FitConfig, RunConfig
+from rotcal.fit.segments import arc_deg, design, fit_segment, linear_fit, refusal
+from rotcal.run import run_dataset
+from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
 
 def test_noise_free_coefficients_are_exact():

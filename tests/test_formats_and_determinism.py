@@ -8,7 +8,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.run import run_dataset
+from rotcal.run import run_dataset
 from tests.conftest import REPO
 
 
@@ -45,7 +45,7 @@ def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
 
 
 def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
-    from pipeline.config import RunConfig
+    from rotcal.config import RunConfig
 
     run_dataset(make_dataset(22), tmp_path / "one", config=RunConfig(workers=1))
     run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(workers=4))
@@ -53,7 +53,7 @@ def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
 
 
 def test_parquet_files_record_their_schema(make_dataset, tmp_path):
-    from pipeline.tables import read_schema_name, schema
+    from rotcal.tables import read_schema_name, schema
 
     run_dataset(make_dataset(22), tmp_path)
     for name in ("intrinsic", "fits", "segments", "components", "timebase"):

@@ -7,10 +7,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.combine import SegmentCoefficients, linear_stage
-from pipeline.coverage import reduce_dataset
-from pipeline.gaitan import PHASE_PAIRS, gaitan_frame, gaitan_rate
-from pipeline.physics import COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
+from rotcal.combine.labelled import SegmentCoefficients, linear_stage
+from rotcal.metrology.coverage import reduce_dataset
+from rotcal.metrology.gaitan import PHASE_PAIRS, gaitan_frame, gaitan_rate
+from rotcal.model.physics import COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
 
 G = 9.80101
 DUT = unit_vectors_from_angles(90.1, 89.9, 90.05) * np.array([[1669.0], [1672.0], [1665.0]])

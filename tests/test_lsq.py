@@ -4,8 +4,8 @@ and repeated simulation."""
 import numpy as np
 import pytest
 
-from pipeline.errors import UndeterminedError
-from pipeline.lsq import excess_is_significant, ols, psd_part
+from rotcal.errors import UndeterminedError
+from rotcal.fit.lsq import excess_is_significant, ols, psd_part
 
 
 def _design(rng, n):

@@ -3,7 +3,7 @@ plot, each with its schema recorded."""
 
 import polars as pl
 
-from pipeline.tables import read_schema_name
+from rotcal.tables import read_schema_name
 
 TABLES = ("uncertainty_budget", "monte_carlo", "simultaneous", "consistency", "gaitan_estimators", "frequency_response")
 

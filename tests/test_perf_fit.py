@@ -4,8 +4,8 @@ least-squares solution, and its sines against numpy's."""
 import numpy as np
 import pytest
 
-from pipeline.config import FitConfig
-from pipeline.fit import design, fit_segment, linear_fit, residual_stats, sincos_deg, sine3_fit
+from rotcal.config import FitConfig
+from rotcal.fit.segments import design, fit_segment, linear_fit, residual_stats, sincos_deg, sine3_fit
 
 RNG = np.random.default_rng(17)
 TRUTH = np.array([[500.0, -120.0, 16300.0], [-30.0, -16250.0, 80.0], [12.0, 40.0, -35.0]])

@@ -5,9 +5,9 @@ the same coefficients, and its coverage (issue 5)."""
 import numpy as np
 import pytest
 
-from pipeline.combine import CombineFailure, SegmentCoefficients, combine_rate
-from pipeline.phasefree import PhaseSegment, solve_phase_free
-from pipeline.physics import AXES, COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
+from rotcal.combine.labelled import CombineFailure, SegmentCoefficients, combine_rate
+from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
+from rotcal.model.physics import AXES, COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
 
 G = 9.80101
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.physics import (
+from rotcal.model.physics import (
     ANGLE_PAIRS, gravity_direction, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles,
 )
 

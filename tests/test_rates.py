@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.rates import clock_drift, nominal_rate, rate_classes
+from rotcal.timebase.rates import clock_drift, nominal_rate, rate_classes
 
 NOMINAL = np.array([0.01, 0.05, 0.1, 0.5] * 3)
 

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.ingest import load_dataset
-from pipeline.stillness import still_intervals
+from rotcal.ingest import load_dataset
+from rotcal.segment.stillness import still_intervals
 from tests.conftest import REAL, REPO
 
 

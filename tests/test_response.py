@@ -6,10 +6,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.combine import combine
-from pipeline.coverage import reduce_dataset
-from pipeline.plot import frequency_response_png
-from pipeline.response import frequency_response_frame
+from rotcal.combine.labelled import combine
+from rotcal.metrology.coverage import reduce_dataset
+from rotcal.report.plot import frequency_response_png
+from rotcal.metrology.response import frequency_response_frame
 from tests.conftest import truth_of
 
 

@@ -3,8 +3,8 @@ at the edges of what the defaults show."""
 
 import numpy as np
 
-from pipeline.run import run_dataset
-from pipeline.simulate import DutSpec, SimulationSpec, simulate, write_dataset
+from rotcal.run import run_dataset
+from rotcal.simulate.core import DutSpec, SimulationSpec, simulate, write_dataset
 from tests.conftest import truth_of
 
 

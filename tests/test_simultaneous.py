@@ -5,11 +5,11 @@ uncertainties, and both find the truth."""
 import numpy as np
 import pytest
 
-from pipeline.config import FitConfig
-from pipeline.coverage import reduce_dataset
-from pipeline.physics import INTRINSIC
-from pipeline.simulate import DutSpec, SimulationSpec
-from pipeline.simultaneous import simultaneous, simultaneous_frame
+from rotcal.config import FitConfig
+from rotcal.metrology.coverage import reduce_dataset
+from rotcal.model.physics import INTRINSIC
+from rotcal.simulate.core import DutSpec, SimulationSpec
+from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from tests.conftest import truth_of
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
@@ -65,8 +65,8 @@ def test_simultaneous_with_fitted_rates_agrees_within_uncertainty(make_dataset):
 
 @pytest.mark.parametrize("axes", [("x", "y"), ("x",)])
 def test_missing_axes_give_a_failure_not_a_crash(make_dataset, axes):
-    from pipeline.combine import CombineFailure
-    from pipeline.simultaneous import segment_samples, simultaneous_rate
+    from rotcal.combine.labelled import CombineFailure
+    from rotcal.metrology.simultaneous import segment_samples, simultaneous_rate
     red = reduce_dataset(make_dataset(31))
     segs = [s for s in segment_samples(red.samples, red.fits, 0.1, False) if s.axis in axes]
     out = simultaneous_rate(0.1, segs, 9.80101, 3e-5)

@@ -4,8 +4,8 @@ simulation (rate and coefficient uncertainties are honest)."""
 import numpy as np
 import pytest
 
-from pipeline.fit import design
-from pipeline.sinefit import fit_sine, spectral_rate
+from rotcal.fit.segments import design
+from rotcal.fit.sinefit import fit_sine, spectral_rate
 
 TRUTH = np.array([[500.0, -1200.0, 16300.0], [-30.0, -16250.0, 800.0], [12.0, 400.0, -350.0]])
 

@@ -7,11 +7,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.config import FitConfig, load_config
-from pipeline.coverage import reduce_dataset
-from pipeline.errors import ConfigError
-from pipeline.fit import design, fit_segment
-from pipeline.physics import INTRINSIC
+from rotcal.config import FitConfig, load_config
+from rotcal.metrology.coverage import reduce_dataset
+from rotcal.errors import ConfigError
+from rotcal.fit.segments import design, fit_segment
+from rotcal.model.physics import INTRINSIC
 from tests.conftest import truth_of
 
 FOUR = FitConfig(sine_fit="four_parameter")

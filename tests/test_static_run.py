@@ -6,8 +6,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.run import run_dataset
-from pipeline.tables import schema
+from rotcal.run import run_dataset
+from rotcal.tables import schema
 from tests.conftest import REAL, REPO
 from tests.posesim import G_LOCAL, hand_placed, samples_frame
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.simulate import Plan, SimulationSpec, simulate
-from pipeline.timebase import check_capture
+from rotcal.errors import InputError
+from rotcal.simulate.core import Plan, SimulationSpec, simulate
+from rotcal.timebase.check import check_capture
 
 PERIOD_NS = 60_000_000
 
@@ -136,22 +136,24 @@ def test_repair_of_a_defective_recording_is_pinned():
     s = simulate(spec, 7).samples.sort("t_ns", maintain_order=True)
     tb = check_capture(s["t_ns"].to_numpy(), [s[c].to_numpy() for c in "uvw"], "c")
     f = _found(tb)
-    assert (f["sample_interval"].value, f["sample_interval"].std_uncertainty) == (0.059999998698548995, 1.2546849290208277e-09)
+    # to 1e-13 (the jitter refit to 1e-9): the last bits follow the BLAS kernel the machine picks
+    assert f["sample_interval"].value == pytest.approx(0.059999998698548995, rel=1e-13, abs=0)
+    assert f["sample_interval"].std_uncertainty == pytest.approx(1.2546849290208277e-09, rel=1e-12, abs=0)
     assert [f[c].value for c in ("duplicated_samples", "repeated_stamps", "missing_samples")] == [280, 289, 686]
-    assert f["gaps"].value == 1.979999957052117
-    assert (f["timestamp_jitter"].value, f["timestamp_jitter"].std_uncertainty) == (0.004916774543566965, 1.4590413575394562e-05)
-    assert f["irregular_sampling"].value == 0.004975705677806501
+    assert f["gaps"].value == pytest.approx(1.979999957052117, rel=1e-13, abs=0)
+    assert [f["timestamp_jitter"].value, f["timestamp_jitter"].std_uncertainty] == pytest.approx([0.004916774543566965, 1.4590413575394562e-05], rel=1e-9, abs=0)
+    assert f["irregular_sampling"].value == pytest.approx(0.004975705677806501, rel=1e-9, abs=0)
     assert f["irregular_sampling"].evidence == ("stamps deviate from a regular grid by 4.98 ms (sd), 21.1 ms at most, "
                                                 "residual lag-1 autocorrelation 0.01")
     assert "14 could not be placed" in f["repeated_stamps"].evidence
     assert (s.height, int(tb.keep.sum()), int(np.flatnonzero(~tb.keep).sum())) == (57061, 56767, 8734692)
-    assert int(tb.t_ns.sum()) == 97890459201920440
+    assert abs(int(tb.t_ns.sum()) - 97890459201920440) < 100  # a few stamps may round the other way (BLAS)
 
 
 def _samples(capture: str, t_ns: np.ndarray, u: np.ndarray):
     import polars as pl
 
-    from pipeline.tables import conform
+    from rotcal.tables import conform
     return conform(pl.DataFrame({"capture": capture, "t_ns": t_ns, "u": u, "v": 0.0, "w": 0.0, "axis": None, "rate_hz": None,
                                  "angle_deg": None, "temperature_c": None, "gx": None, "gy": None, "gz": None,
                                  "pose": None, "label_source": None}), "samples")
@@ -165,7 +167,7 @@ def test_repaired_table_keeps_rows_in_time_and_capture_order():
     the rows came in."""
     import polars as pl
 
-    from pipeline.timebase import repair_timebase
+    from rotcal.timebase.check import repair_timebase
     a = _samples("a.csv", 1_000_000_000 + np.arange(400) * PERIOD_NS, np.arange(400.0))
     assert repair_timebase(a, "ds").samples.equals(a)
     b_t = 1_000_000_000 + 200 * PERIOD_NS + np.arange(300) * PERIOD_NS

@@ -5,11 +5,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.combine import SegmentCoefficients, combine_rate, linear_stage
-from pipeline.config import UncertaintyConfig
-from pipeline.coverage import reduce_dataset
-from pipeline.physics import INTRINSIC
-from pipeline.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_rate, numerical_tolerance
+from rotcal.combine.labelled import SegmentCoefficients, combine_rate, linear_stage
+from rotcal.config import UncertaintyConfig
+from rotcal.metrology.coverage import reduce_dataset
+from rotcal.model.physics import INTRINSIC
+from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_rate, numerical_tolerance
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.errors import UndeterminedError
-from pipeline.run import run_dataset
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.errors import UndeterminedError
+from rotcal.run import run_dataset
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 from tests.conftest import truth_of
 from tests.unlabelled_checks import DEFECTS, check_seed
 
@@ -99,7 +99,7 @@ def test_simulate_and_run_from_the_command_line(cli, tmp_path):
 
 
 def test_simulation_toml_with_plan_and_timebase_tables(tmp_path):
-    from pipeline.simulate import spec_from_toml
+    from rotcal.simulate.core import spec_from_toml
 
     toml = tmp_path / "sim.toml"
     toml.write_text("[plan]\ncontinuous = true\nramp_deg_s2 = 20.0\n\n[timebase]\ndrop_fraction = 0.01\njitter_s = 0.002\n")

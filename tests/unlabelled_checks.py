@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from pipeline.physics import INTRINSIC
-from pipeline.run import run_dataset
-from pipeline.simulate import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.model.physics import INTRINSIC
+from rotcal.run import run_dataset
+from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 
 DEFECTS = "drop_fraction=0.01,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,jitter_s=0.005,clock_drift_ppm=200"
 

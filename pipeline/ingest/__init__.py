@@ -10,13 +10,13 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.config import Limits
-from pipeline.errors import InputError
-from pipeline.ingest.csv_source import read_csv_capture
-from pipeline.ingest.labels import time_ordered
-from pipeline.ingest.mcap_source import read_mcap_capture
-from pipeline.meta import CaptureSpec, DatasetMeta, load_meta
-from pipeline.tables import conform
+from rotcal.config import Limits
+from rotcal.errors import InputError
+from rotcal.ingest.csv_source import read_csv_capture
+from rotcal.ingest.labels import time_ordered
+from rotcal.ingest.mcap_source import read_mcap_capture
+from rotcal.ingest.meta import CaptureSpec, DatasetMeta, load_meta
+from rotcal.tables import conform
 
 CAPTURE_SUFFIXES = (".csv", ".mcap")
 

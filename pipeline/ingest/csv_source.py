@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from pipeline.config import Limits
-from pipeline.errors import InputError, LimitError
-from pipeline.ingest.labels import label_columns
-from pipeline.meta import CaptureSpec, CsvFormat
+from rotcal.config import Limits
+from rotcal.errors import InputError, LimitError
+from rotcal.ingest.labels import label_columns
+from rotcal.ingest.meta import CaptureSpec, CsvFormat
 
 NUMERIC = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
 TEXT = ("axis",)

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.errors import InputError
-from pipeline.meta import CaptureSpec
-from pipeline.physics import AXES
-from pipeline.tables import schema
+from rotcal.errors import InputError
+from rotcal.ingest.meta import CaptureSpec
+from rotcal.model.physics import AXES
+from rotcal.tables import schema
 
 POSES = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
 OPTIONAL_FLOATS = ("rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")

@@ -38,8 +38,8 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Schema
 
-from pipeline.config import Limits
-from pipeline.ros2_cdr import CDR_LE, imu_layout, joint_layout
+from rotcal.config import Limits
+from rotcal.ingest.ros2_cdr import CDR_LE, imu_layout, joint_layout
 
 IMU_SCHEMA = "sensor_msgs/msg/Imu"
 JOINT_SCHEMA = "sensor_msgs/msg/JointState"

@@ -23,12 +23,12 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.config import Limits
-from pipeline.errors import InputError, LimitError
-from pipeline.ingest import mcap_fast
-from pipeline.ingest.labels import label_columns, time_ordered
-from pipeline.meta import CaptureSpec, DatasetMeta
-from pipeline.physics import AXES, JOINT_SIGN
+from rotcal.config import Limits
+from rotcal.errors import InputError, LimitError
+from rotcal.ingest import mcap_fast
+from rotcal.ingest.labels import label_columns, time_ordered
+from rotcal.ingest.meta import CaptureSpec, DatasetMeta
+from rotcal.model.physics import AXES, JOINT_SIGN
 
 IMU_SCHEMA = "sensor_msgs/msg/Imu"
 JOINT_SCHEMA = "sensor_msgs/msg/JointState"

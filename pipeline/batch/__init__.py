@@ -1,0 +1,1 @@
+"""Batch stage: scheduled runs over capture directories."""

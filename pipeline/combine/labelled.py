@@ -1,0 +1,295 @@
+"""Combine: per rate, the segment fits into the responsivity vectors and the
+nine intrinsic parameters, with first-order (GUM) propagation of the full
+covariance of every fit coefficient and of g_local.
+
+Rotation about axis s gives (contract section 1, Geist 2017 Eqs. 5 to 9)
+
+    A = -g r_a,   B = g r_b,   C = O_rs,
+
+with (a, b) = (y, z), (x, z), (x, y) for s = x, y, z. Every component of a
+vector is measured by two axes (Geist's r_s1, r_s2) and every offset by
+three. rotcal combines the estimates of each by their inverse-variance
+weighted mean: Geist's Eqs. 10 and 12 when the standard errors are equal,
+and the best linear unbiased estimate when they are not. Uncertainties are
+propagated through the linear combination and the Jacobians of Eqs. 14 and
+16 with every covariance kept, instead of the printed Eqs. 11, 13, 15 and
+17 (ERRATA.md: Eqs. 11 and 13 overstate a mean's standard error by sqrt(2)
+and sqrt(3); Eq. 17 pairs the wrong terms and drops correlations).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.model.physics import AXES, ANGLE_PAIRS, CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
+from rotcal.tables import conform, schema
+
+STATE = tuple(f"rho_{r}{s}" for r in CHANNELS for s in AXES) + tuple(f"O_{r}" for r in CHANNELS)
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """One measurement of a state element: coefficient ``index`` of segment
+    ``segment``'s 9-vector, times ``sign``."""
+
+    target: int
+    segment: int
+    axis: str
+    index: int
+    sign: float
+
+
+@dataclass(frozen=True)
+class BudgetInput:
+    """One input group of an uncertainty budget: the noise of one segment's
+    fit (``segment``, ``axis``, with the fit's residual degrees of freedom)
+    or ``g_local`` (a Type B input, infinite degrees of freedom)."""
+
+    label: str
+    source: str
+    segment: int | None
+    axis: str
+    dof: float
+
+
+@dataclass(frozen=True, eq=False)
+class IntrinsicResult:
+    """The nine intrinsic parameters of one rate with their covariance.
+
+    ``state`` is (g r_u, g r_v, g r_w, O) in output units with covariance
+    ``state_cov``; ``budget`` maps each input group (a segment, or
+    ``g_local``) to its variance contribution to each parameter, and
+    ``inputs`` describes those groups in the same order.
+    """
+
+    rate_hz: float
+    value: np.ndarray
+    cov: np.ndarray
+    state: np.ndarray
+    state_cov: np.ndarray
+    budget: dict[str, np.ndarray]
+    g_local: float
+    g_uncertainty: float = 0.0
+    inputs: tuple[BudgetInput, ...] = ()
+
+    @property
+    def std_uncertainty(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def responsivity(self) -> np.ndarray:
+        """Rows r_u, r_v, r_w in the table frame, output unit per m/s^2."""
+        return self.state[:9].reshape(3, 3) / self.g_local
+
+    @property
+    def g_sensitivity(self) -> np.ndarray:
+        """d(parameters)/d(g_local): nonzero for the sensitivities only."""
+        return intrinsic_jacobian(self.state, self.g_local)[2]
+
+    @property
+    def noise_cov(self) -> np.ndarray:
+        """The covariance without the g_local part (the fits' noise only)."""
+        jac = intrinsic_jacobian(self.state, self.g_local)[1]
+        return jac @ self.state_cov @ jac.T
+
+
+@dataclass(frozen=True)
+class CombineFailure:
+    rate_hz: float
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentCoefficients:
+    """A segment's fitted 9-vector (channel-major C, A, B) and covariance."""
+
+    segment: int
+    axis: str
+    coef: np.ndarray
+    cov: np.ndarray
+    dof: int = 0
+
+
+def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
+    """Rebuild each ok segment's 9-vector and 9 x 9 covariance from the fits table."""
+    ok = (fits.filter(pl.col("status") == "ok")
+          .sort("segment", pl.col("channel").replace_strict({c: i for i, c in enumerate(CHANNELS)})))
+    n = ok.height // 3
+    coef = ok.select("C", "A", "B").to_numpy().reshape(n, 9)
+    # blocks[s, r, k] is the 3 x 3 covariance of channel r's (C, A, B) with channel k's
+    blocks = np.stack([ok[f"cov_{c}"].list.to_array(9).to_numpy() for c in CHANNELS], axis=1).reshape(n, 3, 3, 3, 3)
+    cov = blocks.transpose(0, 1, 3, 2, 4).reshape(n, 9, 9)
+    first = ok.gather_every(3)
+    return [SegmentCoefficients(int(seg), axis, coef[i], cov[i], int(dof))
+            for i, (seg, axis, dof) in enumerate(first.select("segment", "axis", "dof").iter_rows())]
+
+
+def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:
+    """The ok static and rotation segments of every rate, rates ordered by
+    magnitude (rate 0, the static result, first)."""
+    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]))
+    rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
+    return [(rate, segment_coefficients(fitted.filter(pl.col("rate_hz") == rate))) for rate in rates]
+
+
+def estimates_for(segments: list[SegmentCoefficients]) -> list[Estimate]:
+    """Every (state element, coefficient) pair the segments provide."""
+    out = []
+    for k, seg in enumerate(segments):
+        a = axis_index(seg.axis)
+        for r in range(3):
+            out.append(Estimate(3 * r + SIN_COMPONENT[a], k, seg.axis, 9 * k + 3 * r + 1, -1.0))
+            out.append(Estimate(3 * r + COS_COMPONENT[a], k, seg.axis, 9 * k + 3 * r + 2, 1.0))
+            out.append(Estimate(9 + r, k, seg.axis, 9 * k + 3 * r, 1.0))
+    return out
+
+
+def combination_matrix(estimates: list[Estimate], variances: np.ndarray, n_obs: int) -> np.ndarray:
+    """L (12 x n_obs): inverse-variance weighted means (Geist Eqs. 10 and 12).
+
+    Noise-free estimates (zero variance) get equal, dominant weights.
+    """
+    L = np.zeros((len(STATE), n_obs))
+    weight = 1.0 / np.maximum(variances, 1e-290)
+    for e in estimates:
+        L[e.target, e.index] = e.sign * weight[e.index]
+    totals = np.abs(L).sum(axis=1, keepdims=True)
+    return np.divide(L, totals, out=np.zeros_like(L), where=totals > 0)
+
+
+def intrinsic_jacobian(state: np.ndarray, g_local: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intrinsic parameters of ``state`` and their Jacobians with respect to
+    the state and to g_local (Geist 2017 Eqs. 14 and 16 differentiated)."""
+    rho = state[:9].reshape(3, 3)
+    norm = np.linalg.norm(rho, axis=1)
+    unit = rho / norm[:, None]
+    value = np.zeros(9)
+    jac = np.zeros((9, 12))
+    value[:3] = norm / g_local
+    for r in range(3):
+        jac[r, 3 * r : 3 * r + 3] = unit[r] / g_local
+    for k, (i, j) in enumerate(ANGLE_PAIRS):
+        c = float(unit[i] @ unit[j])
+        value[3 + k] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        scale = -np.degrees(1.0) / np.sqrt(max(1.0 - c * c, 1e-300))
+        jac[3 + k, 3 * i : 3 * i + 3] = scale * (unit[j] - c * unit[i]) / norm[i]
+        jac[3 + k, 3 * j : 3 * j + 3] = scale * (unit[i] - c * unit[j]) / norm[j]
+    value[6:] = state[9:]
+    jac[6:, 9:] = np.eye(3)
+    jac_g = np.zeros(9)
+    jac_g[:3] = -value[:3] / g_local
+    return value, jac, jac_g
+
+
+@dataclass(frozen=True, eq=False)
+class LinearStage:
+    """The linear part of a rate's combination: every segment's coefficient
+    vector stacked (``coef``), their block-diagonal covariance (``cov``;
+    segments are independent) and the combination matrix ``L``, so that
+    state = L coef."""
+
+    rate_hz: float
+    segments: tuple[SegmentCoefficients, ...]
+    coef: np.ndarray
+    cov: np.ndarray
+    L: np.ndarray
+
+    @property
+    def state(self) -> np.ndarray:
+        return self.L @ self.coef
+
+    @property
+    def state_cov(self) -> np.ndarray:
+        return self.L @ self.cov @ self.L.T
+
+
+def linear_stage(rate_hz: float, segments: list[SegmentCoefficients]) -> LinearStage | CombineFailure:
+    """Stack a rate's segments and build L; a failure when some state element
+    is measured by no segment."""
+    estimates = estimates_for(segments)
+    counts = np.bincount([e.target for e in estimates], minlength=len(STATE))
+    if np.any(counts == 0):
+        missing = [STATE[i] for i in np.flatnonzero(counts == 0)]
+        axes = sorted({s.axis for s in segments}) or ["none"]
+        return CombineFailure(rate_hz, f"segments about axes {', '.join(axes)} leave {', '.join(missing)} unmeasured")
+    coef = np.concatenate([s.coef for s in segments])
+    cov = np.zeros((coef.size, coef.size))
+    for k, seg in enumerate(segments):
+        cov[9 * k : 9 * k + 9, 9 * k : 9 * k + 9] = seg.cov
+    return LinearStage(rate_hz, tuple(segments), coef, cov, combination_matrix(estimates, np.diag(cov), coef.size))
+
+
+def result_from_state(rate_hz: float, state: np.ndarray, state_cov: np.ndarray, g_local: float, g_uncertainty: float,
+                      noise_parts: list[tuple[BudgetInput, np.ndarray]]) -> IntrinsicResult:
+    """The intrinsic parameters of a state (Eqs. 14, 16) with first-order
+    propagation; ``noise_parts`` are independent input groups, each with its
+    contribution to ``state_cov`` (they add up to it), for the budget."""
+    value, jac, jac_g = intrinsic_jacobian(state, g_local)
+    budget = {inp.label: np.einsum("ij,jk,ik->i", jac, part, jac) for inp, part in noise_parts}
+    g_input = BudgetInput("g_local", "g_local", None, "", float("inf"))
+    budget[g_input.label] = (jac_g * g_uncertainty) ** 2
+    cov = jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2
+    inputs = tuple(inp for inp, _ in noise_parts) + (g_input,)
+    return IntrinsicResult(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs)
+
+
+def segment_input(segment: int, axis: str, dof: int) -> BudgetInput:
+    """The budget input group of one segment's noise (dof 0: treated as known)."""
+    return BudgetInput(f"segment {segment} ({axis})", "noise", segment, axis, float(dof or np.inf))
+
+
+def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: float,
+                 g_uncertainty: float) -> IntrinsicResult | CombineFailure:
+    """The intrinsic parameters of one rate from its segments."""
+    stage = linear_stage(rate_hz, segments)
+    if isinstance(stage, CombineFailure):
+        return stage
+    parts = []
+    for k, seg in enumerate(segments):
+        Lk = stage.L[:, 9 * k : 9 * k + 9]
+        parts.append((segment_input(seg.segment, seg.axis, seg.dof), Lk @ seg.cov @ Lk.T))
+    return result_from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
+
+
+def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float) -> list[IntrinsicResult | CombineFailure]:
+    """Every rate's intrinsic parameters (rate 0 is the static result)."""
+    return [combine_rate(rate, segs, g_local, g_uncertainty) for rate, segs in rate_segments(fits)]
+
+
+def units(output_unit: str) -> tuple[str, ...]:
+    return (f"{output_unit}/(m/s^2)",) * 3 + ("deg",) * 3 + (output_unit,) * 3
+
+
+def intrinsic_frame(results: list[IntrinsicResult], dataset: str, model: str, output_unit: str) -> pl.DataFrame:
+    """The contract's long ``intrinsic`` table."""
+    rows = [
+        {"dataset": dataset, "model": model, "rate_hz": res.rate_hz, "parameter": name, "value": val,
+         "std_uncertainty": u, "unit": unit}
+        for res in results
+        for name, val, u, unit in zip(INTRINSIC, res.value, res.std_uncertainty, units(output_unit))
+    ]
+    return conform(pl.DataFrame(rows, schema=schema("intrinsic").polars_schema), "intrinsic") if rows else schema("intrinsic").empty()
+
+
+def components_frame(fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str) -> pl.DataFrame:
+    """Each responsivity component's per-segment estimates and combination."""
+    rows = []
+    by_rate = dict(rate_segments(fits))
+    for res in results:
+        segs = by_rate[res.rate_hz]
+        coef = np.concatenate([s.coef for s in segs])
+        var = np.concatenate([np.diag(s.cov) for s in segs])
+        for e in estimates_for(segs):
+            if e.target >= 9:
+                continue
+            rows.append({"dataset": dataset, "rate_hz": res.rate_hz, "channel": CHANNELS[e.target // 3],
+                         "component": AXES[e.target % 3], "source_axis": e.axis, "segment": segs[e.segment].segment,
+                         "value": e.sign * coef[e.index] / res.g_local, "std_uncertainty": np.sqrt(var[e.index]) / res.g_local})
+        for t in range(9):
+            rows.append({"dataset": dataset, "rate_hz": res.rate_hz, "channel": CHANNELS[t // 3],
+                         "component": AXES[t % 3], "source_axis": "combined", "segment": None,
+                         "value": res.state[t] / res.g_local, "std_uncertainty": np.sqrt(res.state_cov[t, t]) / res.g_local})
+    return conform(pl.DataFrame(rows, schema=schema("components").polars_schema), "components") if rows else schema("components").empty()

@@ -1,0 +1,237 @@
+"""Static multi-position calibration without known orientations.
+
+In every static pose the DUT measures gravity alone, so the corrected
+acceleration a_k = R^-1 (m_k - O) has the magnitude g_local whatever the pose
+(the condition imu_tk and ArduPilot use). R (rows r_u, r_v, r_w) is fixed
+by it only up to a common rotation, which the intrinsic parameters do not
+see (Geist 2017 section 1): rotcal writes R = L Q with L lower triangular
+(u along x, v in the x-y plane: the *intrinsic frame*) and fits the six
+elements of L and the three offsets, exactly the nine intrinsic parameters.
+
+Each pose's residual is |a_k| - g, weighted by its variance: the noise of
+the pose mean projected on |a| (d|a|/dm = a_hat' L^-1) plus an excess
+variance tau^2 common to all poses, estimated so that the weighted residuals
+have a reduced chi-square of one when the poses scatter more than their
+noise says (chi-square beyond its 99th percentile, ``lsq.excess_is_significant``;
+Paule and Mandel's random-effects estimate; hand-placed poses
+rarely rest perfectly, and the mean of a long rest is limited by
+low-frequency noise rather than by 1/sqrt(n)). With tau^2 = 0 this is
+weighted least squares; the covariance of the nine parameters is
+(J' W J)^-1 at the solution, split into the share of the pose noise and of
+the excess scatter.
+
+The poses identify the nine parameters only if their gravity directions do
+not all lie near one circle on the sphere (one rotation axis, or a cone):
+points on a conic lie on a family of ellipsoids. ``direction_spread`` is the
+smallest singular value of the normalised quadric design of the directions;
+below ``MIN_SPREAD`` rotcal refuses instead of reporting a meaningless fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
+from rotcal.fit.lsq import excess_is_significant
+from rotcal.model.physics import CHANNELS
+
+TRIL = np.tril_indices(3)  # (0,0) (1,0) (1,1) (2,0) (2,1) (2,2)
+MIN_SPREAD = 1e-3  # below it the directions are degenerate to within noise; weaker geometry shows in u
+MAX_ITERATIONS = 30
+VARIANCE_FLOOR = 1e-24  # relative to g^2: keeps noise-free (simulated) poses finite
+TOO_ALIKE = ("the poses are too alike to identify the nine intrinsic parameters: their gravity directions lie "
+             "near one circle on the sphere (one rotation axis, or a cone){detail}; add poses turned about another axis")
+
+
+@dataclass(frozen=True)
+class PoseFailure:
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class OrientationFreeFit:
+    """The fit behind an orientation-free result: per-pose |a| after
+    correction (m/s^2), the reduced chi-square of the noise-only weights,
+    the degrees of freedom, the excess scatter tau (m/s^2, per pose) and the
+    spread of the pose directions."""
+
+    result: IntrinsicResult
+    magnitude: np.ndarray
+    chi2_reduced: float
+    dof: int
+    excess_std: float = 0.0
+    direction_spread: float = float("nan")
+
+
+def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per group: sample count, mean (G, 3) and covariance of the mean
+    (G, 3, 3) of the rows of ``y`` labelled ``group`` (0 .. G-1; -1 = none).
+
+    Integer-valued outputs get a floor of one quantum's variance (1/12 per
+    sample) on the diagonal, so perfectly quiet poses keep a finite weight.
+    """
+    inside = group >= 0
+    g, yy = group[inside], y[inside]
+    counts = np.bincount(g, minlength=n_groups).astype(float)
+    means = np.column_stack([np.bincount(g, weights=yy[:, r], minlength=n_groups) for r in range(3)]) / counts[:, None]
+    centred = yy - means[g]
+    scatter = np.stack([np.bincount(g, weights=centred[:, i] * centred[:, j], minlength=n_groups)
+                        for i in range(3) for j in range(3)], axis=1).reshape(n_groups, 3, 3)
+    cov = scatter / ((counts - 1.0) * counts)[:, None, None]
+    if yy.size and np.all(yy == np.round(yy)):
+        diag = np.einsum("kii->ki", cov)
+        diag[:] = np.maximum(diag, (1.0 / 12.0) / counts[:, None])
+    return counts.astype(np.int64), means, cov
+
+
+def pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> pl.DataFrame:
+    """Mean and covariance of the mean of each pose (samples ``starts[k]:stops[k]``)."""
+    starts, stops = np.asarray(starts, np.int64), np.asarray(stops, np.int64)
+    group = np.full(t_ns.size, -1, np.int64)
+    marks = np.zeros(t_ns.size + 1, np.int64)
+    np.add.at(marks, starts, np.arange(1, starts.size + 1))
+    np.add.at(marks, stops, -np.arange(1, starts.size + 1))
+    label = np.cumsum(marks[:-1])  # k + 1 inside pose k (poses do not overlap)
+    group[label > 0] = label[label > 0] - 1
+    counts, means, cov = group_statistics(y, group, starts.size)
+    return pl.DataFrame({
+        "pose": np.arange(starts.size, dtype=np.int64), "t_start_ns": t_ns[starts], "t_end_ns": t_ns[stops - 1],
+        "n_samples": counts, **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
+        "cov_mean": cov.reshape(-1, 9).tolist(),
+    }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
+
+
+def pose_arrays(poses: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Pose means (n, 3) and covariances of the means (n, 3, 3)."""
+    m = poses.select(f"mean_{c}" for c in CHANNELS).to_numpy()
+    cov = np.array(poses["cov_mean"].to_list(), float).reshape(poses.height, 3, 3)
+    return m, cov
+
+
+def _ellipsoid_start(m: np.ndarray, g: float) -> np.ndarray:
+    """Algebraic ellipsoid fit (m - O)' S (m - O) = g^2 as a starting point."""
+    centre = m.mean(axis=0)
+    span = np.abs(m - centre).max()
+    x, y, z = ((m - centre) / span).T
+    design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z])
+    coef = np.linalg.lstsq(design, np.ones(len(m)), rcond=None)[0]
+    A = np.array([[coef[0], coef[3], coef[4]], [coef[3], coef[1], coef[5]], [coef[4], coef[5], coef[2]]])
+    offset = -np.linalg.solve(A, coef[6:])
+    unit_quadric = A / (1.0 + offset @ A @ offset)  # (m - O)' Q (m - O) = 1, scaled coordinates
+    L = np.linalg.cholesky(np.linalg.inv(unit_quadric) / g**2) * span  # L L' = (g^2 Q)^-1
+    return np.concatenate([L[TRIL], centre + span * offset])
+
+
+def _lower(params: np.ndarray) -> np.ndarray:
+    L = np.zeros((3, 3))
+    L[TRIL] = params[:6]
+    return L
+
+
+def magnitude_and_gradient(params: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """|a_k|, d|a_k|/dm_k = a_hat' L^-1 (n, 3) and d|a_k|/dparams (n, 9)."""
+    L = _lower(params)
+    a = np.linalg.solve(L, (m - params[6:]).T).T
+    mag = np.linalg.norm(a, axis=1)
+    grad = np.linalg.solve(L.T, (a / mag[:, None]).T).T
+    rows, cols = TRIL
+    jac = np.hstack([-grad[:, rows] * a[:, cols], -grad])  # dL_ij: -grad_i a_j; dO_i: -grad_i
+    return mag, grad, jac
+
+
+def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray) -> np.ndarray:
+    """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights."""
+    from scipy.optimize import least_squares  # here: scipy's import would slow every CLI start
+
+    fit = least_squares(
+        lambda p: (magnitude_and_gradient(p, m)[0] - g) / sigma,
+        start, jac=lambda p: magnitude_and_gradient(p, m)[2] / sigma[:, None], method="lm", x_scale="jac",
+    )
+    return fit.x
+
+
+def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> float:
+    """tau^2 >= 0 with sum r^2 / (v + tau^2) = dof (Paule and Mandel), or 0
+    when the noise alone explains the residuals (``excess_is_significant``)."""
+    from scipy.optimize import brentq  # here: scipy's import would slow every CLI start
+
+    chi2 = lambda tau2: float(np.sum(residuals**2 / (noise_var + tau2))) - dof
+    if not excess_is_significant(chi2(0.0) + dof, dof):
+        return 0.0
+    upper = float(np.sum(residuals**2)) / dof
+    return brentq(chi2, 0.0, upper + 1e-300, xtol=1e-14 * upper, rtol=1e-12)
+
+
+def direction_spread(directions: np.ndarray) -> float:
+    """Smallest singular value of the quadric design of unit directions
+    (d_i d_j, d_i), divided by sqrt(n): zero when they lie on one circle."""
+    d = directions
+    rows, cols = TRIL
+    design = np.hstack([d[:, rows] * d[:, cols], d])
+    if len(d) < design.shape[1]:
+        return 0.0
+    return float(np.linalg.svd(design, compute_uv=False)[-1] / np.sqrt(len(d)))
+
+
+def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
+                     min_poses: int = 12) -> OrientationFreeFit | PoseFailure:
+    """The nine intrinsic parameters from static poses of unknown orientation.
+
+    ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
+    ``pose_table``). Returns a ``PoseFailure`` with the reason when the poses
+    are too few or too alike to identify the nine parameters.
+    """
+    n = poses.height
+    if n < min_poses:
+        return PoseFailure(f"{n} static poses: at least {min_poses} are needed to identify the nine "
+                           "intrinsic parameters with residual degrees of freedom")
+    m, cov = pose_arrays(poses)
+    try:
+        params = _ellipsoid_start(m, g_local)
+    except np.linalg.LinAlgError:
+        return PoseFailure(TOO_ALIKE.format(detail=": their means do not span an ellipsoid"))
+    dof = n - 9
+    tau2 = 0.0
+    floor = VARIANCE_FLOOR * g_local**2
+    for _ in range(MAX_ITERATIONS):
+        mag, grad, _ = magnitude_and_gradient(params, m)
+        noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
+        params = _solve(params, m, g_local, np.sqrt(noise_var + tau2))
+        mag, grad, jac = magnitude_and_gradient(params, m)
+        noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
+        new = excess_variance(mag - g_local, noise_var, dof)
+        converged = abs(new - tau2) <= 1e-9 * (new + np.median(noise_var))
+        tau2 = new
+        if converged:
+            break
+    L = _lower(params)
+    if not np.all(np.isfinite(params)) or np.any(np.diag(L) <= 0):
+        return PoseFailure("the orientation-free fit did not converge to a valid responsivity matrix")
+    a = np.linalg.solve(L, (m - params[6:]).T).T
+    spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None])
+    if spread < MIN_SPREAD:
+        return PoseFailure(TOO_ALIKE.format(detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
+    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof)
+    weight = 1.0 / (noise_var + tau2)
+    params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]))
+    gain = params_cov @ (jac * weight[:, None]).T  # (9, n): d params / d residual
+    parts = {"pose noise": (gain * noise_var) @ gain.T, "excess scatter": (gain * tau2) @ gain.T}
+    # state = g * rows of L (the g-free coefficient space of combine) and O
+    lift = np.zeros((12, 9))
+    for k, (i, j) in enumerate(zip(*TRIL)):
+        lift[3 * i + j, k] = g_local
+    lift[9:, 6:] = np.eye(3)
+    state = np.concatenate([(g_local * L).ravel(), params[6:]])
+    state_cov = lift @ params_cov @ lift.T
+    value, jac_state, jac_g = intrinsic_jacobian(state, g_local)
+    budget = {name: np.einsum("ij,jk,ik->i", jac_state @ lift, part, jac_state @ lift) for name, part in parts.items()}
+    budget["g_local"] = (jac_g * g_uncertainty) ** 2
+    result = IntrinsicResult(
+        rate_hz=0.0, value=value,
+        cov=jac_state @ state_cov @ jac_state.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
+        state=state, state_cov=state_cov, budget=budget, g_local=g_local,
+    )
+    return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread)

@@ -1,0 +1,205 @@
+"""Static positions of a recording, with what is known about each one's
+reference acceleration, and the calibration against known references.
+
+A *pose table* has one row per static position: its mean output and the
+covariance of that mean, its mean temperature, and its reference
+acceleration ``ref_x, ref_y, ref_z`` in g (the reading of an ideal triad
+aligned with the reference frame, AN4399's G_p) where it is known:
+
+- labelled poses (imucal's ``x_p``, ``x_a``, ...): that axis reads +1 g or
+  -1 g, the others 0, in the frame of the DUT's case;
+- jig positions: ``gx, gy, gz`` as recorded (contract section 2);
+- table steps: gravity of contract section 1 at the step's angle, in the
+  table frame;
+- still intervals found by ``stillness``: unknown (null).
+
+``reference_fit`` is the forward model of Geist 2017 Eq. 19 fitted to
+positions with known references: R_k = O + (g r) . ref_k per channel, an
+ordinary least-squares fit of 12 parameters (``lsq.ols``), whose
+responsivity rows give the nine intrinsic parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
+from rotcal.errors import UndeterminedError
+from rotcal.fit.segments import segment_rows
+from rotcal.fit.lsq import ols
+from rotcal.combine.multiposition import PoseFailure, group_statistics, pose_arrays
+from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
+from rotcal.segment.stillness import StillnessConfig, still_intervals
+
+LABEL_REFERENCE = {f"{axis}_{side}": tuple(float(sign * (a == axis)) for a in AXES)
+                   for axis in AXES for side, sign in (("p", 1), ("a", -1))}
+REFERENCE = ("ref_x", "ref_y", "ref_z")
+MIN_REFERENCE_POSES = 4
+
+
+def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source: str,
+                label: list[str | None], reference: np.ndarray) -> pl.DataFrame:
+    """One row per group of samples (``group`` = -1 outside every pose)."""
+    t_ns = samples["t_ns"].to_numpy()
+    counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)
+    inside = group >= 0
+    temp = samples["temperature_c"].fill_null(np.nan).to_numpy()[inside]
+    known = np.isfinite(temp)
+    g = group[inside]
+    t_sum = np.bincount(g[known], weights=temp[known], minlength=n_groups)
+    t_n = np.bincount(g[known], minlength=n_groups)
+    first = np.full(n_groups, np.iinfo(np.int64).max)
+    last = np.full(n_groups, np.iinfo(np.int64).min)
+    np.minimum.at(first, g, t_ns[inside])
+    np.maximum.at(last, g, t_ns[inside])
+    return pl.DataFrame({
+        "pose": np.arange(n_groups, dtype=np.int64), "label": pl.Series(label, dtype=pl.String),
+        "source": [source] * n_groups, "t_start_ns": first, "t_end_ns": last, "n_samples": counts,
+        "temperature_c": np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0),
+        **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
+        "cov_mean": cov.reshape(-1, 9).tolist(),
+        **{name: reference[:, i] for i, name in enumerate(REFERENCE)},
+    }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
+
+
+def labelled_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFrame:
+    """The ``pose`` segments (pose labels or jig ``gx, gy, gz``) as poses
+    with their reference accelerations; every sample of a segment counts
+    (the labels say where the DUT rests)."""
+    ids = segments.filter(pl.col("kind") == "pose")["segment"].to_list()
+    group = samples.select(pl.col("segment").replace_strict(ids, list(range(len(ids))), default=-1,
+                                                            return_dtype=pl.Int64)).to_series().to_numpy()
+    if not ids:
+        return _pose_frame(samples, group, 0, "label", [], np.zeros((0, 3)))
+    firsts = samples.filter(pl.Series(group >= 0)).with_columns(_g=pl.Series(group[group >= 0])) \
+        .group_by("_g", maintain_order=True).agg(pl.col("pose").first(), pl.col("gx", "gy", "gz").mean()).sort("_g")
+    labels = firsts["pose"].to_list()
+    jig = firsts.select("gx", "gy", "gz").to_numpy()
+    reference = np.array([LABEL_REFERENCE[lab] if lab is not None else jig[k] for k, lab in enumerate(labels)], float)
+    source = "label" if all(lab is not None for lab in labels) else "jig"
+    return _pose_frame(samples, group, len(ids), source, labels, reference)
+
+
+def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFrame:
+    """Every step of the static table segments as a pose, its reference the
+    gravity of contract section 1 at the commanded angle."""
+    static = segments.filter((pl.col("kind") == "static") & (pl.col("angle_source") != "none"))["segment"]
+    rows = segment_rows(samples)
+    # the static segments' rows only: a few thousand of a capture's millions
+    samples = pl.concat([samples.slice(*rows[s]) for s in static.to_list() if s in rows] or [samples.clear()])
+    marked = samples.select(
+        step=pl.when(pl.col("segment").is_in(static.implode()))
+        .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(None),
+    )["step"]
+    step = marked.to_numpy().astype(float) if marked.len() else np.zeros(0)
+    has = np.isfinite(step)
+    group = np.full(step.size, -1, np.int64)
+    group[has] = np.unique(step[has], return_inverse=True)[1]
+    n = int(group.max(initial=-1)) + 1
+    steps = samples.filter(pl.Series(has)).with_columns(_g=pl.Series(group[has])) \
+        .group_by("_g", maintain_order=True).agg(pl.col("axis").first(), pl.col("angle_deg").first()).sort("_g")
+    reference = gravity_direction(np.array([axis_index(a) for a in steps["axis"]], dtype=np.int64),
+                                  steps["angle_deg"].to_numpy()) if n else np.zeros((0, 3))
+    labels = [f"{a} {theta:g} deg" for a, theta in steps.select("axis", "angle_deg").iter_rows()]
+    return _pose_frame(samples, group, n, "table step", labels, reference)
+
+
+def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
+    """The still intervals of a recording (``stillness``) as poses of
+    unknown orientation."""
+    intervals = still_intervals(samples["t_ns"].to_numpy(), samples.select(CHANNELS).to_numpy(), config)
+    marks = np.zeros(samples.height + 1, np.int64)
+    np.add.at(marks, intervals["start"].to_numpy(), np.arange(1, intervals.height + 1))
+    np.add.at(marks, intervals["stop"].to_numpy(), -np.arange(1, intervals.height + 1))
+    group = np.cumsum(marks[:-1]) - 1
+    return _pose_frame(samples, group, intervals.height, "stillness", [None] * intervals.height,
+                       np.full((intervals.height, 3), np.nan))
+
+
+def references(poses: pl.DataFrame) -> np.ndarray:
+    return poses.select(REFERENCE).to_numpy()
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceFit:
+    """The 12-parameter forward fit R_k = O + C ref_k (C = g r, output units
+    per g): the intrinsic result, the residuals (n, 3) in output units, the
+    residual degrees of freedom (3 (n - 4)), the excess scatter per channel
+    (output units) and the reduced chi-square of the pose noise alone."""
+
+    result: IntrinsicResult
+    residuals: np.ndarray
+    dof: int
+    excess_cov: np.ndarray
+    chi2_reduced: float
+
+    @property
+    def excess_std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.excess_cov))
+
+
+def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | PoseFailure:
+    """Responsivity rows and offsets from positions of known reference
+    acceleration (Geist 2017 Eq. 19; ordinary least squares on the pose
+    means, the normal equations of AN4399 Eq. 34 per channel)."""
+    n = poses.height
+    if n < MIN_REFERENCE_POSES:
+        return PoseFailure(f"{n} positions with a known reference: at least {MIN_REFERENCE_POSES} "
+                           "are needed for the 12 parameters")
+    m, cov = pose_arrays(poses)
+    design = np.column_stack([references(poses), np.ones(n)])
+    try:
+        fit = ols(design, m, cov)
+    except UndeterminedError as exc:
+        return PoseFailure(f"the reference accelerations do not determine the 12 parameters: {exc.problem}")
+    # coefficient order (channel, [ref_x, ref_y, ref_z, 1]) -> state (g r_u, g r_v, g r_w, O)
+    order = np.array([4 * r + i for r in range(3) for i in range(3)] + [4 * r + 3 for r in range(3)])
+    state = fit.coef.T.ravel()[order]
+    state_cov = fit.cov[np.ix_(order, order)]
+    value, jac, jac_g = intrinsic_jacobian(state, g_local)
+    cov_values = jac @ state_cov @ jac.T
+    result = IntrinsicResult(
+        rate_hz=0.0, value=value, cov=cov_values + np.outer(jac_g, jac_g) * g_uncertainty**2,
+        state=state, state_cov=state_cov,
+        budget={"positions": np.diag(cov_values), "g_local": (jac_g * g_uncertainty) ** 2}, g_local=g_local,
+    )
+    dof = 3 * fit.dof
+    return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
+
+
+@dataclass(frozen=True, eq=False)
+class CorrectedPoses:
+    """Pose means corrected by a result: acceleration (n, 3) in the result's
+    frame (m/s^2), |a| and its standard uncertainty, and |a| with offsets
+    and sensitivities alone (the axes taken as orthogonal)."""
+
+    acceleration: np.ndarray
+    magnitude: np.ndarray
+    magnitude_u: np.ndarray
+    magnitude_orthogonal: np.ndarray
+
+
+def correct_poses(result: IntrinsicResult, m: np.ndarray, cov: np.ndarray, extra_var: float | np.ndarray = 0.0) -> CorrectedPoses:
+    """a_k = g S^-1 (m_k - O), S the rows g r of the result's state
+    (Geist 2017 Eq. 18 with P = S^-1 g).
+
+    The uncertainty of |a| combines the result's state covariance, the pose
+    noise ``cov`` (n, 3, 3) and ``extra_var`` (m/s^2)^2; it leaves out
+    g_local's, which scales |a| and g alike.
+    """
+    g = result.g_local
+    S = result.state[:9].reshape(3, 3)
+    offsets = result.state[9:]
+    b = np.linalg.solve(S, (m - offsets).T).T
+    a = g * b
+    mag = np.linalg.norm(a, axis=1)
+    h = np.linalg.solve(S.T, (a / mag[:, None]).T).T  # d|a|/dm = g h
+    grad_state = np.hstack([(-g * h[:, :, None] * b[:, None, :]).reshape(-1, 9), -g * h])
+    var = (np.einsum("ki,ij,kj->k", grad_state, result.state_cov, grad_state)
+           + g**2 * np.einsum("ki,kij,kj->k", h, cov, h) + extra_var)
+    s = result.value[:3]
+    orthogonal = np.linalg.norm((m - offsets) / s, axis=1)
+    return CorrectedPoses(a, mag, np.sqrt(var), orthogonal)

@@ -1,0 +1,346 @@
+"""Diagnose: where a recording departs from the papers' model, which physics
+of effects.md explains it, the model extended by it and refitted, and what
+remains unexplained.
+
+1. The null model (``model``): the fitted intrinsic model of every rate,
+   simulated for every sample.
+2. Clipping first (``clipping``): stuck samples are set aside, since every
+   other fit would be biased by them.
+3. Forward selection: each catalogue extension (per axis or channel) and an
+   offset step at the most likely time is scored by the chi-square it would
+   remove; the one with the best BIC among those significant at the stated
+   false-alarm rate is added, the model refitted (Gauss-Newton), and the rest
+   scored again. Competing explanations of one signature are so decided by
+   evidence, never by the order of a list. Backward elimination then drops
+   any extension the others made redundant.
+4. Scans of the final residuals (``scans``) for structure no catalogue
+   effect explains: tones, rotation harmonics, segment misfits and trends,
+   static-step correlation and normality (Geist 2017 Appendix B), and
+   responsivity changing with rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from scipy.stats import chi2
+
+from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
+from rotcal.config import DiagnosisConfig
+from rotcal.diagnose.candidates import STEP, Candidate, catalogue, report_parameters
+from rotcal.diagnose.clipping import StuckValue, clip_limits, quantum, stuck_values
+from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
+from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
+from rotcal.diagnose.scans import (
+    Residuals, Unexplained, harmonic_scan, segment_scan, static_step_scan, step_scan, tone_scan,
+)
+from rotcal.fit.segments import segment_rows
+from rotcal.model.physics import AXES, CHANNELS, Motion, axis_index
+from rotcal.tables import conform, schema
+
+EFFECTS = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
+           "rate_error", "rate_ripple", "axis_tilt", "offset_drift")
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    """The diagnosis of one dataset: the findings and effect-parameter tables,
+    the refined intrinsic results, and the null and final fits (for the
+    report)."""
+
+    findings: pl.DataFrame
+    parameters: pl.DataFrame
+    refined: tuple[IntrinsicResult, ...]
+    null: ModelFit
+    final: ModelFit
+    before: dict[str, np.ndarray]   # finding -> residuals of the model without it
+    step_id: np.ndarray
+    samples_available: int          # in the fitted segments; the model's are ``final.obs.n``
+
+
+def kept_per_segment(counts: np.ndarray, max_samples: int) -> np.ndarray:
+    """How many samples of each segment the model keeps: all of every segment
+    when the total is within ``max_samples``, else the same number c from
+    each segment longer than c, with c chosen so that the total is
+    ``max_samples`` (short segments, the static steps, are kept whole)."""
+    if counts.sum() <= max_samples:
+        return counts
+    ordered = np.sort(counts)
+    below = np.r_[0, np.cumsum(ordered)[:-1]]  # samples in the segments shorter than each
+    cap = (max_samples - below) / (ordered.size - np.arange(ordered.size))  # c if it lies between neighbours
+    return np.minimum(counts, int(cap[np.argmax(ordered >= cap)]))
+
+
+def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
+                 rates: list[float], g_local: float, max_samples: int) -> tuple[Observations, np.ndarray, int] | None:
+    """The samples of the fitted table segments at the determined ``rates``
+    (in the order given), sorted by rate then time, each static sample's step
+    number (-1 during rotation), and how many samples there were in all.
+
+    Beyond ``max_samples`` each long segment is thinned to evenly spaced
+    samples (``kept_per_segment``): the model stays exact, the noise of its
+    estimates grows as the square root of the thinning, and memory stays
+    bounded on captures of millions of samples.
+    """
+    ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique().sort()
+    seg = segments.filter(pl.col("segment").is_in(ok.implode()))
+    if seg.height == 0:
+        return None
+    rows = segment_rows(samples)
+    first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
+    kept = kept_per_segment(count, max_samples)
+    index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
+    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", *CHANNELS)[index]
+             .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
+             .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
+                           step=pl.when(pl.col("kind") == "static")
+                           .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(-1),
+                           rate_idx=pl.col("rate_hz").replace_strict({r: i for i, r in enumerate(rates)}))
+             # rates in contiguous blocks (each segment stays contiguous): the
+             # per-rate normal equations then work on views
+             .sort("rate_idx", "t_ns"))
+    motion = Motion(
+        t_s=frame["t_ns"].to_numpy() / 1e9,
+        axis_idx=frame["axis"].replace_strict({a: i for i, a in enumerate(AXES)}).to_numpy(),
+        rotating=(frame["kind"] == "rotation").to_numpy(),
+        theta_cmd_deg=frame["angle_deg"].to_numpy(),
+        theta0_deg=frame["theta0"].to_numpy(),
+        t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
+        rate_hz=frame["rate_hz"].to_numpy(),
+        t0_s=int(samples["t_ns"].min()) / 1e9,
+    )
+    obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
+                       np.array(rates), frame["segment"].to_numpy(), g_local)
+    return obs, frame["step"].to_numpy(), int(count.sum())
+
+
+def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
+    """Start from the baseline: each rate's combined offsets and responsivities."""
+    beta = np.zeros(len(layout.names))
+    for f, res in enumerate(results):
+        layout.offsets(beta)[f] = res.state[9:]
+        layout.responsivity(beta)[f] = res.state[:9].reshape(3, 3)
+    return beta
+
+
+def _residuals(fit: ModelFit, output_unit: str) -> Residuals:
+    m = fit.obs.motion
+    return Residuals(m.t_s, fit.ev.resid, fit.use, fit.sigma, fit.obs.segment, m.axis_idx, m.rate_hz,
+                     m.rotating, m.theta_cmd_deg, output_unit)
+
+
+def _clip_mask(fit: ModelFit, clip: tuple[float | None, float | None], margin_sigma: float = 5.0) -> np.ndarray:
+    """Samples a clip can have touched: those at the limit, and those whose
+    modelled value (not the noisy observation, which would bias the rest)
+    lies within ``margin_sigma`` of it."""
+    obs = fit.obs
+    pred = predict(obs, fit.beta, fit.layout, fit.active, (None, None), fit.structure)
+    use = np.ones_like(obs.y, bool)
+    low, high = clip
+    if high is not None:
+        use &= (obs.y < high) & (pred < high - margin_sigma * fit.sigma[None, :])
+    if low is not None:
+        use &= (obs.y > low) & (pred > low + margin_sigma * fit.sigma[None, :])
+    return use
+
+
+@dataclass(frozen=True)
+class StepScore(Score):
+    step_t_s: float = 0.0
+
+
+def _step_score(fit: ModelFit) -> StepScore:
+    """Score of an offset step at the time the residuals make most likely;
+    its false-alarm probability accounts for the scan over time."""
+    t, _, p = step_scan(_residuals(fit, ""))
+    after = (fit.obs.motion.t_s >= t).astype(float)[:, None]
+    extra = [(np.array([fit.layout.index[f"step_{c}"]]), after) for c in CHANNELS]
+    ev = with_columns(fit.ev, extra, fit.layout.n_rates)
+    s = score(fit, (STEP,), p_value=p, ev=ev, extra_params=1)
+    return StepScore(s.candidate, s.chi2, s.p_value, s.delta_bic, s.rss, t)
+
+
+def _exchange(fit: ModelFit, candidates: tuple[Candidate, ...]) -> ModelFit:
+    """Replace a selected extension by an unselected catalogue one wherever
+    that lowers BIC: forward selection is greedy, and a structure chosen
+    early (an offset step where axis tilt and drift overlap) can shadow the
+    physics that explains the data better once everything is modelled."""
+    while True:
+        best = None
+        for drop in fit.active:
+            for add in candidates:
+                if add in fit.active:
+                    continue
+                bic = swap_bic(fit, drop, add)
+                if bic < fit.bic - 1.0 and (best is None or bic < best[0]):
+                    best = (bic, drop, add)
+        if best is None:
+            return fit
+        _, drop, add = best
+        active = tuple(c for c in fit.active if c is not drop) + (add,)
+        structure = fit.structure if STEP in active else Structure()
+        trial = fit_model(fit.obs, fit.layout, fit.beta, active, fit.clip, structure, fit.use)
+        if trial.bic >= fit.bic:
+            return fit
+        fit = trial
+
+
+def _without_needless_step(fit: ModelFit) -> ModelFit:
+    """The model refitted without its offset step where that lowers BIC. A
+    step chosen early can hold the catalogue effect it mimics at a wrong
+    optimum where the step looks needed: a step taken before the axis tilt
+    of the first axis's segments leaves the tilt's sign free (it converged
+    to -5 deg for +5), and at that optimum the step's Wald test keeps it."""
+    if STEP not in fit.active:
+        return fit
+    trial = without(fit, (STEP,))
+    return trial if trial.bic < fit.bic else fit
+
+
+def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> ModelFit:
+    """Forward selection by BIC among extensions significant at ``alpha``,
+    an exchange pass (``_exchange``), the offset step refitted away where
+    BIC prefers (``_without_needless_step``), then backward elimination
+    (Wald) of any extension the others made redundant."""
+    while True:
+        scores: list[Score] = [score(fit, (c,)) for c in candidates if c not in fit.active]
+        if STEP not in fit.active:
+            scores.append(_step_score(fit))
+        eligible = [s for s in scores if s.p_value < alpha and s.delta_bic < 0]
+        if not eligible:
+            break
+        best = min(eligible, key=lambda s: (s.delta_bic, s.candidate.key))
+        structure = Structure(step_t_s=best.step_t_s) if isinstance(best, StepScore) else fit.structure
+        fit = fit_model(fit.obs, fit.layout, fit.beta, fit.active + (best.candidate,), fit.clip, structure, fit.use)
+    fit = _without_needless_step(_exchange(fit, candidates))
+    while fit.active:
+        wald = []
+        for c in fit.active:
+            value, block = fit.param_block(c)
+            wald.append((float(chi2.sf(value @ np.linalg.pinv(block) @ value, value.size)), c.key, c))
+        p, _, worst = max(wald)
+        if p < alpha:
+            break
+        fit = without(fit, (worst,))
+    return fit
+
+
+def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Unexplained]:
+    """Whether the responsivity matrices of the rates differ beyond their
+    uncertainties (Wald test of R_f = R_0 for every rate f), after every
+    modelled effect: a frequency response no catalogue effect explains."""
+    layout, m = final.layout, final.layout.n_rates
+    if m < 2:
+        return []
+    names = [[layout.index[f"R.{f}.{r}.{c}"] for r in range(3) for c in range(3)] for f in range(m)]
+    pos = [np.searchsorted(final.idx, n) for n in names]
+    cov = final.covariance()
+    diff = np.concatenate([final.beta[names[f]] - final.beta[names[0]] for f in range(1, m)])
+    jac = np.zeros((diff.size, final.idx.size))
+    for f in range(1, m):
+        rows = slice(9 * (f - 1), 9 * f)
+        jac[rows, pos[f]] = np.eye(9)
+        jac[rows, pos[0]] -= np.eye(9)
+    cov_diff = jac @ cov @ jac.T
+    stat = float(diff @ np.linalg.pinv(cov_diff) @ diff)
+    p = float(chi2.sf(stat, diff.size))
+    if p >= alpha:
+        return []
+    z = diff / np.sqrt(np.diag(cov_diff))
+    k = int(np.argmax(np.abs(z)))
+    f, rc = 1 + k // 9, k % 9
+    rate = final.obs.rates[f]
+    return [Unexplained(
+        "rate_dependence", f"rate {rate:g} Hz against rate {final.obs.rates[0]:g} Hz, channel {CHANNELS[rc // 3]}",
+        f"the responsivity changes with rate beyond its uncertainty: component {AXES[rc % 3]} of {CHANNELS[rc // 3]} "
+        f"at {rate:g} Hz differs by {diff[k]:+.3g} ± {np.sqrt(cov_diff[k, k]):.2g} {output_unit} per g "
+        f"(chi-square {stat:.0f} on {diff.size}; p = {_fmt_p(p)})", p, np.zeros(3), 0)]
+
+
+def _fmt_p(p: float) -> str:
+    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
+
+
+def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tuple[IntrinsicResult, ...]:
+    """Each rate's intrinsic parameters from the final model, with the
+    covariance it shares with the modelled effects' parameters."""
+    layout = final.layout
+    cov = final.covariance()
+    out = []
+    for f, rate in enumerate(final.obs.rates):
+        names = [f"R.{f}.{r}.{c}" for r in range(3) for c in range(3)] + [f"O.{f}.{r}" for r in range(3)]
+        idx = np.array([layout.index[n] for n in names])
+        pos = np.searchsorted(final.idx, idx)
+        state, state_cov = final.beta[idx], cov[np.ix_(pos, pos)]
+        value, jac, jac_g = intrinsic_jacobian(state, g_local)
+        noise = np.einsum("ij,jk,ik->i", jac, state_cov, jac)
+        out.append(IntrinsicResult(
+            float(rate), value, jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
+            state, state_cov, {"model fit": noise, "g_local": (jac_g * g_uncertainty) ** 2}, g_local))
+    return tuple(out)
+
+
+def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
+             results: tuple[IntrinsicResult, ...], dataset: str, output_unit: str,
+             g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig) -> Diagnosis | None:
+    """Diagnose one dataset from its samples, segments, fits and baseline
+    results; None when it has no fitted table segments."""
+    from rotcal.diagnose.findings import catalogue_rows, clipping_rows, scan_row, step_row
+
+    results = tuple(sorted(results, key=lambda r: (abs(r.rate_hz), r.rate_hz)))
+    if not results:
+        return None
+    g_local = results[0].g_local
+    built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local, config.max_samples)
+    if built is None:
+        return None
+    obs, step_id, n_all = built
+    m = obs.motion
+    rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
+    all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
+    cands = catalogue(rotating_axes, all_axes, angles_measured)
+    layout = Layout(len(results), cands + (STEP,))
+    alpha = config.false_alarm
+    null = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
+                     np.ones_like(obs.y, bool))
+    q = quantum(obs.y)
+    evidence = stuck_values(obs.y, q)
+    clip = clip_limits(evidence, alpha)
+    fit = null
+    if any(v is not None for v in clip):
+        for _ in range(2):
+            fit = fit_model(obs, layout, fit.beta, fit.active, clip, fit.structure, _clip_mask(fit, clip))
+    final = _select(fit, cands, alpha)
+    if any(v is not None for v in clip):
+        final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
+
+    rows, params, before = [], [], {}
+    for effect in EFFECTS:
+        if effect == "clipping":
+            row, par = clipping_rows(final, clip, evidence, q, alpha, dataset, output_unit)
+            if row["detected"]:
+                unclipped = predict(obs, final.beta, layout, final.active, (None, None), final.structure)
+                before[effect] = obs.y - unclipped
+        else:
+            row, par, reduced = catalogue_rows(final, cands, effect, alpha, dataset, output_unit)
+            if reduced is not None:
+                before[effect] = reduced.ev.resid
+        rows.append(row)
+        params += par
+    step = step_row(final, dataset, output_unit)
+    if step is not None:
+        rows.append(step[0])
+        before["unexplained: offset step"] = step[1].ev.resid
+    res = _residuals(final, output_unit)
+    a_u = config.unexplained_false_alarm
+    for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(res, a_u)
+                  + static_step_scan(res, step_id, a_u) + rate_dependence(final, a_u, output_unit)):
+        rows.append(scan_row(final, found, dataset))
+    modelled = bool(final.active) or any(v is not None for v in clip)
+    refined = refined_results(final, g_local, g_uncertainty) if modelled else ()
+    findings = conform(pl.DataFrame(rows, schema=schema("diagnosis").polars_schema), "diagnosis")
+    parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
+                  if params else schema("effect_parameters").empty())
+    return Diagnosis(findings, parameters, refined, null, final, before, step_id, n_all)

@@ -1,0 +1,162 @@
+"""Fitting nested models of the diagnosis and scoring extensions.
+
+A ``ModelFit`` is the Gauss-Newton optimum of one model (the null model plus
+some extensions); the per-channel noise is re-estimated from its residuals,
+so the weighted chi-square has one per degree of freedom. An extension's
+score is the chi-square it would remove (one Gauss-Newton step from the
+optimum: the likelihood-ratio statistic to first order), compared with
+chi-square(k) for its false-alarm probability, and its BIC change uses the
+per-channel residual sums of squares.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.stats import chi2
+
+from rotcal.diagnose.candidates import Candidate
+from rotcal.diagnose.model import Evaluation, Layout, Observations, Structure, evaluate, rss_after, solve, weighted
+
+
+@dataclass(frozen=True, eq=False)
+class ModelFit:
+    obs: Observations
+    layout: Layout
+    beta: np.ndarray
+    active: tuple[Candidate, ...]
+    clip: tuple[float | None, float | None]
+    structure: Structure
+    use: np.ndarray
+    ev: Evaluation
+    sigma: np.ndarray
+    G: np.ndarray
+    b: np.ndarray
+    idx: np.ndarray
+
+    @property
+    def n_total(self) -> int:
+        return int(self.ev.n_used.sum())
+
+    @property
+    def n_params(self) -> int:
+        extra = int(self.structure.step_t_s is not None and any(c.key == "unexplained@step" for c in self.active))
+        return int(self.idx.size) + extra + sum(v is not None for v in self.clip)
+
+    @property
+    def bic(self) -> float:
+        return bic(self.ev.rss, self.ev.n_used, self.n_params, self.n_total, self.obs.noise_floor)
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(self.ev.rss.sum() / self.n_total))
+
+    def covariance(self) -> np.ndarray:
+        """Covariance of the active parameters (order ``idx``)."""
+        return np.linalg.pinv(self.G[np.ix_(self.idx, self.idx)])
+
+    def param_block(self, cand: Candidate) -> tuple[np.ndarray, np.ndarray]:
+        """(values, covariance) of an active extension's parameters."""
+        pos = np.searchsorted(self.idx, self.layout.params(cand))
+        return self.beta[self.layout.params(cand)], self.covariance()[np.ix_(pos, pos)]
+
+
+def bic(rss: np.ndarray, n_used: np.ndarray, k: int, n_total: int, floor: np.ndarray) -> float:
+    """Bayesian information criterion with each channel's noise profiled
+    (never below its numerical ``floor``)."""
+    return float(np.sum(n_used * np.log(np.maximum(rss / n_used, floor**2))) + k * np.log(n_total))
+
+
+def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
+    idx = [np.arange(layout.n_base)] + [layout.params(c) for c in active]
+    return np.sort(np.concatenate(idx))
+
+
+def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray, obs: Observations) -> np.ndarray:
+    """Each channel's noise from its residuals, never below the numerical floor."""
+    k = np.array([np.isin(layout.per_channel[r], idx).sum() for r in range(3)])
+    return np.maximum(np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1)), obs.noise_floor)
+
+
+def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple[Candidate, ...],
+              clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray,
+              max_iter: int = 40) -> ModelFit:
+    """Gauss-Newton to the optimum of the null model plus ``active``.
+
+    Parameters of extensions not in ``active`` are held at zero.
+    """
+    beta = beta.copy()
+    idx = active_indices(layout, active)
+    inactive = np.setdiff1d(np.arange(beta.size), idx)
+    beta[inactive] = 0.0
+    for _ in range(max_iter):
+        ev = None  # the last evaluation's design matrices go before the next ones are built (memory)
+        ev = evaluate(obs, beta, layout, active, clip, structure, use)
+        sigma = _sigma(ev, layout, idx, obs)
+        G, b = weighted(ev, sigma)
+        step, decrement = solve(G, b, idx)
+        if decrement < 1e-8 * max(idx.size, 1):
+            break
+        beta[idx] += step
+    return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx)
+
+
+@dataclass(frozen=True)
+class Score:
+    """What adding ``candidate`` to a fit would do (linearised)."""
+
+    candidate: Candidate
+    chi2: float
+    p_value: float
+    delta_bic: float
+    rss: np.ndarray
+
+
+def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = None,
+          ev: Evaluation | None = None, extra_params: int = 0) -> Score:
+    """Score of adding ``cands`` jointly to ``fit``; ``ev`` supplies the
+    Jacobian when the extension changes the structure (a step time)."""
+    ev = ev or fit.ev
+    G, b = weighted(ev, fit.sigma) if ev is not fit.ev else (fit.G, fit.b)
+    extra = np.concatenate([fit.layout.params(c) for c in cands])
+    idx = np.union1d(fit.idx, extra)
+    step, _ = solve(G, b, idx)
+    # the optimum's own gradient is ~0: the decrease is the extension's share
+    base_step, base_dec = solve(G, b, fit.idx)
+    dchi = max(float(b[idx] @ step) - base_dec, 0.0)
+    rss = np.maximum(rss_after(ev, step, idx), 1e-300)
+    k = extra.size + extra_params
+    dbic = bic(rss, ev.n_used, fit.n_params + k, fit.n_total, fit.obs.noise_floor) - fit.bic
+    p = float(chi2.sf(dchi, extra.size)) if p_value is None else p_value
+    return Score(cands[0], dchi, p, dbic, rss)
+
+
+def swap_bic(fit: ModelFit, drop: Candidate, add: Candidate) -> float:
+    """Linearised BIC of the model with ``drop`` replaced by ``add``: from
+    the optimum, set ``drop``'s parameters to zero and refit the rest with
+    ``add`` (one Gauss-Newton step on the same Jacobian)."""
+    layout = fit.layout
+    out = layout.params(drop)
+    keep = np.setdiff1d(fit.idx, out)
+    idx = np.union1d(keep, layout.params(add))
+    beta_out = fit.beta[out]
+    grad = fit.b.copy()
+    grad[idx] += fit.G[np.ix_(idx, out)] @ beta_out  # the gradient once drop's parameters are zero
+    step, _ = solve(fit.G, grad, idx)
+    full = np.concatenate([step, -beta_out])
+    order = np.concatenate([idx, out])
+    rss = np.maximum(rss_after(fit.ev, full, order), 1e-300)
+    return bic(rss, fit.ev.n_used, fit.n_params - out.size + layout.params(add).size, fit.n_total, fit.obs.noise_floor)
+
+
+def without(fit: ModelFit, drop: tuple[Candidate, ...]) -> ModelFit:
+    """The same model refitted without the extensions ``drop``."""
+    keys = {c.key for c in drop}
+    active = tuple(c for c in fit.active if c.key not in keys)
+    structure = fit.structure if any(c.key == "unexplained@step" for c in active) else Structure()
+    return fit_model(fit.obs, fit.layout, fit.beta, active, fit.clip, structure, fit.use)
+
+
+def with_structure(fit: ModelFit, structure: Structure) -> ModelFit:
+    return replace(fit, structure=structure)

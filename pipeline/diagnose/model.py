@@ -1,0 +1,373 @@
+"""The whole-dataset model the diagnosis fits, and its Jacobian.
+
+The null model is the papers' model, simulated for every sample: per rate f
+a responsivity matrix R_f (rows u, v, w, output unit per g) and offsets O_f,
+
+    R_r(t) = O_f,r + R_f,r . a(theta(t)) / g,
+
+with a from contract section 1. Extensions (``candidates``) add the effects
+of effects.md through the same forward model the simulator uses
+(``physics.specific_force``, ``nonlinearity``, ``drift_term``), and generic
+structures (an offset step). Every parameter, enabled or not, has an
+analytic Jacobian column at the current estimate; one weighted Gram matrix
+then gives the Gauss-Newton step of any subset of parameters, and so the
+fit of any nested model and the score (likelihood-ratio) statistic of any
+extension, without refitting from scratch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import numpy as np
+import scipy.linalg
+
+from rotcal.diagnose.candidates import Candidate, effects_from
+from rotcal.model.physics import (
+    AXES, Effects, Motion, drift_term, gravity_direction, gravity_direction_derivative, nonlinearity,
+    specific_force, true_angle, uniform_angle,
+)
+
+
+# Relative to a channel's largest output: far above float64 rounding of the
+# model (~1e-15), far below any sensor's noise or quantization (~1e-5).
+NUMERICAL_FLOOR = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """The samples of a dataset's fitted table segments, as arrays."""
+
+    motion: Motion
+    y: np.ndarray           # (n, 3) raw outputs
+    rate_idx: np.ndarray    # (n,) index into ``rates``
+    rates: np.ndarray       # (m,) rates in Hz, 0 for static
+    segment: np.ndarray     # (n,) segment ids
+    g_local: float
+
+    @property
+    def n(self) -> int:
+        return self.y.shape[0]
+
+    @cached_property
+    def noise_floor(self) -> np.ndarray:
+        """Each channel's smallest credible noise, ``NUMERICAL_FLOOR`` of its
+        largest output: on noise-free (simulated) data the residuals are
+        rounding, and weighting by them would make rounding look like physics."""
+        return NUMERICAL_FLOOR * np.abs(self.y).max(axis=0, initial=0.0)
+
+
+class Layout:
+    """Parameter order: offsets O (rate, channel), responsivities R (rate,
+    channel, component), then every candidate's parameters."""
+
+    def __init__(self, n_rates: int, candidates: tuple[Candidate, ...]):
+        names = [f"O.{f}.{r}" for f in range(n_rates) for r in range(3)]
+        names += [f"R.{f}.{r}.{c}" for f in range(n_rates) for r in range(3) for c in range(3)]
+        channels: list[tuple[int, ...]] = [(r,) for f in range(n_rates) for r in range(3)]
+        channels += [(r,) for f in range(n_rates) for r in range(3) for c in range(3)]
+        self.n_base = len(names)
+        self.candidates = candidates
+        for cand in candidates:
+            names += cand.names
+            channels += cand.channels
+        self.names = tuple(names)
+        self.index = {n: i for i, n in enumerate(names)}
+        self.n_rates = n_rates
+        self.per_channel = [np.array([i for i, ch in enumerate(channels) if r in ch]) for r in range(3)]
+
+    def params(self, cand: Candidate) -> np.ndarray:
+        return np.array([self.index[n] for n in cand.names])
+
+    def offsets(self, beta: np.ndarray) -> np.ndarray:
+        return beta[: 3 * self.n_rates].reshape(self.n_rates, 3)
+
+    def responsivity(self, beta: np.ndarray) -> np.ndarray:
+        return beta[3 * self.n_rates : self.n_base].reshape(self.n_rates, 3, 3)
+
+    def values(self, beta: np.ndarray, active: tuple[Candidate, ...]) -> dict[str, float]:
+        return {n: float(beta[self.index[n]]) for c in active for n in c.names}
+
+
+@dataclass(frozen=True, eq=False)
+class ChannelDesign:
+    """One channel's Jacobian on its used samples, stored compactly: column
+    0 is the offset and 1-3 the responsivity of the sample's own rate (their
+    parameters are ``base[rate]``), the rest are extensions (``ext``)."""
+
+    X: np.ndarray          # (n_used, 4 + k)
+    rate_idx: np.ndarray   # (n_used,), non-decreasing
+    rows: np.ndarray       # (n_used,) sample numbers
+    resid: np.ndarray      # (n_used,)
+    base: np.ndarray       # (m, 4) parameter numbers of O.f.r, R.f.r.x/y/z
+    ext: np.ndarray        # (k,) parameter numbers
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """Predictions, residuals and the unweighted normal-equation pieces of
+    every channel at one parameter vector (only samples in ``use``)."""
+
+    pred: np.ndarray      # (n, 3)
+    resid: np.ndarray     # (n, 3), zero where not used
+    gram: np.ndarray      # (3, p, p) per channel J'J
+    rhs: np.ndarray       # (3, p) per channel J' resid
+    rss: np.ndarray       # (3,)
+    n_used: np.ndarray    # (3,)
+    designs: tuple[ChannelDesign, ...]
+
+
+def normal_equations(d: ChannelDesign, p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The full (p, p) J'J and J'r of one channel from its compact design
+    (rows sorted by rate, so each rate's block is a view)."""
+    G = np.zeros((p, p))
+    b = np.zeros(p)
+    ext = d.ext
+    cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
+    for f in range(m):
+        Xf = d.X[cuts[f]:cuts[f + 1]]
+        Gf = Xf.T @ Xf
+        bf = Xf.T @ d.resid[cuts[f]:cuts[f + 1]]
+        base = d.base[f]
+        G[np.ix_(base, base)] = Gf[:4, :4]
+        G[np.ix_(base, ext)] = Gf[:4, 4:]
+        G[np.ix_(ext, base)] = Gf[4:, :4]
+        G[np.ix_(ext, ext)] += Gf[4:, 4:]
+        b[base] = bf[:4]
+        b[ext] += bf[4:]
+    return G, b
+
+
+def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int) -> Evaluation:
+    """``ev`` with further Jacobian columns: ``extra[r]`` = (parameter
+    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator."""
+    gram, rhs = ev.gram.copy(), ev.rhs.copy()
+    for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
+        E = columns[d.rows]
+        keep = ~np.isin(d.ext, params)  # the design holds these columns as zeros
+        cross_ext = d.X[:, 4:][:, keep].T @ E
+        gram[r][np.ix_(d.ext[keep], params)] = cross_ext
+        gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
+        gram[r][np.ix_(params, params)] = E.T @ E
+        rhs[r][params] = E.T @ d.resid
+        cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
+        for f in range(m):
+            at = slice(cuts[f], cuts[f + 1])
+            cross = d.X[at, :4].T @ E[at]
+            gram[r][np.ix_(d.base[f], params)] = cross
+            gram[r][np.ix_(params, d.base[f])] = cross.T
+    return replace(ev, gram=gram, rhs=rhs)
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Generic structures in the model: the offset step's time (or None)."""
+
+    step_t_s: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """What the table did, seen at one sampling delay: specific force / g,
+    true angle, d(force)/d(theta) per degree, and the uniform angle of the
+    rotating samples. Channels without a delay share one."""
+
+    force: np.ndarray
+    theta: np.ndarray
+    deriv: np.ndarray
+    base: np.ndarray
+    stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
+
+
+@dataclass(frozen=True, eq=False)
+class ChannelState:
+    """One channel's model quantities at the current estimate (per sample)."""
+
+    r: int
+    geo: Geometry
+    R_row: np.ndarray      # this channel's responsivity row per sample, (n, 3)
+    x1g: np.ndarray        # |R_row|: the output swing for 1 g
+    y: np.ndarray          # offset-free linear output
+    u: np.ndarray          # y / x1g
+    slope: np.ndarray      # d output / d y (the nonlinearity's chain factor)
+    d_theta: np.ndarray    # d output / d theta, per degree
+
+
+def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
+    m, g = obs.motion, obs.g_local
+    tilt = np.ones(obs.n)
+    for ax, (tilt_deg,) in effects.per_axis("axis_tilt").items():
+        tilt[m.axis_idx == ax] = np.cos(np.deg2rad(tilt_deg))
+    out = {}
+    rot = np.flatnonzero(m.rotating)
+    for delay in sorted(set(effects.delay_s)):
+        theta = true_angle(m, effects, delay)
+        base = uniform_angle(m, effects, delay)
+        stretch = np.ones(obs.n)
+        for ax, (amp, phase) in effects.per_axis("rate_ripple").items():
+            on = m.axis_idx[rot] == ax
+            stretch[rot[on]] += np.deg2rad(amp) * np.cos(np.deg2rad(base[on] + phase))
+        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
+                              gravity_direction_derivative(m.axis_idx, theta) * tilt[:, None], base, stretch)
+    return out
+
+
+def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
+    geometries = _geometries(obs, effects)
+    R = layout.responsivity(beta)[obs.rate_idx]
+    k3, k2 = np.asarray(effects.k3), np.asarray(effects.k2)
+    states = []
+    for r in range(3):
+        geo = geometries[effects.delay_s[r]]
+        R_row = R[:, r]
+        y = np.einsum("ij,ij->i", R_row, geo.force)
+        x1g = np.sqrt(np.einsum("ij,ij->i", R_row, R_row))
+        u = y / x1g
+        # d/dy of y (1 + k3 u^2)(1 + k2 u): the chain factor of every input
+        slope = (1 + 3 * k3[r] * u**2) * (1 + k2[r] * u) + (1 + k3[r] * u**2) * k2[r] * u
+        states.append(ChannelState(r, geo, R_row, x1g, y, u, slope, slope * np.einsum("ij,ij->i", R_row, geo.deriv)))
+    return states
+
+
+def predict(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
+            clip: tuple[float | None, float | None], structure: Structure) -> np.ndarray:
+    """The model's outputs (n, 3): the simulation of every sample."""
+    effects = effects_from(layout.values(beta, active), clip)
+    return _outputs(obs, beta, layout, active, effects, _channel_states(obs, beta, layout, effects), structure)
+
+
+def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarray:
+    y = np.column_stack([st.y for st in states])
+    x1g = np.column_stack([st.x1g for st in states])
+    out = layout.offsets(beta)[obs.rate_idx] + drift_term(obs.motion, effects) + nonlinearity(y, x1g, effects)
+    if structure.step_t_s is not None and any(c.key == "unexplained@step" for c in active):
+        after = (obs.motion.t_s >= structure.step_t_s)[:, None]
+        out = out + after * np.array([beta[layout.index[f"step_{c}"]] for c in "uvw"])[None, :]
+    low, high = effects.clip_low, effects.clip_high
+    if low is not None or high is not None:
+        out = np.clip(out, -np.inf if low is None else low, np.inf if high is None else high)
+    return out
+
+
+class _Factors:
+    """Channel-independent parts of the extension columns, computed once per
+    evaluation (a column is a channel quantity times one of these)."""
+
+    def __init__(self, obs: Observations, effects: Effects, structure: Structure):
+        self.obs, self.effects, self.structure = obs, effects, structure
+        m = obs.motion
+        self.rot = m.rotating
+        self.on = [m.axis_idx == a for a in range(3)]
+        self.cache: dict = {}
+
+    def get(self, key, make):
+        if key not in self.cache:
+            self.cache[key] = make()
+        return self.cache[key]
+
+    def column(self, name: str, cand: Candidate, st: ChannelState) -> np.ndarray:
+        """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
+        m, fx = self.obs.motion, self.effects
+        k2, k3 = fx.k2[st.r], fx.k3[st.r]
+        if cand.effect == "cubic_nonlinearity":
+            return st.y * st.u**2 * (1 + k2 * st.u)
+        if cand.effect == "quadratic_nonlinearity":
+            return st.y * (1 + k3 * st.u**2) * st.u
+        if cand.effect == "offset_drift":
+            return self.get("drift", lambda: m.t_s - m.t0_s)
+        if cand.effect == "unexplained":
+            return self.get("step", lambda: (m.t_s >= self.structure.step_t_s).astype(float)
+                            if self.structure.step_t_s is not None else np.zeros(self.obs.n))
+        if cand.effect == "channel_delay":
+            return st.d_theta * st.geo.stretch * self.get(
+                "delay", lambda: np.where(self.rot, 360.0 * m.rate_hz * (1.0 + fx.rate_error), 0.0))
+        delay = fx.delay_s[st.r]
+        if cand.effect == "rate_error":
+            return st.d_theta * st.geo.stretch * self.get(("rate", delay), lambda: np.where(
+                self.rot, 360.0 * m.rate_hz * (m.t_s + delay - m.t_start_s), 0.0))
+        a = AXES.index(cand.scope)
+        if cand.effect == "rate_ripple":
+            wave = np.sin if name.endswith(".a_deg") else np.cos
+            def make():
+                out = np.zeros(self.obs.n)
+                idx = np.flatnonzero(self.rot)
+                sel = self.on[a][idx]
+                out[idx[sel]] = wave(np.deg2rad(st.geo.base[sel]))
+                return out
+            return st.d_theta * self.get((name, delay), make)
+        if cand.effect == "axis_tilt":
+            def make():
+                tilt = np.deg2rad(dict((e.axis, e.values[0]) for e in fx.axis_tilt).get(cand.scope, 0.0))
+                d_a = np.zeros((self.obs.n, 3))
+                on = self.on[a]
+                d_a[on] = -np.sin(tilt) * gravity_direction(m.axis_idx[on], st.geo.theta[on]) * (np.pi / 180.0)
+                d_a[on, a] += np.cos(tilt) * (np.pi / 180.0)
+                return d_a
+            return st.slope * np.einsum("ij,ij->i", st.R_row, self.get((name, delay), make))
+        if cand.effect == "centripetal":
+            j = AXES.index(name.split(".")[-1][2])  # centripetal.x.d_y_m -> component y
+            factor = self.get(("centripetal", a), lambda: np.where(
+                self.rot & self.on[a], -(2 * np.pi * m.rate_hz * (1.0 + fx.rate_error)) ** 2 / self.obs.g_local, 0.0))
+            return st.slope * st.R_row[:, j] * factor
+        raise ValueError(f"no Jacobian for {name}")  # a catalogue entry without a column is a programming error
+
+
+def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
+             clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray) -> Evaluation:
+    """Predictions and the Jacobian of every parameter (enabled or not)."""
+    effects = effects_from(layout.values(beta, active), clip)
+    states = _channel_states(obs, beta, layout, effects)
+    pred = _outputs(obs, beta, layout, active, effects, states, structure)
+    factors = _Factors(obs, effects, structure)
+    by_name = {n: c for c in layout.candidates for n in c.names}
+    p, m = len(layout.names), layout.n_rates
+    resid = np.where(use, obs.y - pred, 0.0)
+    designs, grams, rhss = [], [], []
+    for st in states:
+        r = st.r
+        rows = np.flatnonzero(use[:, r])
+        ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
+        X = np.empty((obs.n, 4 + ext.size))
+        X[:, 0] = 1.0
+        X[:, 1:4] = st.slope[:, None] * st.geo.force
+        for k, i in enumerate(ext):
+            X[:, 4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
+        base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
+                         for f in range(m)])
+        X = X if rows.size == obs.n else X[rows]
+        d = ChannelDesign(X, obs.rate_idx[rows], rows, resid[rows, r], base, ext)
+        G, b = normal_equations(d, p, m)
+        designs.append(d)
+        grams.append(G)
+        rhss.append(b)
+    rss = np.einsum("ij,ij->j", resid, resid)
+    return Evaluation(pred, resid, np.array(grams), np.array(rhss), rss, use.sum(axis=0), tuple(designs))
+
+
+def weighted(ev: Evaluation, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    w = 1.0 / sigma**2
+    return np.einsum("r,rij->ij", w, ev.gram), np.einsum("r,ri->i", w, ev.rhs)
+
+
+def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, float]:
+    """Gauss-Newton step of the parameters ``idx`` and its chi-square reduction
+    (Cholesky on the scaled normal equations; least squares if singular)."""
+    sub = G[np.ix_(idx, idx)]
+    scale = np.sqrt(np.diag(sub))
+    scale[scale == 0] = 1.0
+    A = sub / np.outer(scale, scale)
+    rhs = b[idx] / scale
+    try:
+        step = scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, check_finite=False), rhs, check_finite=False)
+    except np.linalg.LinAlgError:
+        step = np.linalg.lstsq(A, rhs, rcond=1e-12)[0]
+    step = step / scale
+    return step, float(b[idx] @ step)
+
+
+def rss_after(ev: Evaluation, step: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Per-channel residual sum of squares after a linearised step."""
+    return np.array([
+        ev.rss[r] - 2 * step @ ev.rhs[r][idx] + step @ ev.gram[r][np.ix_(idx, idx)] @ step for r in range(3)
+    ])

@@ -1,0 +1,301 @@
+"""Scans of the final residuals for structure no catalogue effect explains.
+
+Each scan is a test with a stated false-alarm rate (its family-wise p-value
+is compared with ``alpha``) and reports where the structure lies and what it
+looks like, in the output unit, so that a calibration engineer can check it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import gammaln
+from scipy.stats import chi2, gamma, norm, normaltest
+
+from rotcal.model.physics import AXES, CHANNELS
+
+
+@dataclass(frozen=True)
+class Unexplained:
+    """An unexplained finding: where, what, how sure, and what modelling it
+    would remove (residual sum of squares per channel, parameters used)."""
+
+    kind: str
+    where: str
+    evidence: str
+    p_value: float
+    rss_reduction: np.ndarray
+    n_params: int
+
+
+@dataclass(frozen=True, eq=False)
+class Residuals:
+    """Final residuals with what the scans need to locate them."""
+
+    t_s: np.ndarray
+    resid: np.ndarray        # (n, 3), output units, 0 where unused
+    use: np.ndarray          # (n, 3)
+    sigma: np.ndarray        # (3,)
+    segment: np.ndarray
+    axis_idx: np.ndarray
+    rate_hz: np.ndarray
+    rotating: np.ndarray
+    theta_deg: np.ndarray    # commanded angle
+    output_unit: str
+
+
+def _fmt(p: float) -> str:
+    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
+
+
+def _segments(res: Residuals):
+    """(segment id, sample slice) in time order; segments are contiguous."""
+    edges = np.flatnonzero(np.r_[True, np.diff(res.segment) != 0, True])
+    return [(int(res.segment[a]), slice(a, b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _describe(res: Residuals, part: slice) -> str:
+    rate = res.rate_hz[part.start]
+    return f"axis {AXES[res.axis_idx[part.start]]} {'static' if rate == 0 else f'{rate:g} Hz'}"
+
+
+def step_scan_p(statistic: float, n: int, dof: int = 3) -> float:
+    """False-alarm probability of the largest chi-square(dof) statistic of a
+    single change in mean over n positions (Siegmund 1988 approximation for
+    the supremum of a standardised CUSUM process)."""
+    x = statistic
+    if x <= dof:
+        return 1.0
+    log_density = (dof / 2) * np.log(x) - x / 2 - (dof / 2) * np.log(2) - gammaln(dof / 2)
+    factor = (1 - dof / x) * 2 * np.log(max(n - 1, 2)) + 4 / x
+    return float(min(1.0, np.exp(log_density) * factor))
+
+
+def step_scan(res: Residuals) -> tuple[float, float, float]:
+    """The most likely time of a step in the mean of all channels together:
+    (time in s, statistic, p-value). Positions within 10 samples of the ends
+    are not scanned; where fewer samples than that have all three channels
+    usable (clipping sets different channels aside at different times),
+    there is no position to test and the p-value is 1."""
+    order = np.argsort(res.t_s, kind="stable")
+    both = res.use[order].all(axis=1)
+    e = res.resid[order][both] / res.sigma[None, :]
+    n = e.shape[0]
+    if n < 22:
+        return float(np.median(res.t_s)), 0.0, 1.0
+    k = np.arange(1, n)
+    s = np.cumsum(e, axis=0)[:-1]
+    centred = s - (k / n)[:, None] * s[-1]
+    stat = (centred**2).sum(axis=1) / (k * (n - k) / n)
+    inner = slice(10, n - 11)
+    j = int(np.argmax(stat[inner])) + inner.start
+    t = res.t_s[order][both]
+    return float(0.5 * (t[j] + t[j + 1])), float(stat[j]), step_scan_p(float(stat[j]), n)
+
+
+# fewest usable samples of one segment and channel whose periodogram the tone scan sums
+TONE_MIN_SAMPLES = 64
+
+
+def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplained]:
+    """Tones unrelated to the rotation: the periodograms of the rotation
+    segments' residuals, summed per channel on a common frequency grid
+    (each ordinate ~ Exp(1) for white noise, a sum over m segments ~ Gamma(m)),
+    with rotation harmonics and the lowest frequencies left out."""
+    segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and part.stop - part.start > TONE_MIN_SAMPLES]
+    if not segs:
+        return []
+    dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
+    n_pad = 1 << int(np.ceil(np.log2(max(p.stop - p.start for _, p in segs))))
+    freqs = np.fft.rfftfreq(n_pad, dt)
+    out = []
+    for r, channel in enumerate(CHANNELS):
+        total = np.zeros(freqs.size)
+        count = np.zeros(freqs.size)
+        powers = []
+        for sid, part in segs:
+            use = res.use[part, r]
+            e = np.where(use, res.resid[part, r] / res.sigma[r], 0.0)
+            n = int(use.sum())
+            if n <= TONE_MIN_SAMPLES:  # a channel clipped through most of the segment leaves no spectrum
+                continue
+            power = np.abs(np.fft.rfft(e, n_pad)) ** 2 / max(n, 1)
+            duration = n * dt
+            rate = abs(res.rate_hz[part.start])
+            valid = freqs > 5.0 / duration
+            valid &= freqs < 0.95 / (2 * dt)
+            for h in range(harmonics + 1):
+                valid &= np.abs(freqs - h * rate) > 3.0 / duration
+            total += np.where(valid, power, 0.0)
+            count += valid
+            powers.append((sid, part, power, n))
+        ok = count > 0
+        if not ok.any():
+            continue
+        p_bins = np.where(ok, gamma.sf(total, np.maximum(count, 1)), 1.0)
+        j = int(np.argmin(p_bins))
+        independent = max(p.stop - p.start for _, p in segs) / 2
+        p_family = min(1.0, p_bins[j] * independent * 3)
+        if p_family >= alpha:
+            continue
+        f = freqs[j]
+        amps = np.array([2 * res.sigma[r] * np.sqrt(pw[j] / n) for _, _, pw, n in powers])
+        present = [sid for (sid, part, pw, n) in powers if gamma.sf(pw[j], 1) < 0.01]
+        reduction = np.zeros(3)
+        reduction[r] = sum(pw[j] for _, _, pw, _ in powers) * res.sigma[r] ** 2
+        where = f"channel {channel}, {len(present)} of {len(segs)} rotation segments"
+        out.append(Unexplained(
+            "tone", where,
+            f"tone at {f:.3g} Hz, {np.median(amps):.2g} {res.output_unit} in channel {channel}, "
+            f"in {len(present)} of {len(segs)} rotation segments (not a harmonic of any rotation rate; p = {_fmt(p_family)})",
+            p_family, reduction, 2 * len(segs),
+        ))
+    return out
+
+
+def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment (rows ``starts[k]:starts[k+1]``), the chi-square of the
+    standardised residuals ``e`` explained by regressing them on ``basis``
+    (n, q), and the coefficients: normal equations summed per segment."""
+    q = basis.shape[1]
+    gram = np.add.reduceat(basis[:, :, None] * basis[:, None, :], starts, axis=0)
+    rhs = np.add.reduceat(basis * e[:, None], starts, axis=0)
+    coef = np.linalg.solve(gram + np.eye(q)[None] * 1e-12, rhs[..., None])[..., 0]
+    return np.einsum("ki,ki->k", coef, rhs), coef
+
+
+def _used_segments(res: Residuals, r: int, keep) -> tuple[np.ndarray, np.ndarray, list]:
+    """Rows used for channel r in the segments ``keep`` accepts, with the
+    start of each segment's block in them and the segment slices."""
+    segs = [(sid, part) for sid, part in _segments(res) if keep(part)]
+    rows = [np.arange(part.start, part.stop)[res.use[part, r]] for _, part in segs]
+    segs = [sp for sp, rw in zip(segs, rows) if rw.size >= 10]
+    rows = [rw for rw in rows if rw.size >= 10]
+    if not rows:
+        return np.zeros(0, int), np.zeros(0, int), []
+    starts = np.cumsum([0] + [rw.size for rw in rows[:-1]])
+    return np.concatenate(rows), starts, segs
+
+
+def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
+    """Harmonics k theta of the rotation in the residuals of each axis's
+    rotation segments, per channel (chi-square with 2 per segment)."""
+    tests = []
+    for r, channel in enumerate(CHANNELS):
+        rows, starts, segs = _used_segments(res, r, lambda part: res.rotating[part.start])
+        if not segs:
+            continue
+        e = res.resid[rows, r] / res.sigma[r]
+        theta = np.deg2rad(res.theta_deg[rows])
+        seg_axis = np.array([res.axis_idx[part.start] for _, part in segs])
+        for k in orders:
+            x2, coef = _segment_chi2(e, np.column_stack([np.sin(k * theta), np.cos(k * theta)]), starts)
+            for ax in np.unique(seg_axis):
+                on = seg_axis == ax
+                stat = float(x2[on].sum())
+                amps = np.hypot(coef[on, 0], coef[on, 1]) * res.sigma[r]
+                tests.append((chi2.sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
+    out = []
+    for p, r, channel, ax, k, stat, amps, m in tests:
+        p_family = min(1.0, p * len(tests))
+        if p_family < alpha:
+            reduction = np.zeros(3)
+            reduction[r] = stat * res.sigma[r] ** 2
+            out.append(Unexplained(
+                "harmonic", f"channel {channel}, axis {AXES[ax]} rotation segments",
+                f"harmonic {k} of the rotation, {np.median(amps):.2g} {res.output_unit} in channel {channel} "
+                f"during rotation about {AXES[ax]} (chi-square {stat:.0f} on {2 * m}; p = {_fmt(p_family)})",
+                p_family, reduction, 2 * m,
+            ))
+    return out
+
+
+def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
+    """Per segment and channel, what is left in a constant, the first
+    harmonic and a linear trend: the segments disagreeing with the combined
+    model (Geist 2017 section 3 consistency) or drifting within themselves."""
+    out = []
+    n_rates = len(np.unique(res.rate_hz))
+    for kind in ("inconsistent", "trend"):
+        stats = []  # (chi2, dof, segment id, slice, channel, coefficient of interest)
+        for r in range(3):
+            rows, starts, segs = _used_segments(res, r, lambda part: True)
+            if not segs:
+                continue
+            e = res.resid[rows, r] / res.sigma[r]
+            if kind == "inconsistent":
+                theta = np.deg2rad(res.theta_deg[rows])
+                basis = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
+            else:
+                t = res.t_s[rows]
+                mean_t = np.add.reduceat(t, starts) / np.diff(np.r_[starts, t.size])
+                basis = (t - np.repeat(mean_t, np.diff(np.r_[starts, t.size])))[:, None]
+            x2, coef = _segment_chi2(e, basis, starts)
+            for k, (sid, part) in enumerate(segs):
+                stats.append((float(x2[k]), basis.shape[1], sid, part, r, coef[k]))
+        if not stats:
+            continue
+        total = sum(st[0] for st in stats)
+        dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
+        p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
+        if p >= alpha:
+            continue
+        x2, _, sid, part, r, coef = max(stats, key=lambda st: st[0])
+        reduction = np.zeros(3)
+        for st in stats:
+            reduction[st[4]] += st[0] * res.sigma[st[4]] ** 2
+        size = np.abs(coef).max() * res.sigma[r]
+        what = ("a constant or first-harmonic misfit" if kind == "inconsistent"
+                else f"a trend of {coef[0] * res.sigma[r]:.2g} {res.output_unit} per s")
+        out.append(Unexplained(
+            kind, f"segment {sid} ({_describe(res, part)}), channel {CHANNELS[r]} most",
+            f"segments depart from the combined model by {what} (largest: {size:.2g} {res.output_unit} in segment {sid}, "
+            f"channel {CHANNELS[r]}; chi-square {total:.0f} on {dof}; p = {_fmt(p)})",
+            p, reduction, dof,
+        ))
+    return out
+
+
+def static_step_scan(res: Residuals, step_id: np.ndarray, alpha: float) -> list[Unexplained]:
+    """Geist 2017 Appendix B on the static steps' samples before averaging:
+    no correlation and normality. Each step's samples are taken about their
+    own mean and pooled over steps (a common noise is the model's premise),
+    so the tests are those of one large sample: the lag-1 autocorrelation
+    (E = -1/n for a demeaned step of n samples, variance 1/N) and the
+    D'Agostino-Pearson K^2 test. Combining per-step p-values instead (Fisher)
+    is anti-conservative: K^2 is not calibrated at 50 samples."""
+    out = []
+    static = ~res.rotating & (step_id >= 0)
+    ids, first, size = np.unique(step_id[static], return_index=True, return_counts=True)
+    rows = np.flatnonzero(static)
+    for r, channel in enumerate(CHANNELS):
+        pooled, lag_sum, ss_sum, bias = [], 0.0, 0.0, 0.0
+        for n in np.unique(size[size >= 20]):
+            idx = rows[first[size == n]][:, None] + np.arange(n)[None, :]
+            ok = res.use[idx, r].all(axis=1)
+            x = res.resid[idx[ok], r]
+            x = x - x.mean(axis=1, keepdims=True)
+            pooled.append(x.ravel())
+            lag_sum += float(np.sum(x[:, 1:] * x[:, :-1]))
+            ss_sum += float(np.sum(x * x))
+            bias += x.shape[0] * n * (-1.0 / n)
+        if not pooled:
+            continue
+        values = np.concatenate(pooled)
+        if values.size < 200 or ss_sum == 0:
+            continue
+        r1 = lag_sum / ss_sum
+        z = (r1 - bias / values.size) * np.sqrt(values.size)
+        for kind, p, what in (
+            ("correlated", 2 * float(norm.sf(abs(z))), f"lag-1 autocorrelation {r1 + 0.0:.3f} (z = {z:.1f})"),
+            ("non_normal", float(normaltest(values).pvalue), "non-normal scatter"),
+        ):
+            p_family = min(1.0, p * 6)
+            if p_family < alpha:
+                out.append(Unexplained(
+                    kind, f"static steps, channel {channel}",
+                    f"static-step samples of channel {channel} show {what} (Geist 2017 Appendix B; {values.size} "
+                    f"samples of {int(np.sum(size >= 20))} steps, p = {_fmt(p_family)})", p_family, np.zeros(3), 0,
+                ))
+    return out

@@ -1,0 +1,1 @@
+"""Fit stage: per-segment sine fits (rotations) and step fits (static positions)."""

@@ -1,0 +1,140 @@
+"""``dataset.toml``: read, validate against ``schemas/dataset_toml.json``,
+and resolve defaults once into a frozen record (contract section 2)."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jsonschema
+
+from rotcal.errors import InputError
+from rotcal.model.physics import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
+from rotcal.tables import schema_text
+
+DELIMITERS = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "whitespace": "whitespace"}
+
+
+@dataclass(frozen=True)
+class CsvFormat:
+    """How to read a CSV capture whose layout differs from the default."""
+
+    delimiter: str = ","
+    header: bool = True
+    names: tuple[str, ...] | None = None
+    columns: tuple[tuple[str, str], ...] = ()  # (contract name, file column)
+    sample_rate_hz: float | None = None
+    pose_column: str | None = None
+
+    def file_column(self, name: str) -> str:
+        return dict(self.columns).get(name, name)
+
+
+@dataclass(frozen=True)
+class CaptureSpec:
+    """A ``[[capture]]`` entry: a file and the labels it lacks."""
+
+    file: str
+    axis: str | None = None
+    rate_hz: float | None = None
+    theta0_deg: float | None = None
+
+
+@dataclass(frozen=True)
+class DatasetMeta:
+    """Resolved dataset metadata; ``notes`` say which defaults were applied."""
+
+    device_id: str | None = None
+    output_unit: str = "bit"
+    full_scale: float | None = None
+    g_local: float = STANDARD_GRAVITY
+    g_local_uncertainty: float = STANDARD_GRAVITY_UNCERTAINTY
+    angle_source: str = "commanded"
+    csv_format: CsvFormat = field(default_factory=CsvFormat)
+    imu_topic: str = "/imu"
+    table_topic: str = "/table/joint_states"
+    imu_topic_given: bool = False
+    table_topic_given: bool = False
+    plan_rates_hz: tuple[float, ...] = ()
+    captures: tuple[CaptureSpec, ...] = ()
+    source: str | None = None
+    notes: tuple[str, ...] = ()
+
+
+def _validate(doc: dict, path: Path) -> None:
+    validator = jsonschema.Draft202012Validator(schema_text("dataset_toml"))
+    errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    if not errors:
+        return
+    err = errors[0]
+    where = ".".join(str(p) for p in err.absolute_path) or "top level"
+    if err.validator == "additionalProperties":
+        extra = sorted(set(err.instance) - set(err.schema.get("properties", {})))
+        problem = f"unknown key {extra[0]!r} in [{where}]" if where != "top level" else f"unknown table or key {extra[0]!r}"
+    elif err.validator == "enum":
+        problem = f"{where} = {err.instance!r} is not one of {err.validator_value}"
+    elif err.validator == "propertyNames":
+        problem = f"[{where}] maps unknown contract column {err.instance!r}"
+    else:
+        problem = f"{where}: {err.message}"
+    raise InputError(f"invalid dataset.toml value: {problem}", path=path)
+
+
+def load_meta(path: Path | None) -> DatasetMeta:
+    """Read and validate a ``dataset.toml``; ``None`` gives the defaults."""
+    if path is None:
+        doc: dict = {}
+    else:
+        try:
+            doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("dataset.toml not found", path=path) from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"dataset.toml is not valid TOML: {exc}", path=path) from None
+        _validate(doc, path)
+    device, site, fmt = doc.get("device", {}), doc.get("site", {}), doc.get("format", {})
+    mcap, plan = doc.get("mcap", {}), doc.get("plan", {})
+    notes = []
+    if "g_local" not in site:
+        notes.append(
+            f"g_local not given: using standard gravity {STANDARD_GRAVITY} m/s^2 "
+            f"with standard uncertainty {STANDARD_GRAVITY_UNCERTAINTY} m/s^2"
+        )
+        g_u = STANDARD_GRAVITY_UNCERTAINTY
+    else:
+        g_u = float(site.get("g_local_uncertainty", 0.0))
+        if "g_local_uncertainty" not in site:
+            notes.append("g_local_uncertainty not given: g_local taken as exact")
+    csv_format = CsvFormat(
+        delimiter=DELIMITERS[fmt.get("delimiter", ",")],
+        header=bool(fmt.get("header", True)),
+        names=tuple(fmt["names"]) if "names" in fmt else None,
+        columns=tuple(sorted(fmt.get("columns", {}).items())),
+        sample_rate_hz=fmt.get("sample_rate_hz"),
+        pose_column=fmt.get("pose_column"),
+    )
+    if not csv_format.header and csv_format.names is None:
+        raise InputError("invalid dataset.toml value: [format] header = false needs names = [...]", path=path)
+    files = [c["file"] for c in doc.get("capture", ())]
+    twice = sorted({f for f in files if files.count(f) > 1})
+    if twice:
+        # read twice, every record would be a duplicate of itself
+        raise InputError(f"invalid dataset.toml value: [[capture]] file {twice[0]!r} is named twice", path=path)
+    return DatasetMeta(
+        device_id=device.get("id"),
+        output_unit=device.get("output_unit", "bit"),
+        full_scale=device.get("full_scale"),
+        g_local=float(site.get("g_local", STANDARD_GRAVITY)),
+        g_local_uncertainty=g_u,
+        angle_source=doc.get("angle_source", "commanded"),
+        csv_format=csv_format,
+        imu_topic=mcap.get("imu_topic", "/imu"),
+        table_topic=mcap.get("table_topic", "/table/joint_states"),
+        imu_topic_given="imu_topic" in mcap,
+        table_topic_given="table_topic" in mcap,
+        plan_rates_hz=tuple(float(r) for r in plan.get("rates_hz", ())),
+        captures=tuple(CaptureSpec(**c) for c in doc.get("capture", ())),
+        source=None if path is None else str(path),
+        notes=tuple(notes),
+    )

@@ -1,0 +1,181 @@
+"""Simultaneous solution: Geist 2017 section 3, first alternative. All
+segments of one rate are fitted at once to the samples, with the
+responsivity components shared (Eq. 9 without its subscripts 1 and 2, so
+r_s1 = r_s2) and one offset per segment and channel (Geist's O_rs),
+
+    R_r = O_rk - (g r)_a sin(theta) + (g r)_b cos(theta),
+
+(a, b) = (y, z), (x, z), (x, y) for a segment about x, y, z (contract
+section 1; Eq. 9 with the signs of Eq. 5). Segments fitted with the
+four-parameter sine fit keep their rate as a parameter here too
+(theta = theta_0 + kappa_k (theta_cmd - theta_0)), so its uncertainty is
+carried.
+
+The fit is generalised least squares on the samples in two stages
+(feasible GLS): ordinary least squares first, then each segment's samples
+weighted by the inverse of its channels' residual covariance Sigma_k from
+the first stage (held fixed, so that a model that does not fit cannot make
+the weights chase the residuals). Its covariance is N^-1 (N the normal
+matrix); since N is a sum over the independent segments, N^-1 N_k N^-1 is
+each segment's contribution, which gives the budget. When the model is
+wrong (a rate error fitted with the commanded rate, say) the two solutions
+weight the misfit differently and disagree far beyond their uncertainties:
+a finding, as in the consistency checks. The offset O_r is the inverse-variance weighted mean of
+the O_rk (Eq. 12), with the full covariance propagated.
+
+This is an independent route to the intrinsic parameters (it reads the
+samples, not the per-segment fits): it must agree with the per-segment
+solution of ``combine`` within the uncertainties.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.combine.labelled import (
+    CombineFailure, IntrinsicResult, STATE, result_from_state, segment_input, units,
+)
+from rotcal.fit.segments import segment_rows
+from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
+from rotcal.fit.sinemodel import basis, normal_equations, precision, residuals, solve
+from rotcal.tables import conform, schema
+
+MAX_ITERATIONS = 30
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentSamples:
+    """One fitted segment's samples: table angle (degrees), outputs (one
+    array per channel, views of the sample table: no copy held), and the
+    rate scale kappa to start from (None: the angle is trusted)."""
+
+    segment: int
+    axis: str
+    theta_deg: np.ndarray
+    channels: tuple[np.ndarray, ...]
+    kappa: float | None
+
+    @property
+    def y(self) -> np.ndarray:
+        """The outputs (n, 3), built when wanted, in ``DataFrame.to_numpy``'s layout."""
+        y = np.empty((self.theta_deg.size, len(self.channels)), order="F")
+        for r, column in enumerate(self.channels):
+            y[:, r] = column
+        return y
+
+
+def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool) -> list[SegmentSamples]:
+    """The ok segments of one rate with their samples, in segment order."""
+    ok = (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
+          .unique("segment", keep="first").sort("segment"))
+    rows, out = segment_rows(samples), []
+    for row in ok.iter_rows(named=True):
+        part = samples.slice(*rows[row["segment"]])
+        rotating = four_parameter and row["kind"] == "rotation"
+        out.append(SegmentSamples(row["segment"], row["axis"], part["angle_deg"].to_numpy(),
+                                  tuple(part[c].to_numpy() for c in CHANNELS),
+                                  row["rate_fit_hz"] / row["rate_hz"] if rotating else None))
+    return out
+
+
+def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
+                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """One segment's normal equations at ``beta`` with the channel weight
+    matrix ``weight`` (``sinemodel``), and the weight its residuals give
+    (``precision``; computed here so that no segment's residuals are kept)."""
+    a = axis_index(seg.axis)
+    theta_unw = np.unwrap(seg.theta_deg, period=360.0)
+    psi = np.deg2rad(theta_unw - theta_unw[0])
+    theta = np.deg2rad(theta_unw[0]) + beta[kappa_index] * psi if kappa_index is not None else np.deg2rad(seg.theta_deg)
+    z = basis(theta, psi)
+    coef, design = np.zeros((3, 5)), np.zeros((3, 5, n_params))
+    for r in range(3):
+        i_sin, i_cos, i_off = 3 * r + SIN_COMPONENT[a], 3 * r + COS_COMPONENT[a], 9 + 3 * k + r
+        coef[r, :3] = beta[i_off], -beta[i_sin], beta[i_cos]
+        design[r, 0, i_off], design[r, 1, i_sin], design[r, 2, i_cos] = 1.0, -1.0, 1.0
+        if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
+            design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
+    y = seg.y
+    resid = residuals(z, y, coef)
+    return (*normal_equations(z, resid, design, weight), precision(resid, y, 3))
+
+
+def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float, g_uncertainty: float) -> IntrinsicResult | CombineFailure:
+    """The simultaneous least-squares solution of one rate (see module docstring)."""
+    measured = {3 * r + c for s in segs for r in range(3) for c in (SIN_COMPONENT[axis_index(s.axis)], COS_COMPONENT[axis_index(s.axis)])}
+    missing = [STATE[i] for i in range(9) if i not in measured]
+    if missing:
+        axes = sorted({s.axis for s in segs}) or ["none"]
+        return CombineFailure(rate_hz, f"segments about axes {', '.join(axes)} leave {', '.join(missing)} unmeasured")
+    n_seg = len(segs)
+    kappa_index, p = [], 9 + 3 * n_seg
+    for s in segs:
+        kappa_index.append(p if s.kappa is not None else None)
+        p += s.kappa is not None
+    beta = np.zeros(p)
+    for s, j in zip(segs, kappa_index):
+        if j is not None:
+            beta[j] = s.kappa
+    # two stages (feasible GLS): ordinary least squares, then each segment weighted by the inverse of
+    # its channels' residual covariance from the first stage, held fixed while the rates converge
+    weights = [np.eye(3)] * n_seg
+    for stage in range(2):
+        for iteration in range(MAX_ITERATIONS):
+            blocks = [_segment_system(s, k, j, beta, p, weights[k]) for k, (s, j) in enumerate(zip(segs, kappa_index))]
+            normal, rhs = sum(b[0] for b in blocks), sum(b[1] for b in blocks)
+            step = np.zeros(p)
+            # the very first step leaves the rate scales alone: with the components still zero they are not identified
+            free = slice(0, 9 + 3 * n_seg) if stage == iteration == 0 else slice(None)
+            step[free], cov = solve(normal[free, free], rhs[free])
+            beta += step
+            if iteration > 0 and step @ rhs < 1e-8:  # the step's chi^2 is negligible
+                break
+        else:
+            return CombineFailure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
+        weights = [b[2] if b[2] is not None else np.eye(3) for b in blocks]
+    transform = np.zeros((12, p))
+    transform[:9, :9] = np.eye(9)
+    var = np.diag(cov)
+    for r in range(3):
+        idx = [9 + 3 * k + r for k in range(n_seg)]
+        w = 1.0 / np.maximum(var[idx], 1e-290)
+        transform[9 + r, idx] = w / w.sum()
+    state, state_cov = transform @ beta, transform @ cov @ transform.T
+    parts = []
+    for s, (block, _, _) in zip(segs, blocks):
+        share = transform @ cov @ block @ cov @ transform.T
+        parts.append((segment_input(s.segment, s.axis, s.theta_deg.size - 3), share))
+    return result_from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)
+
+
+def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_uncertainty: float,
+                 four_parameter: bool = False) -> list[IntrinsicResult | CombineFailure]:
+    """Every rate's simultaneous solution (rate 0, the static result, first)."""
+    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]) & (pl.col("status") == "ok"))
+    rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
+    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter), g_local, g_uncertainty) for rate in rates]
+
+
+def simultaneous_frame(sim: list[IntrinsicResult], per_segment: list[IntrinsicResult], dataset: str, output_unit: str) -> pl.DataFrame:
+    """The ``simultaneous`` table: the simultaneous solution beside the
+    per-segment one of ``intrinsic.parquet``, and their difference."""
+    other = {res.rate_hz: res for res in per_segment}
+    rows = []
+    for res in sim:
+        ref = other.get(res.rate_hz)
+        for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
+            ref_value = ref.value[i] if ref is not None else np.nan
+            ref_u = ref.std_uncertainty[i] if ref is not None else np.nan
+            diff = res.value[i] - ref_value
+            rows.append({
+                "dataset": dataset, "rate_hz": res.rate_hz, "parameter": name, "unit": unit,
+                "value": res.value[i], "std_uncertainty": res.std_uncertainty[i],
+                "per_segment_value": ref_value, "per_segment_std_uncertainty": ref_u,
+                "difference": diff, "difference_over_u": diff / ref_u if ref_u > 0 else np.nan,
+            })
+    if not rows:
+        return schema("simultaneous").empty()
+    return conform(pl.DataFrame(rows, schema_overrides=schema("simultaneous").polars_schema, strict=False), "simultaneous")

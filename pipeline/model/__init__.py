@@ -1,0 +1,1 @@
+"""Conventions, the forward model and the result records every stage shares."""

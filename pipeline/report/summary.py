@@ -1,0 +1,117 @@
+"""Report: human-readable summaries of a run (the CLI prints them)."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+from rich.table import Table
+
+from rotcal.combine.labelled import IntrinsicResult, units
+from rotcal.model.physics import INTRINSIC
+from rotcal.combine.poses import ReferenceFit
+from rotcal.combine.static import StaticReduction
+
+COVERAGE_FACTOR = 2.0
+
+
+def rate_label(rate_hz: float) -> str:
+    return "static (DC)" if rate_hz == 0 else f"{rate_hz:g} Hz"
+
+
+def _digits(u: float) -> int:
+    """Decimals that show an expanded uncertainty to two significant digits."""
+    if not np.isfinite(u) or u <= 0:
+        return 6
+    return max(0, 1 - int(np.floor(np.log10(u))))
+
+
+def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title: str) -> Table:
+    """The nine parameters per rate: value +- expanded uncertainty (k = 2)."""
+    table = Table(title=title, title_justify="left")
+    table.add_column("parameter")
+    table.add_column("unit")
+    for res in results:
+        table.add_column(rate_label(res.rate_hz), justify="right")
+    for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
+        cells = []
+        for res in results:
+            cells.append(_expanded(res.value[i], res.std_uncertainty[i]))
+        table.add_row(name, unit, *cells)
+    return table
+
+
+def _expanded(value: float, u: float) -> str:
+    expanded = COVERAGE_FACTOR * u
+    d = _digits(expanded)
+    return f"{value:.{d}f} ± {expanded:.{d}f}" if np.isfinite(u) else f"{value:.6g}"
+
+
+def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
+    """One line on the static fit: method, positions, residual degrees of
+    freedom, noise-only reduced chi-square and excess scatter."""
+    fit = static.fit
+    n = static.positions.height
+    if isinstance(fit, ReferenceFit):
+        excess = ", ".join(f"{e:.3g}" for e in fit.excess_std)
+        return (f"12-parameter fit to {n} positions of known reference ({static.frame} frame): residual dof {fit.dof}, "
+                f"reduced chi-square of the pose noise {fit.chi2_reduced:.3g}, excess scatter per position "
+                f"(u, v, w) {excess} {output_unit}")
+    return (f"orientation-free fit (|a| = g_local) to {n} still intervals: residual dof {fit.dof}, reduced chi-square "
+            f"of the pose noise {fit.chi2_reduced:.3g}, excess scatter per position {fit.excess_std:.3g} m/s^2, "
+            f"direction spread {fit.direction_spread:.3g}")
+
+
+def pose_check_table(check: pl.DataFrame, g_local: float, title: str, per_pose_max: int = 12) -> Table:
+    """The |a| check: |a| / g_local - 1 with offsets and sensitivities only,
+    after the full correction, and held out (the other half's fit); every
+    position when there are few, else RMS and largest."""
+    table = Table(title=title, title_justify="left")
+    columns = {"offsets and sensitivities only": "norm_orthogonal_m_s2", "full correction": "norm_m_s2",
+               "held out (fit to the other half)": "norm_held_out_m_s2"}
+    dev = {name: check[col].to_numpy() / g_local - 1.0 for name, col in columns.items()}
+    if check.height <= per_pose_max:
+        table.add_column("pose")
+        table.add_column("|a| after (m/s^2, k = 2)", justify="right")
+        for name in columns:
+            table.add_column(f"{name}: |a|/g - 1 (%)", justify="right")
+        for k, row in enumerate(check.iter_rows(named=True)):
+            label = row["label"] or str(row["pose"])
+            table.add_row(label, _expanded(row["norm_m_s2"], row["u_norm_m_s2"]),
+                          *(f"{100 * dev[name][k]:+.3f}" if np.isfinite(dev[name][k]) else "-" for name in columns))
+        return table
+    table.add_column("|a| / g_local - 1")
+    table.add_column("positions", justify="right")
+    table.add_column("RMS (%)", justify="right")
+    table.add_column("largest (%)", justify="right")
+    fold = check["fold"].to_numpy()
+    rows = {name: d for name, d in dev.items() if not name.startswith("held")}
+    held = dev["held out (fit to the other half)"]
+    rows["held out: odd positions, fit to the even"] = held[fold == 1]
+    rows["held out: even positions, fit to the odd"] = held[fold == 0]
+    for name, d in rows.items():
+        d = d[np.isfinite(d)]
+        if d.size:
+            table.add_row(name, str(d.size), f"{100 * np.sqrt(np.mean(d**2)):.4f}", f"{100 * np.abs(d).max():.4f}")
+    return table
+
+
+def matrix_table(frame: pl.DataFrame, title: str) -> Table:
+    """The six parameters of a cross-sensitivity matrix, value ± expanded
+    uncertainty (k = 2)."""
+    table = Table(title=title, title_justify="left")
+    for name in ("parameter", "unit", "value ± U (k = 2)"):
+        table.add_column(name, justify="right" if name.startswith("value") else "left")
+    for row in frame.iter_rows(named=True):
+        table.add_row(row["parameter"], row["unit"], _expanded(row["value"], row["std_uncertainty"]))
+    return table
+
+
+def findings_table(findings, title: str) -> Table:
+    """The diagnosis findings (detected rows) with their evidence."""
+    table = Table(title=title, title_justify="left", show_lines=True)
+    for col in ("effect", "where", "evidence", "BIC change"):
+        table.add_column(col, overflow="fold")
+    for effect, where, evidence, dbic in findings.filter(findings["detected"]).select(
+            "effect", "where", "evidence", "delta_bic").iter_rows():
+        table.add_row(effect, where, evidence, f"{dbic:+.0f}")
+    return table

@@ -1,0 +1,1 @@
+"""Segment stage: segments from labels, from stillness, and from the signals alone."""

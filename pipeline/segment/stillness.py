@@ -1,0 +1,84 @@
+"""Segmentation by stillness: find the intervals in which the DUT rests.
+
+A moving-variance detector (the one imu_tk and most multi-position methods
+use), with its threshold set from the recording itself: the noise floor is
+the 10th percentile of each channel's moving variance (hand-placed and table
+sessions rest most of the time), and a window is still when no channel's
+variance exceeds ``threshold`` times its floor. A recording that never
+rests (a capture of one constant rotation) has no still windows to set that
+percentile, so the floor is also capped by the white-noise variance that
+second differences show (var(y[k+1] - 2 y[k] + y[k-1]) = 6 sigma^2, robustly
+from their median absolute deviation; slow motion barely adds to it). Nothing
+beyond the samples and their time stamps is needed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.model.physics import CHANNELS
+
+
+@dataclass(frozen=True)
+class StillnessConfig:
+    window_s: float = 1.0
+    threshold: float = 10.0   # variance ratio to the noise floor (about 3.2 x the noise std)
+    min_dwell_s: float = 1.0
+    floor_percentile: float = 10.0
+    gap_factor: float = 5.0   # a time gap this many sample periods long ends an interval
+
+
+def moving_variance(y: np.ndarray, window: int) -> np.ndarray:
+    """Variance of every full window of ``window`` samples, per column
+    (cumulative sums on median-centred data: O(n), no loop over samples)."""
+    centred = y - np.median(y, axis=0)
+    s1 = np.vstack([np.zeros(y.shape[1]), np.cumsum(centred, axis=0)])
+    s2 = np.vstack([np.zeros(y.shape[1]), np.cumsum(centred**2, axis=0)])
+    mean = (s1[window:] - s1[:-window]) / window
+    return np.maximum((s2[window:] - s2[:-window]) / window - mean**2, 0.0)
+
+
+def still_mask(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> np.ndarray:
+    """True for every sample inside a still window."""
+    n = t_ns.size
+    dt_s = float(np.median(np.diff(t_ns))) / 1e9 if n > 1 else 1.0
+    window = max(3, int(round(config.window_s / dt_s)))
+    if n < window:
+        return np.zeros(n, bool)
+    var = moving_variance(y, window)
+    integer = np.all(y == np.round(y))
+    second = np.diff(y, 2, axis=0)
+    white = (1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0)) ** 2 / 6.0
+    floor = np.maximum(np.minimum(np.percentile(var, config.floor_percentile, axis=0), white),
+                       1.0 / 12.0 if integer else 1e-12)
+    quiet = (var / floor).max(axis=1) < config.threshold
+    gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
+    gap_before = np.concatenate([[0], np.cumsum(gap)])
+    quiet &= gap_before[window - 1 :] == gap_before[: n - window + 1]  # no gap inside the window
+    cover = np.zeros(n + 1, int)
+    starts = np.flatnonzero(quiet)
+    np.add.at(cover, starts, 1)
+    np.add.at(cover, starts + window, -1)
+    return np.cumsum(cover[:-1]) > 0
+
+
+def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
+    """Still intervals at least ``min_dwell_s`` long: sample range, times,
+    per-channel mean and standard deviation."""
+    mask = still_mask(t_ns, y, config)
+    dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
+    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
+    # runs of still samples, split at time gaps
+    starts = np.flatnonzero(mask & (np.r_[True, ~mask[:-1]] | gap))
+    ends = np.flatnonzero(mask & (np.r_[~mask[1:], True] | np.r_[gap[1:], True])) + 1
+    long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
+    starts, ends = starts[long], ends[long]
+    rows = {"start": starts, "stop": ends, "t_start_ns": t_ns[starts], "t_end_ns": t_ns[ends - 1],
+            "n_samples": ends - starts}
+    for r, c in enumerate(CHANNELS):
+        rows[f"mean_{c}"] = np.array([y[a:b, r].mean() for a, b in zip(starts, ends)])
+        rows[f"std_{c}"] = np.array([y[a:b, r].std(ddof=1) for a, b in zip(starts, ends)])
+    return pl.DataFrame(rows)

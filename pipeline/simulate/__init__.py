@@ -1,0 +1,1 @@
+"""The simulator: plans, DUT draws, effects and writers of synthetic recordings."""

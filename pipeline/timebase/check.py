@@ -1,0 +1,429 @@
+"""Time base: check each capture's stamps against a regular sampling grid,
+measure every defect, and repair what can be repaired honestly.
+
+A digital sensor samples on its own clock, so its samples sit on a grid
+``t_k = a + T k``; a logger stamps them, drops some, writes some twice and
+adds noise to the stamps. rotcal fits the grid (the period ``T`` common to the
+capture, one offset ``a`` per logging run) by least squares to the stamps,
+with every sample's slot ``k`` from rounding; two iterations make the slots
+exact (a slot is misread only if a stamp is off by half a period).
+
+What it finds, per capture:
+
+- duplicated records (same stamp, same values): dropped;
+- repeated stamps (distinct samples sharing a stamp): placed in the free
+  neighbouring slots when the sampling is regular, else dropped;
+- missing samples (empty slots) and gaps (runs of ``gap_min_slots`` or more):
+  reported; the fits use each sample's own time, so nothing needs repair;
+- logging pauses: a gap after which the grid's phase changes (the logger
+  stopped and restarted); each run keeps its own offset;
+- stamp jitter: the white part of the stamps' residuals from the grid. When
+  it is detectable and the residuals are white and bounded (every sample
+  within half a period of its slot), the sampling is regular and only the
+  stamps are noisy: the stamps are replaced by the fitted grid;
+- irregular sampling: residuals that wander smoothly (the stamps follow a
+  clock that is corrected in steps, or the sampling itself is irregular):
+  the stamps are kept.
+
+Jitter too large to place the samples on the grid cannot be repaired: the
+capture is marked, and rotation segments in it are refused downstream.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import polars as pl
+
+from rotcal.errors import InputError
+from rotcal.ingest.labels import time_ordered
+from rotcal.model.physics import CHANNELS
+from rotcal.tables import conform, schema
+
+
+@dataclass(frozen=True)
+class TimebaseConfig:
+    jitter_floor: float = 1e-3     # stamp noise below this fraction of the period is not a defect
+    gap_min_slots: int = 5         # this many consecutive missing samples or more: a gap (lost packets)
+    white_max_lag1: float = 0.5    # residual lag-1 autocorrelation above this: wander, not jitter
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One check of one capture (a row of ``timebase.parquet``)."""
+
+    check: str
+    detected: bool
+    value: float
+    std_uncertainty: float | None
+    unit: str
+    action: str
+    evidence: str
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureTimebase:
+    """The outcome for one capture: which rows stay, their (repaired) stamps,
+    the fitted period, and the findings. ``unrepairable`` says why the time
+    base cannot carry a rotation fit (None when it can)."""
+
+    keep: np.ndarray
+    t_ns: np.ndarray
+    interval_s: float
+    findings: tuple[Finding, ...]
+    unrepairable: str | None = None
+    warnings: tuple[str, ...] = field(default=())
+
+
+# Captures run to millions of samples: the sample-length arrays are built in
+# place where the arithmetic allows and dropped as soon as they are done with,
+# with every value computed exactly as the straightforward expression would.
+# The stamps ``s`` stay int64; numpy converts them to float64 inside each
+# operation exactly as ``astype`` would.
+_BLOCK = 1 << 20  # samples a block, where the arithmetic goes a block at a time
+
+
+def _kept(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``a[keep]``, without a copy when every row is kept."""
+    return a if keep.all() else a[keep]
+
+
+def _intervals(s: np.ndarray) -> np.ndarray:
+    """Successive intervals of the stamps, as differences of their float values."""
+    return np.subtract(s[1:], s[:-1], dtype=np.float64)
+
+
+def _grid_fit(s: np.ndarray, k: np.ndarray, run: np.ndarray) -> tuple[float, np.ndarray]:
+    """Least squares ``s = a_run + T k``: the common period and each run's offset."""
+    n_runs = int(run.max()) + 1
+    count = np.bincount(run, minlength=n_runs)
+    k_mean = np.bincount(run, k, n_runs) / count
+    s_mean = np.bincount(run, s, n_runs) / count
+    dk = k_mean[run]
+    np.subtract(k, dk, out=dk)
+    den = float(dk @ dk)
+    if den > 0:
+        ds = s_mean[run]
+        np.subtract(s, ds, out=ds)
+        period = float(dk @ ds / den)
+    else:
+        period = float(np.median(_intervals(s)))
+    return period, s_mean - period * k_mean
+
+
+def _residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> np.ndarray:
+    """The stamps' residuals from the grid, ``s - a_run - T k``, a block at a time."""
+    resid = np.empty(s.size)
+    for a in range(0, s.size, _BLOCK):
+        block = slice(a, a + _BLOCK)
+        resid[block] = s[block] - offset[run[block]] - period * k[block]
+    return resid
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    """1.4826 times the median absolute deviation; ``x`` is scratch (reordered, overwritten)."""
+    if not x.size:
+        return 0.0
+    centre = np.median(x, overwrite_input=True)
+    np.subtract(x, centre, out=x)
+    np.abs(x, out=x)
+    return float(1.4826 * np.median(x, overwrite_input=True))
+
+
+def _jitter(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> float:
+    """The white part of the stamp noise: the robust sd of successive
+    residual differences within runs, over sqrt(2); the differences are
+    taken a block at a time (blocks overlap by one sample)."""
+    within = run[1:] == run[:-1]
+    steps, filled = np.empty(np.count_nonzero(within)), 0
+    for a in range(0, within.size, _BLOCK):
+        b = min(a + _BLOCK, within.size)
+        step = _kept(np.diff(_residuals(s[a : b + 1], k[a : b + 1], run[a : b + 1], period, offset)), within[a:b])
+        steps[filled : filled + step.size] = step
+        filled += step.size
+    return _robust_sd(steps) / np.sqrt(2.0)
+
+
+def _lag1(resid: np.ndarray, within: np.ndarray) -> float:
+    """Lag-1 autocorrelation of the residuals within runs (Pearson's r of
+    successive pairs, as ``np.corrcoef``), from sums over blocks of pairs:
+    no copy of the residuals. 0 for fewer than three pairs or no scatter."""
+    n = np.count_nonzero(within)
+    if n <= 2:
+        return 0.0
+
+    def pairs():
+        for a in range(0, within.size, _BLOCK):
+            w = within[a : a + _BLOCK]
+            yield resid[a : a + w.size][w], resid[a + 1 : a + 1 + w.size][w]
+
+    mean = np.zeros(2)
+    for x, y in pairs():
+        mean += x.sum() / n, y.sum() / n
+    sums = np.zeros(3)  # centred xx, yy, xy
+    for x, y in pairs():
+        x, y = x - mean[0], y - mean[1]
+        sums += x @ x, y @ y, x @ y
+    if sums[0] <= 0 or sums[1] <= 0:
+        return 0.0
+    return float(np.clip(sums[2] / np.sqrt(sums[0] * sums[1]), -1.0, 1.0))
+
+
+def _place_collisions(slot: np.ndarray, run: np.ndarray) -> np.ndarray:
+    """New slots for samples that share one. The group of m samples claiming
+    slot k fills k .. k+m-1 when exactly those slots are free (the previous
+    sample sits at k-1 and the next at k+m), or k-m+1 .. k when exactly
+    those are; only then do the empty slots say where they belong. Otherwise
+    the samples get -1 (cannot be placed). Only the groups are worked on:
+    most samples have a slot of their own."""
+    key = run.astype(np.int64) * (1 << 40) + slot
+    shared = key[1:] == key[:-1]
+    if not shared.any():
+        return slot
+    member = np.flatnonzero(np.r_[False, shared] | np.r_[shared, False])  # samples in groups of two or more
+    start = np.r_[True, key[member[1:]] != key[member[1:] - 1]]
+    group = np.cumsum(start) - 1
+    first = member[start]
+    size = np.diff(np.r_[np.flatnonzero(start), member.size])
+    pos = member - first[group]
+    prev_key = np.where(first > 0, key[np.maximum(first - 1, 0)], np.iinfo(np.int64).min)
+    after = first + size
+    next_key = np.where(after < key.size, key[np.minimum(after, key.size - 1)], np.iinfo(np.int64).max)
+    up = (next_key == key[first] + size) & (prev_key == key[first] - 1)
+    down = (prev_key == key[first] - size) & (next_key == key[first] + 1)
+    placed = slot.copy()
+    placed[member] = np.where(up[group], slot[member] + pos,
+                              np.where(down[group], slot[member] - size[group] + 1 + pos, -1))
+    return placed
+
+
+def _slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Every stamp's slot on the grid and its logging run: slots counted
+    from the intervals, runs split at every gap and joined again where the
+    next run's line continues this one's (lost packets: the phase holds);
+    then every slot re-read from the fitted lines. Returns the slots, the
+    runs, the period and each run's offset."""
+    d = _intervals(s)
+    distinct = np.r_[True, d > 0]
+    # equal stamps share a slot (a repeated stamp); any advance is at least one slot
+    steps = d / period
+    del d
+    np.rint(steps, out=steps)
+    np.maximum(steps, 1.0, out=steps)
+    steps[~distinct[1:]] = 0.0
+    run = np.zeros(s.size, np.int32)  # int32: one of the few sample-length arrays alive throughout
+    np.cumsum(steps >= 2, dtype=np.int32, out=run[1:])
+    k = np.zeros(s.size)
+    np.cumsum(steps, out=k[1:])
+    del steps
+    for _ in range(3):
+        period, offset = _grid_fit(s, k, run)
+        jitter = _jitter(s, k, run, period, offset)
+        u_offset = np.maximum(jitter, 1.0) / np.sqrt(np.maximum(np.bincount(run, distinct), 1.0))
+        slip = (offset[1:] - offset[:-1]) / period
+        whole = np.rint(slip)
+        tolerance = np.minimum(4 * np.hypot(u_offset[1:], u_offset[:-1]) + 1e-4 * period, period / 2)
+        hold = np.abs(slip - whole) * period < tolerance
+        k += np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][run]
+        run = np.r_[0, np.cumsum(~hold)].astype(np.int32)[run]
+        period, offset = _grid_fit(s, k, run)
+        k = np.empty(s.size)  # np.rint((s - offset[run]) / period), a block at a time
+        for a in range(0, s.size, _BLOCK):
+            block = slice(a, a + _BLOCK)
+            k[block] = np.rint((s[block] - offset[run[block]]) / period)
+    period, offset = _grid_fit(s, k, run)
+    return k, run, period, offset
+
+
+def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConfig = TimebaseConfig()) -> CaptureTimebase:
+    """Check and repair one capture's stamps (sorted, as ingest leaves them);
+    ``channels`` are its outputs, one array per channel. Where nothing
+    changes the stamps returned are ``t_ns`` itself."""
+    n = t_ns.size
+    if n < 3:
+        return CaptureTimebase(np.ones(n, bool), t_ns.copy(), float("nan"), ())
+    tie = np.flatnonzero(t_ns[1:] == t_ns[:-1])  # a record can repeat only where its stamp does
+    keep = np.ones(n, bool)
+    keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
+    s = _kept(t_ns, keep)
+    d = _intervals(s)
+    if s.size < 2 or np.count_nonzero(d > 0) < d.size / 2:
+        raise InputError(f"capture {capture}: the time stamps do not advance (most consecutive stamps are equal)",
+                         hint="give [format] sample_rate_hz and no time column")
+    first_period = float(np.median(d[d > 0], overwrite_input=True))
+    del d
+    k, run, period, offset = _slots(s, first_period)
+    repeated = np.r_[False, _intervals(s) == 0]
+    jitter = _jitter(s, k, run, period, offset)
+    resid = _residuals(s, k, run, period, offset)
+    within = run[1:] == run[:-1]
+    lag1 = _lag1(resid, within)
+    spread = float(np.std(resid))
+    largest = float(max(resid.max(), -resid.min()))
+    np.square(resid, out=resid)
+    ss_resid = np.sum(resid)
+    del resid
+    dk = k - k.mean()
+    np.square(dk, out=dk)
+    u_period = float(np.sqrt(ss_resid / max(n - 2, 1) / np.sum(dk))) / 1e9
+    del dk
+    slot = k.astype(np.int64)
+    del k
+    floor = config.jitter_floor * period
+    jittery = jitter > floor
+    # white scatter about the grid: the sampling is regular and only the stamps are noisy
+    white = spread <= floor or lag1 < config.white_max_lag1
+    placeable = jitter < period / 9  # half a period is 4.5 standard deviations
+    regular = white and placeable
+
+    findings, warnings = [], []
+    unit_period = period / 1e9
+    findings.append(Finding("sample_interval", False, unit_period, u_period, "s", "none",
+                            f"{s.size} samples on a grid of {unit_period * 1e3:.6g} ms"))
+    n_dup = n - s.size
+    findings.append(Finding("duplicated_samples", n_dup > 0, float(n_dup), None, "1", "dropped" if n_dup else "none",
+                            f"{n_dup} records repeat the previous record exactly (stamp and values)"))
+    if n_dup:
+        warnings.append(f"{capture}: {n_dup} duplicated records dropped")
+
+    if regular:
+        placed = _place_collisions(slot, run)
+        unplaceable = placed < 0
+        repeated |= np.r_[False, (slot[1:] == slot[:-1]) & within]
+    else:
+        placed, unplaceable = slot, repeated
+    n_rep = int(repeated.sum())
+    action = ("none" if not n_rep else "placed on the regular time base" if regular
+              else "dropped: the sampling is not regular, their times are unknown")
+    findings.append(Finding("repeated_stamps", n_rep > 0, float(n_rep), None, "1", action,
+                            f"{n_rep} samples share their stamp with another sample; "
+                            f"{int(unplaceable.sum())} could not be placed"))
+    if n_rep:
+        warnings.append(f"{capture}: {n_rep} samples with repeated stamps ({action})")
+
+    good = ~unplaceable
+    if regular:
+        # the empty slots between the distinct placed slots of each run
+        p, r = _kept(placed, good), _kept(run, good)
+        if not np.all((r[1:] > r[:-1]) | ((r[1:] == r[:-1]) & (p[1:] >= p[:-1]))):
+            order = np.lexsort((p, r))
+            p, r = p[order], r[order]
+        step = np.diff(p)
+        counted = (r[1:] == r[:-1]) & (step != 0)
+        # samples that could not be placed fill some holes
+        n_missing = int(np.sum(step, where=counted)) - int(counted.sum()) - int(unplaceable.sum())
+        gap_lengths = step[counted & (step > config.gap_min_slots)] - 1
+        del p, r, step, counted
+    else:
+        d = _intervals(s)
+        holes = np.where(within & (d > 0), np.maximum(np.rint(d / period), 1.0) - 1, 0.0)
+        n_missing = int(holes.sum())
+        gap_lengths = holes[holes >= config.gap_min_slots]
+    total = n_missing + int(good.sum())
+    findings.append(Finding("missing_samples", n_missing > 0, float(n_missing), None, "1",
+                            "none: each sample keeps its own time",
+                            f"{n_missing} of {total} grid slots have no sample ({100 * n_missing / max(total, 1):.3g} %)"))
+    longest = float(gap_lengths.max()) * unit_period if gap_lengths.size else 0.0
+    findings.append(Finding("gaps", gap_lengths.size > 0, longest, None, "s", "none: each sample keeps its own time",
+                            f"{gap_lengths.size} runs of {config.gap_min_slots} or more missing samples, "
+                            f"longest {longest:.3g} s, {float(gap_lengths.sum()) * unit_period:.3g} s in all"))
+    if n_missing:
+        warnings.append(f"{capture}: {n_missing} samples missing ({100 * n_missing / max(total, 1):.3g} %), "
+                        f"{gap_lengths.size} gaps, longest {longest:.3g} s")
+    n_pauses = int(run.max())
+    findings.append(Finding("logging_pauses", False, float(n_pauses), None, "1", "none: each run keeps its own phase",
+                            f"{n_pauses} gaps after which the sampling grid's phase changes (the logger "
+                            f"stopped and restarted: not a defect)"))
+
+    unrepairable = None
+    refit = jittery and regular
+    if refit:
+        action = "refit: stamps replaced by the regular time base"
+        warnings.append(f"{capture}: timestamp jitter {jitter / 1e6:.3g} ms (sd), samples placed on the regular "
+                        f"{unit_period * 1e3:.6g} ms time base")
+    elif jittery and white:
+        action = "none: too large to place samples on the grid"
+        unrepairable = (f"timestamp jitter of {jitter / 1e6:.3g} ms (sd) is too large against the "
+                        f"{unit_period * 1e3:.6g} ms sample interval to place the samples on a regular time base")
+        warnings.append(f"{capture}: {unrepairable}")
+    else:
+        action = "none"
+    findings.append(Finding("timestamp_jitter", jittery, jitter / 1e9, jitter / 1e9 / np.sqrt(2 * max(s.size - 1, 1)), "s", action,
+                            f"white scatter of the stamps about the grid {jitter / 1e6:.3g} ms (sd), "
+                            f"residual lag-1 autocorrelation {lag1:.2f}"))
+    wander = not white
+    findings.append(Finding("irregular_sampling", wander, spread / 1e9, None, "s", "kept the stamps" if wander else "none",
+                            f"stamps deviate from a regular grid by {spread / 1e6:.3g} ms (sd), "
+                            f"{largest / 1e6:.3g} ms at most, residual lag-1 autocorrelation {lag1:.2f}"))
+
+    t_out = s
+    if refit:
+        grid = offset[run]  # the regular time base, offset[run] + period * placed
+        grid += period * placed
+        t_out = np.rint(grid, out=grid).astype(np.int64)
+    elif regular:
+        moved = np.flatnonzero((placed != slot) & good)
+        if moved.size:
+            t_out = s.copy()
+            t_out[moved] = np.rint(offset[run[moved]] + period * placed[moved]).astype(np.int64)
+    keep[np.flatnonzero(keep)[unplaceable]] = False
+    return CaptureTimebase(keep, _kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings))
+
+
+@dataclass(frozen=True, eq=False)
+class TimebaseResult:
+    """Repaired samples, the findings table, warnings, and the captures whose
+    time base cannot carry a rotation fit (capture -> reason)."""
+
+    samples: pl.DataFrame
+    findings: pl.DataFrame
+    warnings: tuple[str, ...]
+    unrepairable: dict[str, str]
+
+
+def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig = TimebaseConfig()) -> TimebaseResult:
+    """Check every capture of the canonical sample table and repair it. The
+    table is copied only as far as something changes: rows dropped only if
+    some are, stamps replaced only if some moved, rows sorted only if out of
+    order."""
+    rows, warnings, bad = [], [], {}
+    captures = samples["capture"].unique(maintain_order=True).to_list()
+    keep, stamps = np.ones(samples.height, bool), None
+    for capture in captures:
+        mine = None if len(captures) == 1 else (samples["capture"] == capture).to_numpy()
+        part = samples.select("t_ns", *CHANNELS)
+        part = part if mine is None else part.filter(pl.Series(mine))
+        t = part["t_ns"].to_numpy()
+        tb = check_capture(t, [part[c].to_numpy() for c in CHANNELS], capture, config)
+        at = slice(None) if mine is None else np.flatnonzero(mine)
+        keep[at] = tb.keep
+        if not np.array_equal(tb.t_ns, _kept(t, tb.keep)):
+            stamps = samples["t_ns"].to_numpy().copy() if stamps is None else stamps
+            stamps[np.flatnonzero(keep) if mine is None else at[tb.keep]] = tb.t_ns
+        rows += [{"dataset": dataset, "capture": capture, **f.__dict__} for f in tb.findings]
+        warnings += tb.warnings
+        if tb.unrepairable:
+            bad[capture] = tb.unrepairable
+    repaired = samples if stamps is None else samples.with_columns(t_ns=pl.Series(stamps, dtype=pl.Int64))
+    repaired = repaired if keep.all() else repaired.filter(pl.Series(keep))
+    return TimebaseResult(_time_ordered(repaired, captures), findings_frame(rows), tuple(warnings), bad)
+
+
+def _time_ordered(samples: pl.DataFrame, captures: list[str]) -> pl.DataFrame:
+    """Sorted by time, stably, and at equal stamps capture by capture in the
+    order of ``captures``; a table already in that order is only marked so."""
+    if len(captures) < 2:
+        return time_ordered(samples)
+    rank = pl.col("capture").replace_strict(captures, range(len(captures)), return_dtype=pl.UInt32)
+    t, r = samples["t_ns"].to_numpy(), samples.select(rank)["capture"].to_numpy()
+    if np.all((t[1:] > t[:-1]) | ((t[1:] == t[:-1]) & (r[1:] >= r[:-1]))):
+        return samples.with_columns(pl.col("t_ns").set_sorted())
+    return samples.with_columns(_rank=rank).sort("t_ns", "_rank", maintain_order=True).drop("_rank")
+
+
+def findings_frame(rows: list[dict]) -> pl.DataFrame:
+    """The ``timebase`` table."""
+    if not rows:
+        return schema("timebase").empty()
+    return conform(pl.DataFrame(rows, schema_overrides=schema("timebase").polars_schema, strict=False), "timebase")
