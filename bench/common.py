@@ -5,7 +5,7 @@ per measurement, as a ratio against a reference measured in the same run."""
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 
 def best_of(fn: Callable[[], object], repeats: int) -> float:

@@ -7,15 +7,15 @@ from __future__ import annotations
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
 from rotcal.config import load_config
-from rotcal.metrology.crosssens import matrix_intrinsic
 from rotcal.errors import RotcalError
+from rotcal.metrology.crosssens import matrix_intrinsic
 from rotcal.report.summary import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
 from rotcal.simulate.core import SimulationSpec, simulate, spec_from_toml, write_dataset
 
@@ -58,8 +58,8 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
 def run(
     dataset: Annotated[Path, typer.Argument(help="dataset directory or single capture file")],
     out_dir: Annotated[Path, typer.Option("--out", help="directory for the result tables")],
-    meta: Annotated[Optional[Path], typer.Option(help="dataset.toml kept outside the dataset")] = None,
-    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml")] = None,
+    meta: Annotated[Path | None, typer.Option(help="dataset.toml kept outside the dataset")] = None,
+    config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml")] = None,
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
@@ -68,7 +68,7 @@ def run(
     _print_outcome(run_dataset(dataset, out_dir, meta, load_config(config)), quiet)
 
 
-def _spec(config: Optional[Path], effect: list[str]) -> SimulationSpec:
+def _spec(config: Path | None, effect: list[str]) -> SimulationSpec:
     spec = spec_from_toml(config) if config else SimulationSpec()
     return spec.with_effects(*effect)
 
@@ -80,9 +80,9 @@ def simulate_cmd(
     fmt: Annotated[str, typer.Option("--format", help=FORMATS)] = "csv",
     effect: Annotated[list[str], typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = [],
     # rich reads [name] in help text as markup: the backslashes keep the table names
-    config: Annotated[Optional[Path], typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
+    config: Annotated[Path | None, typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
-    timebase: Annotated[Optional[str], typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
+    timebase: Annotated[str | None, typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
     spec = _spec(config, effect)
@@ -137,9 +137,9 @@ def main() -> None:
 def batch(
     root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
     out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
-    config: Annotated[Optional[Path], typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
-    workers: Annotated[Optional[int], typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
-    executor: Annotated[Optional[str], typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
+    config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
+    executor: Annotated[str | None, typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:

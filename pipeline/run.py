@@ -12,25 +12,25 @@ from typing import TYPE_CHECKING
 import polars as pl
 from threadpoolctl import threadpool_limits
 
-from rotcal.metrology.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
 from rotcal.combine.labelled import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
-from rotcal.config import RunConfig
-from rotcal.metrology.consistency import consistency_frame, consistency_note
-from rotcal.metrology.crosssens import cross_sensitivity_frame
-from rotcal.errors import UndeterminedError
-from rotcal.fit.segments import fit_segments, fits_frame
-from rotcal.metrology.gaitan import gaitan_frame
-from rotcal.ingest import load_dataset
 from rotcal.combine.multiposition import PoseFailure
 from rotcal.combine.poses import table_step_poses
-from rotcal.metrology.response import frequency_response_frame
-from rotcal.segment.labelled import segment_by_labels
-from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from rotcal.combine.static import StaticReduction, reduce_static
+from rotcal.config import RunConfig
+from rotcal.errors import UndeterminedError
+from rotcal.fit.segments import fit_segments, fits_frame
+from rotcal.ingest import load_dataset
+from rotcal.metrology.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
+from rotcal.metrology.consistency import consistency_frame, consistency_note
+from rotcal.metrology.crosssens import cross_sensitivity_frame
+from rotcal.metrology.gaitan import gaitan_frame
+from rotcal.metrology.response import frequency_response_frame
+from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
+from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
+from rotcal.segment.labelled import segment_by_labels
+from rotcal.segment.unlabelled import infer_segments, reduce_unreferenced
 from rotcal.tables import write_parquet
 from rotcal.timebase.check import findings_frame, repair_timebase
-from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
-from rotcal.segment.unlabelled import infer_segments, reduce_unreferenced
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis

@@ -21,7 +21,6 @@ import polars as pl
 
 from rotcal.config import RunConfig
 from rotcal.diagnose.scenarios import RANGES, draw_effect, draw_foreign
-from rotcal.model.physics import INTRINSIC
 from rotcal.run import run_dataset
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 

@@ -7,7 +7,12 @@ import polars as pl
 import pytest
 
 from rotcal.metrology.an4399 import (
-    COEFFICIENTS, apply_correction, fit_channel, fit_corrections, interpolate, temperature_polynomials,
+    COEFFICIENTS,
+    apply_correction,
+    fit_channel,
+    fit_corrections,
+    interpolate,
+    temperature_polynomials,
 )
 from rotcal.run import run_dataset
 from rotcal.tables import schema

@@ -11,8 +11,18 @@ import sys
 import time
 from pathlib import Path
 
-from batch_support import (REPO, SERIAL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables,
-                           run_cli, summary_of)
+from batch_support import (
+    REPO,
+    SERIAL,
+    assert_clean,
+    assert_same_tables,
+    config_file,
+    make_root,
+    manifest_rows,
+    result_tables,
+    run_cli,
+    summary_of,
+)
 
 from rotcal.batch.runner import run_batch
 

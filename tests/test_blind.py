@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
 from rotcal.ingest import load_dataset
+from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
 from rotcal.simulate.core import Plan, SimulationSpec, simulate
 from tests.conftest import REAL, REPO
 

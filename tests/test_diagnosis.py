@@ -12,8 +12,7 @@ import polars as pl
 import pytest
 
 from rotcal.config import DiagnosisConfig, RunConfig
-from rotcal.diagnose import STEP, catalogue, kept_per_segment, observations, _start
-from rotcal.diagnose.fitting import fit_model
+from rotcal.diagnose import STEP, _start, catalogue, kept_per_segment, observations
 from rotcal.diagnose.model import Layout, Structure, evaluate, predict
 from rotcal.diagnose.scans import step_scan_p
 from rotcal.run import run_dataset
@@ -172,11 +171,11 @@ def test_gaitan_case_centripetal_22_cm(tmp_path):
 def test_jacobian_matches_finite_differences(make_dataset):
     """Every parameter's analytic Jacobian column against central
     differences of the forward model, at a state with every effect on."""
-    from rotcal.run import run_dataset as _run  # noqa: F401
     from rotcal.combine.labelled import IntrinsicResult, combine
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
     from rotcal.ingest import load_dataset
+    from rotcal.run import run_dataset as _run  # noqa: F401
     from rotcal.segment.labelled import segment_by_labels
 
     ds = load_dataset(make_dataset(45))

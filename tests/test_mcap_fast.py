@@ -10,14 +10,13 @@ from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 from polars.testing import assert_frame_equal
 
-from rotcal.ingest import ros2_msgdefs
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
-from rotcal.ingest import mcap_fast, mcap_source
-from rotcal.simulate.mcap_writer import write_capture
+from rotcal.ingest import mcap_fast, mcap_source, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.model.physics import JOINT_SIGN
 from rotcal.simulate.core import Plan, SimulationSpec, simulate, table_messages
+from rotcal.simulate.mcap_writer import write_capture
 from tests.conftest import REAL
 
 SMALL = SimulationSpec(plan=Plan(rotation_samples=300, step_samples=5))  # 3,960 samples, two 1 MiB chunks in CDR

@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 
 from rotcal.model.physics import (
-    ANGLE_PAIRS, gravity_direction, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles,
+    ANGLE_PAIRS,
+    gravity_direction,
+    intrinsic_from_vectors,
+    rotation_matrix,
+    unit_vectors_from_angles,
 )
 
 

@@ -5,12 +5,11 @@ own annotated session."""
 import json
 
 import numpy as np
-import polars as pl
 import pytest
 
-from rotcal.ingest import load_dataset
 from rotcal.combine.multiposition import PoseFailure, pose_arrays, pose_table
 from rotcal.combine.poses import LABEL_REFERENCE, correct_poses, labelled_poses, reference_fit
+from rotcal.ingest import load_dataset
 from rotcal.segment.labelled import segment_by_labels
 from tests.conftest import REAL, REPO
 from tests.posesim import G_LOCAL, hand_placed, pose_bounds, random_directions

@@ -1,6 +1,5 @@
 """The real recordings in ../shared/data/real ingest into the canonical table."""
 
-from pathlib import Path
 
 import numpy as np
 

@@ -8,8 +8,8 @@ import pytest
 
 from rotcal.combine.labelled import combine
 from rotcal.metrology.coverage import reduce_dataset
-from rotcal.report.plot import frequency_response_png
 from rotcal.metrology.response import frequency_response_frame
+from rotcal.report.plot import frequency_response_png
 from tests.conftest import truth_of
 
 

@@ -8,9 +8,9 @@ import polars as pl
 import pytest
 
 from rotcal.config import FitConfig, load_config
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.errors import ConfigError
 from rotcal.fit.segments import design, fit_segment
+from rotcal.metrology.coverage import reduce_dataset
 from rotcal.model.physics import INTRINSIC
 from tests.conftest import truth_of
 

@@ -29,10 +29,10 @@ import socket
 import sqlite3
 import time
 import uuid
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Iterator
 
 from rotcal.errors import RotcalError
 from rotcal.tables import schema_text

@@ -20,13 +20,13 @@ import signal
 import sys
 import time
 from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Iterator
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -34,10 +34,10 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from rotcal import __version__
+from rotcal.batch.manifest import DatasetRecord, Layout, Manifest, run_lock
 from rotcal.config import BatchConfig, Limits, RunConfig
 from rotcal.errors import ConfigError, InputError, LimitError, RotcalError
 from rotcal.ingest import CAPTURE_SUFFIXES, capture_files
-from rotcal.batch.manifest import DatasetRecord, Layout, Manifest, run_lock
 from rotcal.ingest.meta import load_meta
 
 EXIT_QUARANTINE = 4
@@ -357,7 +357,7 @@ class Reporter:
     def __init__(self, console: Console | None = None):
         self.console, self.progress, self.done, self.total = console, None, 0, 0
 
-    def __enter__(self) -> "Reporter":
+    def __enter__(self) -> Reporter:
         return self
 
     def __exit__(self, *exc) -> None:

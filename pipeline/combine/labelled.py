@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.model.physics import AXES, ANGLE_PAIRS, CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
+from rotcal.model.physics import ANGLE_PAIRS, AXES, CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from rotcal.tables import conform, schema
 
 STATE = tuple(f"rho_{r}{s}" for r in CHANNELS for s in AXES) + tuple(f"O_{r}" for r in CHANNELS)

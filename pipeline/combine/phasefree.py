@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, STATE, intrinsic_jacobian
+from rotcal.combine.labelled import STATE, CombineFailure, IntrinsicResult, intrinsic_jacobian
 from rotcal.model.physics import AXES, COS_COMPONENT, SIN_COMPONENT, axis_index
 
 

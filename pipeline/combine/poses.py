@@ -27,10 +27,10 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
-from rotcal.errors import UndeterminedError
-from rotcal.fit.segments import segment_rows
-from rotcal.fit.lsq import ols
 from rotcal.combine.multiposition import PoseFailure, group_statistics, pose_arrays
+from rotcal.errors import UndeterminedError
+from rotcal.fit.lsq import ols
+from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.segment.stillness import StillnessConfig, still_intervals
 

@@ -20,8 +20,8 @@ import polars as pl
 
 from rotcal.combine.labelled import IntrinsicResult
 from rotcal.combine.multiposition import OrientationFreeFit, PoseFailure, orientation_free, pose_arrays
-from rotcal.model.physics import AXES, CHANNELS
 from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, still_poses
+from rotcal.model.physics import AXES, CHANNELS
 from rotcal.tables import conform
 
 FRAMES = {"label": "pose", "jig": "jig", "stillness": "intrinsic"}

@@ -34,7 +34,13 @@ from rotcal.diagnose.clipping import StuckValue, clip_limits, quantum, stuck_val
 from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
 from rotcal.diagnose.scans import (
-    Residuals, Unexplained, harmonic_scan, segment_scan, static_step_scan, step_scan, tone_scan,
+    Residuals,
+    Unexplained,
+    harmonic_scan,
+    segment_scan,
+    static_step_scan,
+    step_scan,
+    tone_scan,
 )
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, Motion, axis_index

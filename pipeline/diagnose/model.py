@@ -25,10 +25,17 @@ import scipy.linalg
 
 from rotcal.diagnose.candidates import Candidate, effects_from
 from rotcal.model.physics import (
-    AXES, Effects, Motion, drift_term, gravity_direction, gravity_direction_derivative, nonlinearity,
-    specific_force, true_angle, uniform_angle,
+    AXES,
+    Effects,
+    Motion,
+    drift_term,
+    gravity_direction,
+    gravity_direction_derivative,
+    nonlinearity,
+    specific_force,
+    true_angle,
+    uniform_angle,
 )
-
 
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).

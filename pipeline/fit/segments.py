@@ -25,8 +25,8 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
-from rotcal.model.physics import CHANNELS
 from rotcal.fit.sinefit4 import four_parameter_fit
+from rotcal.model.physics import CHANNELS
 from rotcal.tables import conform, schema
 
 PARAMS = ("C", "A", "B")
@@ -56,7 +56,7 @@ class SegmentFit:
         return max(self.n_samples - 3, 0) if self.status == "ok" else 0
 
     @classmethod
-    def failed(cls, segment: int, n_samples: int, reason: str, rate_hz: float) -> "SegmentFit":
+    def failed(cls, segment: int, n_samples: int, reason: str, rate_hz: float) -> SegmentFit:
         nan3 = np.full(3, np.nan)
         return cls(segment, "failed", reason, n_samples, np.full((3, 3), np.nan), np.full((9, 9), np.nan),
                    nan3, nan3, nan3, nan3, rate_hz)

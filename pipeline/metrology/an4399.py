@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
+from rotcal.combine.multiposition import pose_arrays
+from rotcal.combine.poses import references
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
-from rotcal.combine.multiposition import pose_arrays
 from rotcal.model.physics import AXES
-from rotcal.combine.poses import references
 from rotcal.tables import conform, schema
 
 COEFFICIENTS = ("W_x", "W_y", "W_z", "V", "gamma")

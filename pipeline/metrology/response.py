@@ -28,8 +28,8 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.metrology.consistency import chi2_sf
 from rotcal.combine.labelled import CombineFailure, IntrinsicResult, intrinsic_jacobian, linear_stage, rate_segments
+from rotcal.metrology.consistency import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.tables import conform, schema
 

@@ -36,11 +36,16 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.labelled import (
-    CombineFailure, IntrinsicResult, STATE, result_from_state, segment_input, units,
+    STATE,
+    CombineFailure,
+    IntrinsicResult,
+    result_from_state,
+    segment_input,
+    units,
 )
 from rotcal.fit.segments import segment_rows
-from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from rotcal.fit.sinemodel import basis, normal_equations, precision, residuals, solve
+from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from rotcal.tables import conform, schema
 
 MAX_ITERATIONS = 30

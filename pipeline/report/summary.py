@@ -7,9 +7,9 @@ import polars as pl
 from rich.table import Table
 
 from rotcal.combine.labelled import IntrinsicResult, units
-from rotcal.model.physics import INTRINSIC
 from rotcal.combine.poses import ReferenceFit
 from rotcal.combine.static import StaticReduction
+from rotcal.model.physics import INTRINSIC
 
 COVERAGE_FACTOR = 2.0
 

@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rotcal.model.physics import AXES
 from rotcal.fit.sinefit import SineFit, fit_sine
+from rotcal.model.physics import AXES
 from rotcal.segment.stillness import StillnessConfig, still_intervals
 
 

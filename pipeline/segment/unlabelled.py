@@ -22,16 +22,16 @@ import numpy as np
 import polars as pl
 from scipy.special import chdtrc
 
-from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.combine.labelled import CombineFailure, IntrinsicResult, segment_coefficients
-from rotcal.fit.segments import SegmentFit
-from rotcal.ingest.labels import canonical_rate
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free, pose_table
 from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
-from rotcal.model.physics import CHANNELS
-from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
+from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
+from rotcal.ingest.labels import canonical_rate
+from rotcal.model.physics import CHANNELS
+from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.tables import conform, schema
+from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
 
 CONSISTENCY = 1e-3  # chi-square p-value below which the components measured twice disagree
 

@@ -15,8 +15,21 @@ import polars as pl
 from rotcal import __version__
 from rotcal.errors import ConfigError
 from rotcal.model.physics import (
-    AXES, CHANNELS, INTRINSIC, AxisEffect, Dut, Effects, Motion, axis_index, intrinsic_from_vectors,
-    drift_term, noise_free_output, nonlinearity, observe, rotation_matrix, unit_vectors_from_angles,
+    AXES,
+    CHANNELS,
+    INTRINSIC,
+    AxisEffect,
+    Dut,
+    Effects,
+    Motion,
+    axis_index,
+    drift_term,
+    intrinsic_from_vectors,
+    noise_free_output,
+    nonlinearity,
+    observe,
+    rotation_matrix,
+    unit_vectors_from_angles,
 )
 from rotcal.simulate.timebase_sim import TimebaseDefects, apply_defects
 from rotcal.simulate.transitions import schedule_continuous, timeline
@@ -53,7 +66,7 @@ class Plan:
     ramp_deg_s2: float = 10.0
     reorient_s: float = 8.0
 
-    def checked(self) -> "Plan":
+    def checked(self) -> Plan:
         """The plan, or a ConfigError naming the first value no plan can have."""
         if not self.axes or any(a not in AXES for a in self.axes):
             raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
@@ -77,7 +90,7 @@ class DutSpec:
     full_scale: float = 32767.0   # 0: no limit (an output in g or m/s^2 need not have one)
     integer_output: bool = True
 
-    def checked(self) -> "DutSpec":
+    def checked(self) -> DutSpec:
         """The DUT spec, or a ConfigError naming the first value no DUT can have."""
         _require(self, "dut", not_negative=("sensitivity_spread", "angle_spread_deg", "offset_range",
                                             "misalignment_max_deg", "noise_std", "full_scale"))
@@ -115,14 +128,14 @@ class SimulationSpec:
     foreign: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
     timebase: TimebaseDefects = field(default_factory=TimebaseDefects)
 
-    def with_timebase(self, text: str) -> "SimulationSpec":
+    def with_timebase(self, text: str) -> SimulationSpec:
         """Time-base defects from ``key=value,...`` (the CLI form)."""
         return replace(self, timebase=TimebaseDefects.parse(text, self.timebase))
 
-    def with_effects(self, *specs: str) -> "SimulationSpec":
+    def with_effects(self, *specs: str) -> SimulationSpec:
         return replace(self, effects=self.effects + tuple(parse_effect(s) for s in specs))
 
-    def with_foreign(self, *specs: str) -> "SimulationSpec":
+    def with_foreign(self, *specs: str) -> SimulationSpec:
         return replace(self, foreign=self.foreign + tuple(parse_effect(s, FOREIGN_NAMES) for s in specs))
 
 

@@ -36,7 +36,7 @@ class TimebaseDefects:
         return 1.0 + self.clock_drift_ppm * 1e-6
 
     @classmethod
-    def parse(cls, text: str, base: "TimebaseDefects | None" = None) -> "TimebaseDefects":
+    def parse(cls, text: str, base: TimebaseDefects | None = None) -> TimebaseDefects:
         """``key=value,key=value`` (the CLI form) on top of ``base``."""
         known = {f.name: f.type for f in fields(cls)}
         values = asdict(base or cls())
@@ -51,7 +51,7 @@ class TimebaseDefects:
                 raise ConfigError(f"timebase: {key} = {value.strip()!r} is not a number") from None
         return cls(**values).checked()
 
-    def checked(self) -> "TimebaseDefects":
+    def checked(self) -> TimebaseDefects:
         for name in ("drop_fraction", "duplicate_fraction", "repeat_stamp_fraction"):
             if not 0.0 <= getattr(self, name) < 0.5:
                 raise ConfigError(f"timebase: {name} = {getattr(self, name)} must be in [0, 0.5)")
