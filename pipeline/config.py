@@ -132,8 +132,6 @@ def _validated(doc: dict, path: str | Path | None) -> RunConfig:
     """``doc`` (tables of keys) as a ``RunConfig``; the first fault as a one-line ``ConfigError``."""
     try:
         return RunConfig(**doc)
-    except TypeError as exc:  # not a table of keys at all
-        raise ConfigError(f"invalid configuration: {exc}", path=path) from None
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "top level"

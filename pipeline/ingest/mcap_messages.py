@@ -25,6 +25,8 @@ from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 
 @dataclass
 class MessageTopic:
+    """One channel's raw messages: log times and payloads, in file order."""
+
     schema: Schema | None
     channel: Channel
     stamps: list
