@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from rotcal.config import load_config
+from rotcal.config import load_config, with_options
 from rotcal.errors import RotcalError
 from rotcal.metrology.crosssens import matrix_intrinsic
 from rotcal.report.summary import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
@@ -60,12 +60,16 @@ def run(
     out_dir: Annotated[Path, typer.Option("--out", help="directory for the result tables")],
     meta: Annotated[Path | None, typer.Option(help="dataset.toml kept outside the dataset")] = None,
     config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, help="cores the run uses ([run] workers); 0 = every core it may run on")] = None,
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
     from rotcal.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
 
-    _print_outcome(run_dataset(dataset, out_dir, meta, load_config(config)), quiet)
+    cfg = load_config(config)
+    if workers is not None:
+        cfg = with_options(cfg, run={"workers": workers})
+    _print_outcome(run_dataset(dataset, out_dir, meta, cfg), quiet)
 
 
 def _spec(config: Path | None, effect: list[str]) -> SimulationSpec:
@@ -106,8 +110,7 @@ def demo(
     out.print(f"simulated dataset in {data}", highlight=False, markup=False)
     from rotcal.run import run_dataset
 
-    config = load_config(None)
-    config = replace(config, uncertainty=replace(config.uncertainty, monte_carlo=True))  # the demo shows every table
+    config = with_options(load_config(None), uncertainty={"monte_carlo": True})  # the demo shows every table
     _print_outcome(run_dataset(data, directory / "results", None, config))
 
 
@@ -130,7 +133,7 @@ def main() -> None:
     except RotcalError as exc:
         # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
         err.print(f"rotcal: error: {exc}", highlight=False, markup=False, soft_wrap=True)
-        sys.exit(exc.exit_code)
+        sys.exit(exc.exit_code)  # errors.ExitCode, the one table of exit statuses
 
 
 @app.command()
@@ -138,21 +141,18 @@ def batch(
     root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
     out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
     config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
-    workers: Annotated[int | None, typer.Option(min=0, help="datasets processed at once on the local pool; 0 = one per core")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, help="cores in all: datasets processed at once on the local pool, one core each; 0 = one per core")] = None,
     executor: Annotated[str | None, typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
-    import dataclasses
     import json
 
     from rotcal.batch.runner import Reporter, run_batch
 
-    cfg = load_config(config)
-    cfg = dataclasses.replace(cfg, batch=dataclasses.replace(
-        cfg.batch, workers=cfg.batch.workers if workers is None else workers, executor=executor or cfg.batch.executor),
-        report=dataclasses.replace(cfg.report, figures=figures))
+    options = {"workers": workers, "executor": executor}
+    cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})
     with Reporter(err) as reporter:
         summary = run_batch(root, out_dir, cfg, reporter)
     if json_summary:

@@ -1,4 +1,4 @@
-"""rotcal's exception hierarchy.
+"""rotcal's exception hierarchy and its exit statuses.
 
 Domain code raises these; only the CLI (and the batch runner) turns them into
 a one-line message and an exit status. Every message names the file and the
@@ -7,13 +7,40 @@ problem, and where it helps, what to do next.
 
 from __future__ import annotations
 
+from enum import IntEnum
 from pathlib import Path
+
+
+class ExitCode(IntEnum):
+    """Every exit status of the ``rotcal`` command, in one table:
+
+    ======  ==============  ==================================================
+    status  name            meaning
+    ======  ==============  ==================================================
+    0       OK              done (``rotcal batch``: every dataset published)
+    1       FAILED          an unexpected failure: a bug, or (``rotcal batch``)
+                            a dataset that failed unexpectedly, retried next run
+    2       BAD_INPUT       an input, configuration or option that is not valid
+                            (also the command line's usage errors)
+    3       UNDETERMINED    what remains after failed segments cannot
+                            determine the result
+    4       QUARANTINED     ``rotcal batch``: a dataset is in quarantine
+    5       LOCKED          ``rotcal batch``: another run holds the output lock
+    ======  ==============  ==================================================
+    """
+
+    OK = 0
+    FAILED = 1
+    BAD_INPUT = 2
+    UNDETERMINED = 3
+    QUARANTINED = 4
+    LOCKED = 5
 
 
 class RotcalError(Exception):
     """Root of every error rotcal reports to a user."""
 
-    exit_code = 1
+    exit_code = ExitCode.FAILED
 
     def __init__(self, problem: str, *, path: str | Path | None = None, hint: str | None = None):
         self.problem = " ".join(str(problem).split())
@@ -29,7 +56,7 @@ class RotcalError(Exception):
 class InputError(RotcalError):
     """A capture file or dataset.toml that cannot be read as a dataset."""
 
-    exit_code = 2
+    exit_code = ExitCode.BAD_INPUT
 
 
 class LimitError(InputError):
@@ -39,10 +66,10 @@ class LimitError(InputError):
 class ConfigError(RotcalError):
     """A run configuration or simulation request that is not valid."""
 
-    exit_code = 2
+    exit_code = ExitCode.BAD_INPUT
 
 
 class UndeterminedError(RotcalError):
     """What remains after failed segments cannot determine the result."""
 
-    exit_code = 3
+    exit_code = ExitCode.UNDETERMINED

@@ -66,7 +66,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     what remains after failed segments cannot determine any rate's result
     (the segment and fit tables, with the failure rows, are written first).
     """
-    ds = load_dataset(path, meta_path, config.limits)
+    ds = load_dataset(path, meta_path, config.limits, config.run.workers)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
@@ -76,7 +76,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     if table:
         samples, segments = inferred.samples, inferred.segments
     referenced = segments.filter(pl.col("angle_source") != "none")
-    fits = fits_frame(fit_segments(samples, referenced, config.fit, config.workers)
+    fits = fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers)
                       + (list(inferred.fits) if table else []), segments, ds.name)
     written = [write_parquet(segments, out / "segments.parquet", "segments"),
                write_parquet(fits, out / "fits.parquet", "fits"),

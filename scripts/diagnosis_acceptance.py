@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from rotcal.config import RunConfig
+from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.scenarios import RANGES, draw_effect, draw_foreign
 from rotcal.run import run_dataset
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
@@ -34,7 +34,7 @@ def case(args: tuple) -> dict:
     spec = SimulationSpec().with_effects(*effects).with_foreign(*foreign)
     data = Path(workdir) / f"{label}_{seed}"
     write_dataset(simulate(spec, seed), spec, data / "data")
-    outcome = run_dataset(data / "data", data / "out", config=RunConfig(workers=1))
+    outcome = run_dataset(data / "data", data / "out", config=RunConfig(run=RunSection(workers=1)))
     truth = json.loads((data / "data" / "truth.json").read_text())
     findings = pl.read_parquet(data / "out" / "diagnosis.parquet").filter(pl.col("detected"))
     params = pl.read_parquet(data / "out" / "effect_parameters.parquet")

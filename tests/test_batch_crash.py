@@ -38,7 +38,11 @@ def pool_workers(pid: int) -> set[int]:
     """The batch process's multiprocessing workers (not its resource tracker)."""
     found = set()
     for task in os.listdir(f"/proc/{pid}/task"):
-        for child in Path(f"/proc/{pid}/task/{task}/children").read_text().split():
+        try:
+            children = Path(f"/proc/{pid}/task/{task}/children").read_text().split()
+        except FileNotFoundError:  # the thread ended since the listing (the pool's manager thread is replaced)
+            continue
+        for child in children:
             try:
                 if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
                     found.add(int(child))

@@ -11,14 +11,14 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.config import DiagnosisConfig, RunConfig
+from rotcal.config import DiagnosisConfig, RunConfig, RunSection
 from rotcal.diagnose import STEP, _start, catalogue, kept_per_segment, observations
 from rotcal.diagnose.model import Layout, Structure, evaluate, predict
 from rotcal.diagnose.scans import step_scan_p
 from rotcal.run import run_dataset
 from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 
-ONE_WORKER = RunConfig(workers=1)
+ONE_WORKER = RunConfig(run=RunSection(workers=1))
 
 
 def _diagnose(tmp_path, seed, effects=(), foreign=(), spec=SimulationSpec(), config=ONE_WORKER):
@@ -81,7 +81,7 @@ def test_a_thinned_capture_still_names_and_measures_its_effect(tmp_path):
     """Rotations of 20,000 samples (about 250,000 in all) modelled through
     40,000 of them: the centripetal term is still named and its radius is
     within 3 u of the truth, and the run says it thinned."""
-    config = RunConfig(workers=1, diagnosis=DiagnosisConfig(max_samples=40_000))
+    config = RunConfig(run=RunSection(workers=1), diagnosis=DiagnosisConfig(max_samples=40_000))
     outcome, truth, findings, params = _diagnose(tmp_path, 42, ("centripetal:axis=x,radius_m=0.04",),
                                                  spec=SimulationSpec(plan=Plan(rotation_samples=20_000)), config=config)
     assert set(findings.filter(pl.col("detected"))["effect"]) == {"centripetal"}

@@ -5,7 +5,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.config import FitConfig, RunConfig
+from rotcal.config import FitConfig, RunConfig, RunSection
 from rotcal.fit.segments import arc_deg, design, fit_segment, linear_fit, refusal
 from rotcal.run import run_dataset
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
@@ -80,7 +80,7 @@ def test_a_segment_saturated_by_centripetal_acceleration_leaves_the_rest_of_the_
     still determined by the x and z rotations."""
     spec = SimulationSpec().with_effects("centripetal:axis=y,radius_m=5.0")
     data = write_dataset(simulate(spec, 1), spec, tmp_path / "data")
-    outcome = run_dataset(data, tmp_path / "out", config=RunConfig(workers=1))
+    outcome = run_dataset(data, tmp_path / "out", config=RunConfig(run=RunSection(workers=1)))
     assert [w for w in outcome.warnings if "stuck or saturated" in w] == [
         "segment 9 (y, 0.5 Hz): channel w holds -32768 in every sample (stuck or saturated): nothing to fit"]
     assert [r.rate_hz for r in outcome.results] == [0.0, 0.01, 0.05, 0.1, 0.5]

@@ -45,10 +45,10 @@ def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
 
 
 def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
-    from rotcal.config import RunConfig
+    from rotcal.config import RunConfig, RunSection
 
-    run_dataset(make_dataset(22), tmp_path / "one", config=RunConfig(workers=1))
-    run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(workers=4))
+    run_dataset(make_dataset(22), tmp_path / "one", config=RunConfig(run=RunSection(workers=1)))
+    run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(run=RunSection(workers=4)))
     assert _digest(tmp_path / "one") == _digest(tmp_path / "four")
 
 

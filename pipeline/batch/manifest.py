@@ -32,9 +32,10 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
+from datetime import UTC, datetime
 from pathlib import Path
 
-from rotcal.errors import RotcalError
+from rotcal.errors import ExitCode, RotcalError
 from rotcal.tables import schema_text
 
 MANIFEST_VERSION = 1
@@ -44,10 +45,15 @@ _SQL_TYPES = {"string": "TEXT", "float64": "REAL", "int64": "INTEGER"}
 RACY_NS = 2_000_000_000
 
 
+def now() -> str:
+    """The time stamps of the manifest and the batch summary: UTC, milliseconds."""
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
 class LockedError(RotcalError):
     """Another batch run holds the output directory's lock."""
 
-    exit_code = 5
+    exit_code = ExitCode.LOCKED
 
 
 @dataclass(frozen=True)

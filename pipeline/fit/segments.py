@@ -17,7 +17,6 @@ Cov = Sigma (x) (X^T X)^-1 with Sigma the residual covariance matrix.
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -27,6 +26,7 @@ import polars as pl
 from rotcal.config import FitConfig
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.model.physics import CHANNELS
+from rotcal.parallel import cores
 from rotcal.tables import conform, schema
 
 PARAMS = ("C", "A", "B")
@@ -167,10 +167,6 @@ def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, th
 THREADED_MIN_SAMPLES = 100_000
 
 
-def _workers(requested: int) -> int:
-    return requested if requested > 0 else (os.cpu_count() or 1)
-
-
 def segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
     """(first row, row count) of every segment; a segment's samples are one
     contiguous run (segments are label runs in time order)."""
@@ -181,7 +177,8 @@ def segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
 
 def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfig, workers: int = 0) -> list[SegmentFit]:
     """Fit every static and rotation segment, in parallel across segments
-    (threads, where there are enough samples to pay for them).
+    (threads, where there are enough samples to pay for them) on
+    ``parallel.cores(workers)`` cores.
 
     Each segment's columns are zero-copy slices of ``samples``, so the stage
     holds no copy of the sample table. Results come back in segment order
@@ -198,7 +195,7 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         return _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
 
     todo_rows = list(todo.iter_rows(named=True))
-    n_workers = min(_workers(workers), max(len(todo_rows), 1))
+    n_workers = min(cores(workers), max(len(todo_rows), 1))
     if n_workers == 1 or sum(rows[r["segment"]][1] for r in todo_rows) < THREADED_MIN_SAMPLES:
         return [job(row) for row in todo_rows]
     with ThreadPoolExecutor(n_workers) as pool:

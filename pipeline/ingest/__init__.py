@@ -57,22 +57,24 @@ def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec
             if not file.is_file():
                 raise InputError("capture file named in dataset.toml does not exist", path=file)
         return files
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and p.is_file())
-    if not files:
+    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and p.is_file())
+    if not found:
         raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
-    return [(f, None) for f in files]
+    return [(f, None) for f in found]
 
 
-def read_capture(file: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits) -> tuple[pl.DataFrame, tuple[str, ...]]:
+def read_capture(file: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits,
+                 workers: int = 0) -> tuple[pl.DataFrame, tuple[str, ...]]:
     """One capture and notes on it, by its suffix (``[[capture]]`` files other
-    than .mcap are CSV)."""
+    than .mcap are CSV); ``workers`` as ``parallel.cores`` reads it."""
     if file.suffix.lower() == ".mcap":
-        return read_mcap_capture(file, meta, spec, limits)
+        return read_mcap_capture(file, meta, spec, limits, workers)
     return read_csv_capture(file, meta.csv_format, spec, limits), ()
 
 
-def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Limits()) -> Dataset:
-    """Read every capture of a dataset into the canonical sample table.
+def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Limits(), workers: int = 0) -> Dataset:
+    """Read every capture of a dataset into the canonical sample table, on
+    ``parallel.cores(workers)`` cores.
 
     ``meta_path`` replaces the dataset's own ``dataset.toml`` (``--meta``).
     Captures share one clock; samples are sorted by time, stably.
@@ -86,7 +88,7 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
     root = path if path.is_dir() else path.parent
     frames, notes = [], list(meta.notes)
     for file, spec in capture_files(path, meta):
-        frame, capture_notes = read_capture(file, spec, meta, limits)
+        frame, capture_notes = read_capture(file, spec, meta, limits, workers)
         notes += capture_notes
         name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
         frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat

@@ -45,7 +45,7 @@ def label_columns(
     """
     if "t_ns" not in frame.columns:
         frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
-    back = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
+    back: list[int] | pl.Series = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
     if len(back):
         row = int(back[0])
         raise InputError(

@@ -1,6 +1,9 @@
 """ROS 2 message definitions (ros2msg text, as rosbag2 writes them into MCAP
-schemas) for the messages rotcal writes: sensor_msgs/msg/Imu and
-sensor_msgs/msg/JointState."""
+schemas) for the messages rotcal writes, and the schema names it reads:
+sensor_msgs/msg/Imu and sensor_msgs/msg/JointState."""
+
+IMU_SCHEMA = "sensor_msgs/msg/Imu"
+JOINT_SCHEMA = "sensor_msgs/msg/JointState"
 
 _SEP = "=" * 80
 

@@ -40,6 +40,7 @@ from rotcal.errors import InputError
 from rotcal.ingest.labels import time_ordered
 from rotcal.model.physics import CHANNELS
 from rotcal.tables import conform, schema
+from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, place_collisions, white_jitter
 
 
 @dataclass(frozen=True)
@@ -81,159 +82,6 @@ class CaptureTimebase:
 # with every value computed exactly as the straightforward expression would.
 # The stamps ``s`` stay int64; numpy converts them to float64 inside each
 # operation exactly as ``astype`` would.
-_BLOCK = 1 << 20  # samples a block, where the arithmetic goes a block at a time
-
-
-def _kept(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """``a[keep]``, without a copy when every row is kept."""
-    return a if keep.all() else a[keep]
-
-
-def _intervals(s: np.ndarray) -> np.ndarray:
-    """Successive intervals of the stamps, as differences of their float values."""
-    return np.subtract(s[1:], s[:-1], dtype=np.float64)
-
-
-def _grid_fit(s: np.ndarray, k: np.ndarray, run: np.ndarray) -> tuple[float, np.ndarray]:
-    """Least squares ``s = a_run + T k``: the common period and each run's offset."""
-    n_runs = int(run.max()) + 1
-    count = np.bincount(run, minlength=n_runs)
-    k_mean = np.bincount(run, k, n_runs) / count
-    s_mean = np.bincount(run, s, n_runs) / count
-    dk = k_mean[run]
-    np.subtract(k, dk, out=dk)
-    den = float(dk @ dk)
-    if den > 0:
-        ds = s_mean[run]
-        np.subtract(s, ds, out=ds)
-        period = float(dk @ ds / den)
-    else:
-        period = float(np.median(_intervals(s)))
-    return period, s_mean - period * k_mean
-
-
-def _residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> np.ndarray:
-    """The stamps' residuals from the grid, ``s - a_run - T k``, a block at a time."""
-    resid = np.empty(s.size)
-    for a in range(0, s.size, _BLOCK):
-        block = slice(a, a + _BLOCK)
-        resid[block] = s[block] - offset[run[block]] - period * k[block]
-    return resid
-
-
-def _robust_sd(x: np.ndarray) -> float:
-    """1.4826 times the median absolute deviation; ``x`` is scratch (reordered, overwritten)."""
-    if not x.size:
-        return 0.0
-    centre = np.median(x, overwrite_input=True)
-    np.subtract(x, centre, out=x)
-    np.abs(x, out=x)
-    return float(1.4826 * np.median(x, overwrite_input=True))
-
-
-def _jitter(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> float:
-    """The white part of the stamp noise: the robust sd of successive
-    residual differences within runs, over sqrt(2); the differences are
-    taken a block at a time (blocks overlap by one sample)."""
-    within = run[1:] == run[:-1]
-    steps, filled = np.empty(np.count_nonzero(within)), 0
-    for a in range(0, within.size, _BLOCK):
-        b = min(a + _BLOCK, within.size)
-        step = _kept(np.diff(_residuals(s[a : b + 1], k[a : b + 1], run[a : b + 1], period, offset)), within[a:b])
-        steps[filled : filled + step.size] = step
-        filled += step.size
-    return _robust_sd(steps) / np.sqrt(2.0)
-
-
-def _lag1(resid: np.ndarray, within: np.ndarray) -> float:
-    """Lag-1 autocorrelation of the residuals within runs (Pearson's r of
-    successive pairs, as ``np.corrcoef``), from sums over blocks of pairs:
-    no copy of the residuals. 0 for fewer than three pairs or no scatter."""
-    n = np.count_nonzero(within)
-    if n <= 2:
-        return 0.0
-
-    def pairs():
-        for a in range(0, within.size, _BLOCK):
-            w = within[a : a + _BLOCK]
-            yield resid[a : a + w.size][w], resid[a + 1 : a + 1 + w.size][w]
-
-    mean = np.zeros(2)
-    for x, y in pairs():
-        mean += x.sum() / n, y.sum() / n
-    sums = np.zeros(3)  # centred xx, yy, xy
-    for x, y in pairs():
-        x, y = x - mean[0], y - mean[1]
-        sums += x @ x, y @ y, x @ y
-    if sums[0] <= 0 or sums[1] <= 0:
-        return 0.0
-    return float(np.clip(sums[2] / np.sqrt(sums[0] * sums[1]), -1.0, 1.0))
-
-
-def _place_collisions(slot: np.ndarray, run: np.ndarray) -> np.ndarray:
-    """New slots for samples that share one. The group of m samples claiming
-    slot k fills k .. k+m-1 when exactly those slots are free (the previous
-    sample sits at k-1 and the next at k+m), or k-m+1 .. k when exactly
-    those are; only then do the empty slots say where they belong. Otherwise
-    the samples get -1 (cannot be placed). Only the groups are worked on:
-    most samples have a slot of their own."""
-    key = run.astype(np.int64) * (1 << 40) + slot
-    shared = key[1:] == key[:-1]
-    if not shared.any():
-        return slot
-    member = np.flatnonzero(np.r_[False, shared] | np.r_[shared, False])  # samples in groups of two or more
-    start = np.r_[True, key[member[1:]] != key[member[1:] - 1]]
-    group = np.cumsum(start) - 1
-    first = member[start]
-    size = np.diff(np.r_[np.flatnonzero(start), member.size])
-    pos = member - first[group]
-    prev_key = np.where(first > 0, key[np.maximum(first - 1, 0)], np.iinfo(np.int64).min)
-    after = first + size
-    next_key = np.where(after < key.size, key[np.minimum(after, key.size - 1)], np.iinfo(np.int64).max)
-    up = (next_key == key[first] + size) & (prev_key == key[first] - 1)
-    down = (prev_key == key[first] - size) & (next_key == key[first] + 1)
-    placed = slot.copy()
-    placed[member] = np.where(up[group], slot[member] + pos,
-                              np.where(down[group], slot[member] - size[group] + 1 + pos, -1))
-    return placed
-
-
-def _slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Every stamp's slot on the grid and its logging run: slots counted
-    from the intervals, runs split at every gap and joined again where the
-    next run's line continues this one's (lost packets: the phase holds);
-    then every slot re-read from the fitted lines. Returns the slots, the
-    runs, the period and each run's offset."""
-    d = _intervals(s)
-    distinct = np.r_[True, d > 0]
-    # equal stamps share a slot (a repeated stamp); any advance is at least one slot
-    steps = d / period
-    del d
-    np.rint(steps, out=steps)
-    np.maximum(steps, 1.0, out=steps)
-    steps[~distinct[1:]] = 0.0
-    run = np.zeros(s.size, np.int32)  # int32: one of the few sample-length arrays alive throughout
-    np.cumsum(steps >= 2, dtype=np.int32, out=run[1:])
-    k = np.zeros(s.size)
-    np.cumsum(steps, out=k[1:])
-    del steps
-    for _ in range(3):
-        period, offset = _grid_fit(s, k, run)
-        jitter = _jitter(s, k, run, period, offset)
-        u_offset = np.maximum(jitter, 1.0) / np.sqrt(np.maximum(np.bincount(run, distinct), 1.0))
-        slip = (offset[1:] - offset[:-1]) / period
-        whole = np.rint(slip)
-        tolerance = np.minimum(4 * np.hypot(u_offset[1:], u_offset[:-1]) + 1e-4 * period, period / 2)
-        hold = np.abs(slip - whole) * period < tolerance
-        k += np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][run]
-        run = np.r_[0, np.cumsum(~hold)].astype(np.int32)[run]
-        period, offset = _grid_fit(s, k, run)
-        k = np.empty(s.size)  # np.rint((s - offset[run]) / period), a block at a time
-        for a in range(0, s.size, _BLOCK):
-            block = slice(a, a + _BLOCK)
-            k[block] = np.rint((s[block] - offset[run[block]]) / period)
-    period, offset = _grid_fit(s, k, run)
-    return k, run, period, offset
 
 
 def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConfig = TimebaseConfig()) -> CaptureTimebase:
@@ -246,19 +94,19 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     tie = np.flatnonzero(t_ns[1:] == t_ns[:-1])  # a record can repeat only where its stamp does
     keep = np.ones(n, bool)
     keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
-    s = _kept(t_ns, keep)
-    d = _intervals(s)
+    s = kept(t_ns, keep)
+    d = intervals(s)
     if s.size < 2 or np.count_nonzero(d > 0) < d.size / 2:
         raise InputError(f"capture {capture}: the time stamps do not advance (most consecutive stamps are equal)",
                          hint="give [format] sample_rate_hz and no time column")
     first_period = float(np.median(d[d > 0], overwrite_input=True))
     del d
-    k, run, period, offset = _slots(s, first_period)
-    repeated = np.r_[False, _intervals(s) == 0]
-    jitter = _jitter(s, k, run, period, offset)
-    resid = _residuals(s, k, run, period, offset)
+    k, run, period, offset = grid_slots(s, first_period)
+    repeated = np.r_[False, intervals(s) == 0]
+    jitter = white_jitter(s, k, run, period, offset)
+    resid = grid_residuals(s, k, run, period, offset)
     within = run[1:] == run[:-1]
-    lag1 = _lag1(resid, within)
+    lag1 = lag1_within(resid, within)
     spread = float(np.std(resid))
     largest = float(max(resid.max(), -resid.min()))
     np.square(resid, out=resid)
@@ -288,7 +136,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         warnings.append(f"{capture}: {n_dup} duplicated records dropped")
 
     if regular:
-        placed = _place_collisions(slot, run)
+        placed = place_collisions(slot, run)
         unplaceable = placed < 0
         repeated |= np.r_[False, (slot[1:] == slot[:-1]) & within]
     else:
@@ -305,7 +153,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     good = ~unplaceable
     if regular:
         # the empty slots between the distinct placed slots of each run
-        p, r = _kept(placed, good), _kept(run, good)
+        p, r = kept(placed, good), kept(run, good)
         if not np.all((r[1:] > r[:-1]) | ((r[1:] == r[:-1]) & (p[1:] >= p[:-1]))):
             order = np.lexsort((p, r))
             p, r = p[order], r[order]
@@ -316,7 +164,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         gap_lengths = step[counted & (step > config.gap_min_slots)] - 1
         del p, r, step, counted
     else:
-        d = _intervals(s)
+        d = intervals(s)
         holes = np.where(within & (d > 0), np.maximum(np.rint(d / period), 1.0) - 1, 0.0)
         n_missing = int(holes.sum())
         gap_lengths = holes[holes >= config.gap_min_slots]
@@ -368,7 +216,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
             t_out = s.copy()
             t_out[moved] = np.rint(offset[run[moved]] + period * placed[moved]).astype(np.int64)
     keep[np.flatnonzero(keep)[unplaceable]] = False
-    return CaptureTimebase(keep, _kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings))
+    return CaptureTimebase(keep, kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings))
 
 
 @dataclass(frozen=True, eq=False)
@@ -387,7 +235,9 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     table is copied only as far as something changes: rows dropped only if
     some are, stamps replaced only if some moved, rows sorted only if out of
     order."""
-    rows, warnings, bad = [], [], {}
+    rows: list[dict] = []
+    warnings: list[str] = []
+    bad: dict[str, str] = {}
     captures = samples["capture"].unique(maintain_order=True).to_list()
     keep, stamps = np.ones(samples.height, bool), None
     for capture in captures:
@@ -396,11 +246,11 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
         part = part if mine is None else part.filter(pl.Series(mine))
         t = part["t_ns"].to_numpy()
         tb = check_capture(t, [part[c].to_numpy() for c in CHANNELS], capture, config)
-        at = slice(None) if mine is None else np.flatnonzero(mine)
-        keep[at] = tb.keep
-        if not np.array_equal(tb.t_ns, _kept(t, tb.keep)):
+        where = None if mine is None else np.flatnonzero(mine)
+        keep[slice(None) if where is None else where] = tb.keep
+        if not np.array_equal(tb.t_ns, kept(t, tb.keep)):
             stamps = samples["t_ns"].to_numpy().copy() if stamps is None else stamps
-            stamps[np.flatnonzero(keep) if mine is None else at[tb.keep]] = tb.t_ns
+            stamps[np.flatnonzero(keep) if where is None else where[tb.keep]] = tb.t_ns
         rows += [{"dataset": dataset, "capture": capture, **f.__dict__} for f in tb.findings]
         warnings += tb.warnings
         if tb.unrepairable:

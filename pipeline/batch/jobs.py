@@ -1,0 +1,172 @@
+"""``rotcal batch``, second step: each dataset's job (``run.run_dataset``
+into a work folder) and the executors that run jobs: in this process, on a
+local process pool, or on a Dask cluster.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import multiprocessing
+import os
+import shutil
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from rotcal import __version__
+from rotcal.batch.manifest import now
+from rotcal.batch.plan import Plan, dataset_inputs
+from rotcal.config import EXECUTOR, BatchConfig, RunConfig
+from rotcal.errors import ConfigError, RotcalError
+from rotcal.parallel import cores
+
+# -- one job, on a worker -------------------------------------------------------
+
+@dataclass(frozen=True)
+class Job:
+    dataset_path: str
+    source: str
+    work: str
+    config: RunConfig
+
+
+@dataclass(frozen=True)
+class JobResult:
+    status: str  # ok, quarantined or error
+    reason: str | None
+    tables: tuple[str, ...]
+    started_at: str
+    duration_s: float
+    rotcal_version: str = __version__
+
+
+def _write_part(table_path: Path, part_path: Path, dataset_path: str) -> None:
+    """The table with ``dataset_path`` in front (contract ``batch_combined``)."""
+    table = pq.read_table(table_path)
+    table = table.add_column(0, pa.field("dataset_path", pa.string()), pa.array([dataset_path] * table.num_rows, pa.string()))
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), b"rotcal.combined": b"batch_combined 1.0"})
+    part_path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(table, part_path, compression="zstd")
+
+
+def run_job(job: Job) -> JobResult:
+    """One dataset into ``job.work`` (``tables/`` and ``parts/``), on whatever
+    worker runs it; the folder is removed unless the result is ok."""
+    from rotcal.run import run_dataset  # the stages (scipy, the diagnosis) load on workers only
+
+    started, clock = now(), time.perf_counter()
+    work = Path(job.work)
+    try:
+        dataset_inputs(Path(job.source), job.config.limits)  # again: the worker reads the files now
+        outcome = run_dataset(Path(job.source), work / "tables", None, job.config)
+        tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
+        for path in tables:
+            _write_part(path, work / "parts" / path.name, job.dataset_path)
+        return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
+    except RotcalError as exc:
+        status, reason = "quarantined", str(exc)
+    except Exception as exc:  # a bug or the machine, not the data: retried on the next run
+        status, reason = "error", f"unexpected {type(exc).__name__} (a bug: please report it): {exc}"
+    shutil.rmtree(work, ignore_errors=True)
+    return JobResult(status, " ".join(reason.split()), (), started, time.perf_counter() - clock)
+
+
+# -- executors --------------------------------------------------------------------
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Pool worker start: end with the batch process (SIGKILL included), so
+    no orphan goes on writing after it; leave Ctrl-C to the batch process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:
+        os._exit(1)
+
+
+class _InProcess(Executor):
+    """One worker: jobs run in this process, at submission."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+
+
+class _LocalPool(Executor):
+    """Worker processes (spawned: no forked library state); a pool broken by
+    a worker's death is replaced, and the jobs it held fail as errors."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.pool = self._new()
+
+    def _new(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_die_with_parent, initargs=(os.getpid(),))
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        try:
+            return self.pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            self.pool = self._new()
+            return self.pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+@contextmanager
+def open_executor(batch: BatchConfig, jobs: int) -> Iterator[tuple[Executor, int]]:
+    """The executor of ``batch.executor`` and how many jobs it runs at once."""
+    match = EXECUTOR.fullmatch(batch.executor)
+    if match is None:  # a BatchConfig's executor is valid by construction
+        raise ConfigError(f"executor {batch.executor!r} is not 'local' or 'dask://HOST:PORT'")
+    if match.group(1) is None:
+        workers = min(cores(batch.workers), jobs)
+        executor = _InProcess() if workers == 1 else _LocalPool(workers)
+        with executor:
+            yield executor, workers
+        return
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("the dask executor needs the distributed package (pip install 'rotcal[dask]')") from None
+    address = f"tcp://{match.group(1)}"
+    try:
+        client = Client(address, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    with client:
+        yield client.get_executor(pure=False), max(1, sum(client.nthreads().values()))
+
+
+def execute(executor: Executor, workers: int, jobs: list[tuple[Plan, Job]]) -> Iterator[tuple[Plan, JobResult]]:
+    """Results as jobs finish, with at most two per worker submitted at a time."""
+    queue, running = deque(jobs), dict[Future, Plan]()
+    while queue or running:
+        while queue and len(running) < 2 * workers:
+            plan, job = queue.popleft()
+            running[executor.submit(run_job, job)] = plan
+        done, _ = wait(running, return_when=FIRST_COMPLETED)
+        for future in sorted(done, key=lambda f: running[f].found.dataset_path):
+            plan = running.pop(future)
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker died (killed, crashed, out of memory) or the cluster failed
+                result = JobResult("error", " ".join(f"the worker failed: {type(exc).__name__}: {exc}".split()), (), now(), 0.0)
+            yield plan, result
+

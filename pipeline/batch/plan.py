@@ -1,0 +1,171 @@
+"""``rotcal batch``, first step: the datasets under ROOT and the identity of
+each this run (its input files' SHA-256, the configuration the results
+depend on, the rotcal version), or why it is refused, before anything runs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from rotcal import __version__
+from rotcal.batch.manifest import Manifest
+from rotcal.config import Limits, RunConfig
+from rotcal.errors import InputError, LimitError, RotcalError
+from rotcal.ingest import CAPTURE_SUFFIXES, capture_files
+from rotcal.ingest.meta import load_meta
+
+_CLEAN_PART = re.compile(r"[A-Za-z0-9.-]+(?:_[A-Za-z0-9.-]+)*")
+
+
+# -- what the datasets are ----------------------------------------------------
+
+@dataclass(frozen=True)
+class Found:
+    """A dataset under ROOT: its path relative to ROOT (bytes that are not
+    UTF-8 shown as ``\\xNN``) and where it is."""
+
+    dataset_path: str
+    source: Path
+
+
+def printable(text: str) -> str:
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def dataset_id(dataset_path: str) -> str:
+    """A unique, file-system-safe name for ``dataset_path``.
+
+    Paths made of plain names read as themselves with ``/`` written ``__``
+    (``lab1/DUT-7`` -> ``lab1__DUT-7``); plain names hold no ``__`` and do not
+    start or end with ``_``, so this is reversible. Any other path becomes a
+    slug and a hash of the path, marked by ``~``, which plain names never
+    hold: no two paths share a name.
+    """
+    parts = dataset_path.split("/")
+    name = "__".join(parts)
+    if all(_CLEAN_PART.fullmatch(p) and not p.startswith(".") for p in parts) and len(name) <= 120:
+        return name
+    slug = re.sub(r"[^A-Za-z0-9.-]+", "_", dataset_path)[:80].lstrip(".")
+    return f"{slug}~{hashlib.sha256(dataset_path.encode()).hexdigest()[:16]}"
+
+
+def discover(root: Path, out: Path) -> list[Found]:
+    """Every dataset under ``root``, by path.
+
+    A directory holding ``dataset.toml`` is one dataset (not searched
+    further); elsewhere each capture file is a dataset of its own, and
+    subdirectories are searched. Hidden entries and ``out`` are skipped;
+    directory links are not followed (each is reported as a dataset, which
+    ``dataset_inputs`` refuses).
+    """
+    found, stack = [], [root]
+    while stack:
+        directory = stack.pop()
+        with os.scandir(directory) as it:
+            entries = [e for e in it if not e.name.startswith(".")]
+        for entry in entries:
+            path = Path(entry.path)
+            rel = printable(path.relative_to(root).as_posix())
+            if entry.is_dir(follow_symlinks=False):
+                if path == out:
+                    continue
+                if (path / "dataset.toml").is_file() or (path / "dataset.toml").is_symlink():
+                    found.append(Found(rel, path))
+                else:
+                    stack.append(path)
+            elif entry.is_symlink() and path.is_dir():
+                found.append(Found(rel, path))
+            elif path.suffix.lower() in CAPTURE_SUFFIXES:
+                found.append(Found(rel, path))
+    return sorted(found, key=lambda f: f.dataset_path)
+
+
+def _confined(file: Path, home: Path) -> None:
+    if not file.resolve().is_relative_to(home):
+        raise InputError(f"{file.name!r} is a symbolic link pointing outside the dataset directory", path=file)
+
+
+def dataset_inputs(source: Path, limits: Limits) -> list[Path]:
+    """The files the pipeline reads for a dataset (``dataset.toml`` first),
+    each checked to resolve inside the dataset's directory, before anything
+    is read but ``dataset.toml`` (itself refused above
+    ``limits.max_dataset_toml_bytes``).
+
+    Raises ``InputError`` (``LimitError``) with the reason.
+    """
+    if source.is_symlink() and source.is_dir():
+        raise InputError("a symbolic link to a directory: rotcal batch does not follow directory links", path=source)
+    if not source.is_dir():
+        _confined(source, source.parent.resolve())
+        return [source]
+    home = source.resolve()
+    toml = source / "dataset.toml"
+    _confined(toml, home)
+    if toml.stat().st_size > limits.max_dataset_toml_bytes:
+        raise LimitError(f"dataset.toml is larger than the limit of {limits.max_dataset_toml_bytes} bytes", path=toml)
+    files = [toml] + [file for file, _ in capture_files(source, load_meta(toml))]
+    for file in files:
+        _confined(file, home)
+    return files
+
+
+def _listing(source: Path) -> list[list]:
+    """Names, sizes, times and link targets under a refused dataset (no
+    content read): its refusal is reconsidered when any of them changes."""
+    if not source.is_dir() or source.is_symlink():
+        st = source.lstat()
+        return [[source.name, st.st_size, st.st_mtime_ns, os.readlink(source) if source.is_symlink() else None]]
+    rows = []
+    for directory, dirs, files in os.walk(source):
+        for name in sorted(dirs + files):
+            path = Path(directory, name)
+            st = path.lstat()
+            rows.append([path.relative_to(source).as_posix(), st.st_size, st.st_mtime_ns,
+                         os.readlink(path) if path.is_symlink() else None])
+    return sorted(rows)
+
+
+def config_json(config: RunConfig) -> str:
+    """The configuration results depend on: every table but the cores and
+    executors (``[run]``, ``[batch]``)."""
+    doc = asdict(config)
+    for key in ("run", "batch"):
+        doc.pop(key)
+    return json.dumps(doc, sort_keys=True)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A dataset's identity this run: inputs and fingerprint, or why it is refused."""
+
+    found: Found
+    dataset_id: str
+    fingerprint: str
+    inputs: str
+    refusal: str | None
+
+
+def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest) -> Plan:
+    """Hash the dataset's inputs (``manifest.digest``), or say why it is refused."""
+    try:
+        if found.dataset_path != found.source.relative_to(root).as_posix():
+            raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
+        files = dataset_inputs(found.source, config.limits)
+        inputs = [[printable(f.relative_to(root).as_posix()), manifest.digest(f)] for f in files]
+        refusal = None
+    except (RotcalError, OSError) as exc:  # OSError: unreadable, or gone since it was found
+        refusal = str(exc) if isinstance(exc, RotcalError) else \
+            str(InputError(f"cannot be read: {exc.strerror or exc}", path=printable(str(exc.filename or found.source))))
+        try:
+            inputs = [["listing", _listing(found.source)]]
+        except OSError:
+            inputs = [["listing", None]]
+    identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_json(config), "rotcal": __version__}
+    fingerprint = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
+    return Plan(found, dataset_id(found.dataset_path), fingerprint, json.dumps(inputs), refusal)
+

@@ -1,0 +1,218 @@
+"""MCAP messages of fixed layout into columns, without a Python call per
+message: ``mcap_fast`` hands over each kept channel's messages in a
+decompressed chunk, and they become columns by strided gathers:
+
+- ``sensor_msgs/msg/Imu`` in CDR whose ``frame_id`` keeps one length within
+  a chunk (``ros2_cdr.imu_layout``);
+- ``sensor_msgs/msg/JointState`` in CDR whose joint count and name lengths
+  keep one layout within a chunk (``ros2_cdr.joint_layout``);
+- JSON messages, one object each, parsed together as JSON lines by polars.
+
+Any other layout raises ``Unsupported``: the caller reads the file with the
+per-message path instead.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+import polars as pl
+from mcap.records import Channel, Schema
+
+from rotcal.ingest.ros2_cdr import CDR_LE, imu_layout, joint_layout
+from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+
+MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
+_CDR_LE = np.frombuffer(CDR_LE, np.uint8)
+
+
+class Unsupported(Exception):
+    """The file holds something this path does not decode."""
+
+
+@dataclass
+class DecodedTopic:
+    """One channel's messages as columns, in file order.
+
+    CDR channels have ``t_ns`` (header stamp, or log time where the stamp is
+    zero, contract section 2) and their fields; JSON channels ``log_ns`` and
+    ``frame``, the messages' fields as parsed.
+    """
+
+    schema: Schema | None
+    channel: Channel
+    capacity: int = 0
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    frame: pl.DataFrame | None = None
+    _filled: int = 0
+    _parts: list = field(default_factory=list, repr=False)
+
+    @property
+    def count(self) -> int:
+        return len(self.frame) if self.frame is not None else self._filled
+
+    @property
+    def kind(self) -> str:
+        if self.channel.message_encoding == "json":
+            return "json"
+        if self.channel.message_encoding == "cdr" and self.schema is not None:
+            return {IMU_SCHEMA: "imu", JOINT_SCHEMA: "joint"}.get(self.schema.name, "other")
+        return "other"
+
+    def add(self, part: dict[str, np.ndarray]) -> None:
+        """Copy one chunk's columns into the channel's arrays, allocated once
+        for all its messages (counted from the message indexes), so no
+        column is ever held twice."""
+        if not self.columns:
+            self.columns = {name: np.empty((self.capacity, *v.shape[1:]), v.dtype) for name, v in part.items()}
+        k = len(part["t_ns"])
+        for name, values in part.items():
+            column = self.columns[name]
+            if column.shape[1:] != values.shape[1:] or column.dtype != values.dtype:
+                raise Unsupported("message layout changes between chunks")
+            column[self._filled : self._filled + k] = values
+        self._filled += k
+
+    def add_json(self, log_ns: np.ndarray, lines: bytes) -> None:
+        """Keep one chunk's JSON messages (one a line), parsed together at ``finish``."""
+        self._parts.append((log_ns, lines))
+
+    def finish(self) -> None:
+        if self.kind == "json":
+            parts, self._parts = self._parts, []
+            log_ns = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+            self.frame = _parse_json_lines(b"".join(p[1] for p in parts), log_ns.size)
+            self.columns = {"log_ns": log_ns}
+            return
+        self.columns = {name: column[: self._filled] for name, column in self.columns.items()} or {"t_ns": np.zeros(0, np.int64)}
+
+    def take(self) -> dict[str, np.ndarray]:
+        """The columns, handed over: the topic keeps no reference to them."""
+        columns, self.columns = self.columns, {}
+        return columns
+
+
+def gather(raw: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """The ``width`` bytes from each start, as an (n, width) array: a strided
+    view where the starts are evenly spaced (one channel's run of messages
+    of one size), else a gather."""
+    step = int(starts[1] - starts[0]) if starts.size > 1 else 0
+    if starts.size > 1 and step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and np.all(np.diff(starts) == step):
+        view = np.lib.stride_tricks.as_strided(raw[starts[0] :], (starts.size, width), (step, 1), writeable=False)
+        return view.copy()
+    return raw[starts[:, None] + np.arange(width)]
+
+
+def _field(data: np.ndarray, offset: int, dtype: str) -> np.ndarray:
+    """Column ``offset`` of every message (rows of ``data``) as ``dtype``."""
+    width = np.dtype(dtype).itemsize
+    return np.ascontiguousarray(data[:, offset : offset + width]).view(dtype).ravel()
+
+
+def _stamp_or_log(data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
+    t_ns = _field(data, stamp_offset, "<i4").astype(np.int64) * 1_000_000_000 + _field(data, stamp_offset + 4, "<u4")
+    return np.where(t_ns == 0, log_ns, t_ns)
+
+
+def _check_cdr(data: np.ndarray) -> None:
+    if np.any(data[:, :4] != _CDR_LE):
+        raise Unsupported("CDR messages in another byte order")
+
+
+def _decode_imu(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """Imu messages of one size (rows of ``data``) into columns."""
+    lay = imu_layout(int(_field(data[:1], 12, "<u4")[0]))
+    _check_cdr(data)
+    if data.shape[1] != lay.size or np.any(_field(data, 12, "<u4") != lay.frame_id_len):
+        raise Unsupported("Imu frame_id of varying length")
+    acc = np.ascontiguousarray(data[:, lay.linear_acceleration : lay.linear_acceleration + 24]).view("<f8")
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+
+
+def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
+    """(frame_id length, name lengths, velocity count, effort count) of one
+    JointState message, read field by field (once per chunk)."""
+    body = memoryview(message)[4:]
+    frame_len = struct.unpack_from("<I", body, 8)[0]
+    off = (12 + frame_len + 3) // 4 * 4
+    n = struct.unpack_from("<I", body, off)[0]
+    off += 4
+    lens = []
+    for _ in range(n):
+        lens.append(struct.unpack_from("<I", body, off)[0])
+        off = (off + 4 + lens[-1] + 3) // 4 * 4
+    counts = []
+    for _ in range(3):
+        counts.append(struct.unpack_from("<I", body, off)[0])
+        start = (off + 4 + 7) // 8 * 8 if counts[-1] else off + 4
+        off = start + 8 * counts[-1]
+    if counts[0] != n or counts[1] not in (0, n) or min(lens, default=0) < 2:
+        raise Unsupported("JointState with unnamed joints, or position or velocity counts other than its joint count")
+    return frame_len, tuple(lens), counts[1], counts[2]
+
+
+def _decode_joint(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """JointState messages of one size (rows of ``data``) into columns."""
+    try:
+        shape = _joint_shape(data[0].tobytes())
+    except struct.error:
+        raise Unsupported("JointState message shorter than its fields") from None
+    lay = joint_layout(*shape)
+    _check_cdr(data)
+    if data.shape[1] != lay.size or any(np.any(_field(data, o, "<u4") != v) for o, v in lay.counts):
+        raise Unsupported("JointState messages of varying layout")
+    n, n_vel = len(lay.names), shape[2]
+    names = np.column_stack([_field(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
+    position = np.ascontiguousarray(data[:, lay.position : lay.position + 8 * n]).view("<f8")
+    velocity = np.ascontiguousarray(data[:, lay.velocity : lay.velocity + 8 * n_vel]).view("<f8").reshape(-1, n_vel)
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
+
+
+def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
+    """The messages' bytes, one per line."""
+    total = int(sizes.sum())
+    out_start = np.cumsum(sizes + 1) - (sizes + 1)
+    src = np.repeat(data - out_start, sizes + 1) + np.arange(total + sizes.size)
+    newline = out_start + sizes
+    src[newline] = 0
+    out = raw[src]
+    if np.count_nonzero(out == 10):  # a message spans lines: not one object per line
+        raise Unsupported("JSON message with a line break")
+    out[newline] = 10
+    return out.tobytes()
+
+
+def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
+    if n == 0:
+        return pl.DataFrame()
+    try:
+        frame = pl.read_ndjson(io.BytesIO(text), infer_schema_length=None)
+    except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
+        raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
+    if frame.height != n or any(not (d.is_numeric() or d in (pl.Null, pl.String)) for d in frame.dtypes):
+        raise Unsupported("JSON messages other than flat objects")
+    return frame
+
+
+def decode_messages(topic: DecodedTopic, raw: np.ndarray, offsets: np.ndarray, channel_id: int) -> None:
+    """Add the messages of one channel at ``offsets`` in a decompressed
+    chunk ``raw`` (each a complete record, by ``mcap_fast``) to ``topic``."""
+    sizes = gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) + 9
+    if topic.kind == "json":
+        head = gather(raw, offsets, MESSAGE_HEADER)
+    elif np.all(sizes == sizes[0]):  # fixed layout: each record copied once, fields are its columns
+        head = gather(raw, offsets, int(sizes[0]))
+    else:
+        raise Unsupported("CDR messages of varying size")
+    if np.any(_field(head, 9, "<u2") != channel_id):
+        raise Unsupported("message index of another channel")
+    log_ns = _field(head, 15, "<i8")
+    if topic.kind == "json":
+        topic.add_json(log_ns, _json_lines(raw, offsets + MESSAGE_HEADER, sizes - MESSAGE_HEADER))
+    elif topic.kind == "imu":
+        topic.add(_decode_imu(head[:, MESSAGE_HEADER:], log_ns))
+    else:
+        topic.add(_decode_joint(head[:, MESSAGE_HEADER:], log_ns))
