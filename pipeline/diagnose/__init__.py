@@ -29,8 +29,8 @@ from scipy.stats import chi2
 
 from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
 from rotcal.config import DiagnosisConfig
-from rotcal.diagnose.candidates import STEP, Candidate, catalogue, report_parameters
-from rotcal.diagnose.clipping import StuckValue, clip_limits, quantum, stuck_values
+from rotcal.diagnose.candidates import STEP, testable
+from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
 from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
 from rotcal.diagnose.scans import (
@@ -43,11 +43,10 @@ from rotcal.diagnose.scans import (
     tone_scan,
 )
 from rotcal.fit.segments import segment_rows
-from rotcal.model.physics import AXES, CHANNELS, Motion, axis_index
+from rotcal.model.effects import LimitEffect, listed
+from rotcal.model.effects.base import Candidate
+from rotcal.model.physics import AXES, CHANNELS, Motion
 from rotcal.tables import conform, schema
-
-EFFECTS = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
-           "rate_error", "rate_ripple", "axis_tilt", "offset_drift")
 
 
 @dataclass(frozen=True, eq=False)
@@ -306,7 +305,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     m = obs.motion
     rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
     all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
-    cands = catalogue(rotating_axes, all_axes, angles_measured)
+    cands = testable(rotating_axes, all_axes, angles_measured)
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
     null = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
@@ -323,16 +322,16 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
 
     rows, params, before = [], [], {}
-    for effect in EFFECTS:
-        if effect == "clipping":
-            row, par = clipping_rows(final, clip, evidence, q, alpha, dataset, output_unit)
+    for effect in listed():   # one row per catalogue effect, in effects.md's order
+        if isinstance(effect, LimitEffect):   # tested by its stuck samples, not by a model extension
+            row, par = clipping_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
             if row["detected"]:
                 unclipped = predict(obs, final.beta, layout, final.active, (None, None), final.structure)
-                before[effect] = obs.y - unclipped
+                before[effect.name] = obs.y - unclipped
         else:
-            row, par, reduced = catalogue_rows(final, cands, effect, alpha, dataset, output_unit)
+            row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit)
             if reduced is not None:
-                before[effect] = reduced.ev.resid
+                before[effect.name] = reduced.ev.resid
         rows.append(row)
         params += par
     step = step_row(final, dataset, output_unit)
