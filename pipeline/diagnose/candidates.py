@@ -20,7 +20,7 @@ from rotcal.model.effects.base import Candidate, ReportedParameter, scope_rank
 STEP = Candidate("unexplained", "step", tuple(f"step_{c}" for c in CHANNELS), ((0,), (1,), (2,)))
 
 
-def testable(rotating_axes: tuple[str, ...], all_axes: tuple[str, ...], angles_measured: bool) -> tuple[Candidate, ...]:
+def extensions(rotating_axes: tuple[str, ...], all_axes: tuple[str, ...], angles_measured: bool) -> tuple[Candidate, ...]:
     """Every catalogue extension testable on a dataset with these segments,
     in the order of the model's parameters (each effect's ``slot``)."""
     cands = [(e, c) for e in catalogue() for c in e.candidates(rotating_axes, all_axes, angles_measured)]

@@ -26,7 +26,7 @@ import scipy.linalg
 
 from rotcal.diagnose.candidates import STEP, effects_from
 from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, catalogue, effect_named
-from rotcal.model.effects.base import Candidate
+from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
     Effects,
     Motion,
@@ -294,7 +294,7 @@ class _Factors:
             self.cache[key] = make()
         return self.cache[key]
 
-    def gain_column(self, effect: GainEffect, st: ChannelState) -> np.ndarray:
+    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
         """d output / d k of a gain effect: y times d f / d k and the other
         gain factors, in the forward model's order."""
         out = st.y

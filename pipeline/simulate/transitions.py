@@ -161,7 +161,7 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
     label_rate = np.full(n, np.nan)
     label_angle = np.full(n, np.nan)
     plan_segment = np.full(n, -1)
-    end_direction = None
+    end_direction = np.zeros(3)  # every phase sets it; the first phase is never a reorientation
     for k, p in enumerate(phases):
         on = which == k
         tau_s = t_s[on] - p.t0_s

@@ -36,8 +36,9 @@ E = TypeVar("E", bound=Effect)
 
 
 def _discover() -> list[Effect]:
-    """Every module of this package but ``base`` defines one ``EFFECT``."""
-    return [importlib.import_module(f"{__name__}.{m.name}").EFFECT for m in pkgutil.iter_modules(__path__) if m.name != "base"]
+    """Every module of this package but ``base`` (and ``__main__``) defines one ``EFFECT``."""
+    return [importlib.import_module(f"{__name__}.{m.name}").EFFECT for m in pkgutil.iter_modules(__path__)
+            if m.name != "base" and not m.name.startswith("_")]
 
 
 _REGISTRY: list[Effect] = []
@@ -86,6 +87,17 @@ def effect_named(name: str) -> Effect:
     raise ConfigError(f"unknown effect {name!r}; known: {', '.join(names())}")
 
 
+def table() -> str:
+    """The catalogue as a Markdown table (``python -m rotcal.model.effects``):
+    each effect's physics, parameters with units, and the sizes to test on
+    the default plan."""
+    rows = ["| effect | physics and model | parameters (unit) | sizes to test |", "|---|---|---|---|"]
+    for e in listed():
+        params = "; ".join(f"`{p.name}` ({p.unit}): {p.meaning}" for p in e.parameters)
+        rows.append(f"| `{e.name}` | {e.physics} | {params} | {e.size_of}: {e.sizes[0]:g} to {e.sizes[1]:g} |")
+    return "\n".join(rows) + "\n"
+
+
 @dataclass(frozen=True, eq=False)
 class Effects:
     """The effects switched on, by name, with their states; none is the
@@ -125,4 +137,4 @@ class Effects:
 
 
 __all__ = ["AngleEffect", "Effect", "Effects", "ForceEffect", "GainEffect", "LimitEffect", "OffsetEffect",
-           "SamplingEffect", "catalogue", "effect_named", "listed", "names", "register", "registered"]
+           "SamplingEffect", "catalogue", "effect_named", "listed", "names", "register", "registered", "table"]

@@ -74,15 +74,24 @@ class Channel(Protocol):
     """One channel's model quantities at the current estimate, per sample
     (``rotcal.diagnose.model.ChannelState``): what a Jacobian column is made of."""
 
-    r: int
-    R_row: np.ndarray      # the channel's responsivity row, (n, 3), output unit per g
-    y: np.ndarray          # offset-free linear output
-    u: np.ndarray          # y / x1g
-    slope: np.ndarray      # d output / d y
-    d_theta: np.ndarray    # d output / d theta, per degree
-    theta: np.ndarray      # true angle at the channel's sampling instant
-    base: np.ndarray       # the rotating samples' uniform angle (before ripple)
-    stretch: np.ndarray    # d theta / d base
+    @property
+    def r(self) -> int: ...
+    @property
+    def R_row(self) -> np.ndarray: ...     # the channel's responsivity row, (n, 3), output unit per g
+    @property
+    def y(self) -> np.ndarray: ...         # offset-free linear output
+    @property
+    def u(self) -> np.ndarray: ...         # y / x1g
+    @property
+    def slope(self) -> np.ndarray: ...     # d output / d y
+    @property
+    def d_theta(self) -> np.ndarray: ...   # d output / d theta, per degree
+    @property
+    def theta(self) -> np.ndarray: ...     # true angle at the channel's sampling instant
+    @property
+    def base(self) -> np.ndarray: ...      # the rotating samples' uniform angle (before ripple)
+    @property
+    def stretch(self) -> np.ndarray: ...   # d theta / d base
 
 
 class ColumnContext(Protocol):
@@ -132,7 +141,7 @@ class Effect:
         return dict(params)
 
     def need_axis(self, params: dict) -> str:
-        axis = params.get("axis")
+        axis = str(params.get("axis"))
         if axis not in AXES:
             raise ConfigError(f"effect {self.name} needs axis=x, y or z")
         return axis
