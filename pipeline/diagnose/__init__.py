@@ -290,7 +290,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
              g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig) -> Diagnosis | None:
     """Diagnose one dataset from its samples, segments, fits and baseline
     results; None when it has no fitted table segments."""
-    from rotcal.diagnose.findings import catalogue_rows, clipping_rows, scan_row, step_row
+    from rotcal.diagnose.findings import catalogue_rows, limit_rows, scan_row, step_row
 
     results = tuple(sorted(results, key=lambda r: (abs(r.rate_hz), r.rate_hz)))
     if not results:
@@ -321,7 +321,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in effects.md's order
         if isinstance(effect, LimitEffect):   # tested by its stuck samples, not by a model extension
-            row, par = clipping_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
+            row, par = limit_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
             if row["detected"]:
                 unclipped = predict(obs, final.beta, layout, final.active, (None, None), final.structure)
                 before[effect.name] = obs.y - unclipped

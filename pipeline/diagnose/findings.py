@@ -70,7 +70,7 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
     return _row(dataset, effect, True, _where(found), evidence, reduced.rms, final.rms, own, p), rows, reduced
 
 
-def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alpha: float,
+def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alpha: float,
                   dataset: str, output_unit: str, effect: str) -> tuple[dict, list[dict]]:
     """The row of a limit ``effect`` (clipping): the model with and without
     the limits, on every sample."""

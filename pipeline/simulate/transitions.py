@@ -10,9 +10,9 @@ acceleration) into the next axis's starting orientation (contract section 1).
 
 Angles are continuous through every transition. The plan's segments keep
 their commanded angle labels; transitions carry none. The true rate (the
-angle effects' rate factor, e.g. ``rate_error``) is
-folded in so that the true angle stays continuous (effects.md: the commanded
-angle becomes the true angle within a rotation segment).
+angle effects' rate factor, e.g. ``rate_error``) is folded in so that the
+true angle stays continuous (effects.md: the commanded angle becomes the
+true angle within a rotation segment).
 """
 
 from __future__ import annotations
