@@ -4,7 +4,7 @@ refined against baseline, unexplained structures, and the Gaitan 2021 case.
 
     python scripts/diagnosis_acceptance.py [--seeds 10] [--clean 20] [--workers 2] [--out DIR]
 
-Sizes are drawn across the ranges of effects.md (rotcal.diagnose.scenarios).
+Sizes are drawn across the ranges of effects.md (each catalogue effect's ``sizes``, rotcal.diagnose.scenarios).
 Prints a Markdown report (the tables in docs/measured.md come from it).
 """
 
@@ -20,7 +20,8 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import RunConfig, RunSection
-from rotcal.diagnose.scenarios import RANGES, draw_effect, draw_foreign
+from rotcal.diagnose.scenarios import draw_effect, draw_foreign
+from rotcal.model.effects import names
 from rotcal.run import run_dataset
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
@@ -34,7 +35,7 @@ def case(args: tuple) -> dict:
     spec = SimulationSpec().with_effects(*effects).with_foreign(*foreign)
     data = Path(workdir) / f"{label}_{seed}"
     write_dataset(simulate(spec, seed), spec, data / "data")
-    outcome = run_dataset(data / "data", data / "out", config=RunConfig(run=RunSection(workers=1)))
+    run_dataset(data / "data", data / "out", config=RunConfig(run=RunSection(workers=1)))
     truth = json.loads((data / "data" / "truth.json").read_text())
     findings = pl.read_parquet(data / "out" / "diagnosis.parquet").filter(pl.col("detected"))
     params = pl.read_parquet(data / "out" / "effect_parameters.parquet")
@@ -96,7 +97,7 @@ def twin_z(result: dict, workdir: str) -> list[tuple]:
 
 def scenarios(n_seeds: int, n_clean: int, workdir: str) -> list[tuple]:
     jobs = [("clean", 1000 + s, (), (), workdir) for s in range(n_clean)]
-    for k, name in enumerate(RANGES):
+    for k, name in enumerate(names()):
         for s in range(n_seeds):
             rng = np.random.default_rng([k, s])
             jobs.append((name, 2000 + 100 * k + s, (draw_effect(name, rng),), (), workdir))

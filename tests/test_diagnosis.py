@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from rotcal.config import DiagnosisConfig, RunConfig, RunSection
-from rotcal.diagnose import STEP, _start, catalogue, kept_per_segment, observations
+from rotcal.diagnose import STEP, _start, extensions, kept_per_segment, observations
 from rotcal.diagnose.model import Layout, Structure, evaluate, predict
 from rotcal.diagnose.scans import step_scan_p
 from rotcal.run import run_dataset
@@ -62,7 +62,7 @@ def test_each_catalogue_effect_is_found_named_and_measured(tmp_path, name, spec,
     named = set(findings.filter(pl.col("detected"))["effect"])
     assert named == {name}
     truth_params = truth["effects"][0]["parameters"]
-    for parameter, value in {**truth_params, **expected}.items():
+    for parameter in {**truth_params, **expected}:
         row = params.filter(pl.col("parameter") == parameter)
         assert row.height == 1, parameter
         u = max(row["std_uncertainty"][0], 1.0) if name == "clipping" else row["std_uncertainty"][0]
@@ -116,7 +116,8 @@ def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
 def test_axis_tilt_is_reported_within_half_a_turn(fitted, reported):
     """The model holds the tilt through its sine and cosine, so the fit may
     settle whole turns away; effect_parameters said tilt_deg = 715."""
-    from rotcal.diagnose.candidates import Candidate, report_parameters
+    from rotcal.diagnose.candidates import report_parameters
+    from rotcal.model.effects.base import Candidate
 
     (param,) = report_parameters(Candidate("axis_tilt", "x", ("tilt.x_deg",), ((0, 1, 2),)), np.array([fitted]),
                                  np.array([[1e-6]]), "bit")
@@ -184,7 +185,7 @@ def test_jacobian_matches_finite_differences(make_dataset):
     results = [r for r in combine(fits, ds.meta.g_local, 0.0) if isinstance(r, IntrinsicResult)]
     results.sort(key=lambda r: r.rate_hz)
     obs, _, _ = observations(samples, segments, fits, [r.rate_hz for r in results], ds.meta.g_local, 10**9)
-    cands = catalogue(("x", "y", "z"), ("x", "y", "z"), False)
+    cands = extensions(("x", "y", "z"), ("x", "y", "z"), False)
     layout = Layout(len(results), cands + (STEP,))
     beta = _start(layout, results)
     rng = np.random.default_rng(0)

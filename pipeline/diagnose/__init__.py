@@ -29,8 +29,8 @@ from scipy.stats import chi2
 
 from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
 from rotcal.config import DiagnosisConfig
-from rotcal.diagnose.candidates import STEP, Candidate, catalogue, report_parameters
-from rotcal.diagnose.clipping import StuckValue, clip_limits, quantum, stuck_values
+from rotcal.diagnose.candidates import STEP, extensions
+from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
 from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
 from rotcal.diagnose.scans import (
@@ -43,26 +43,23 @@ from rotcal.diagnose.scans import (
     tone_scan,
 )
 from rotcal.fit.segments import segment_rows
-from rotcal.model.physics import AXES, CHANNELS, Motion, axis_index
+from rotcal.model.effects import LimitEffect, listed
+from rotcal.model.effects.base import Candidate
+from rotcal.model.physics import AXES, CHANNELS, Motion
 from rotcal.tables import conform, schema
-
-EFFECTS = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
-           "rate_error", "rate_ripple", "axis_tilt", "offset_drift")
 
 
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
     """The diagnosis of one dataset: the findings and effect-parameter tables,
-    the refined intrinsic results, and the null and final fits (for the
-    report)."""
+    the refined intrinsic results, and the final fit with, per finding, the
+    residuals of the model without it (for the report)."""
 
     findings: pl.DataFrame
     parameters: pl.DataFrame
     refined: tuple[IntrinsicResult, ...]
-    null: ModelFit
     final: ModelFit
     before: dict[str, np.ndarray]   # finding -> residuals of the model without it
-    step_id: np.ndarray
     samples_available: int          # in the fitted segments; the model's are ``final.obs.n``
 
 
@@ -115,7 +112,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
         theta0_deg=frame["theta0"].to_numpy(),
         t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
         rate_hz=frame["rate_hz"].to_numpy(),
-        t0_s=int(samples["t_ns"].min()) / 1e9,
+        t0_s=int(samples["t_ns"].to_numpy().min()) / 1e9,
     )
     obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
                        np.array(rates), frame["segment"].to_numpy(), g_local)
@@ -293,7 +290,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
              g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig) -> Diagnosis | None:
     """Diagnose one dataset from its samples, segments, fits and baseline
     results; None when it has no fitted table segments."""
-    from rotcal.diagnose.findings import catalogue_rows, clipping_rows, scan_row, step_row
+    from rotcal.diagnose.findings import catalogue_rows, limit_rows, scan_row, step_row
 
     results = tuple(sorted(results, key=lambda r: (abs(r.rate_hz), r.rate_hz)))
     if not results:
@@ -306,15 +303,14 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     m = obs.motion
     rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
     all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
-    cands = catalogue(rotating_axes, all_axes, angles_measured)
+    cands = extensions(rotating_axes, all_axes, angles_measured)
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
-    null = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
-                     np.ones_like(obs.y, bool))
+    fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
+                    np.ones_like(obs.y, bool))
     q = quantum(obs.y)
     evidence = stuck_values(obs.y, q)
     clip = clip_limits(evidence, alpha)
-    fit = null
     if any(v is not None for v in clip):
         for _ in range(2):
             fit = fit_model(obs, layout, fit.beta, fit.active, clip, fit.structure, _clip_mask(fit, clip))
@@ -323,16 +319,16 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
 
     rows, params, before = [], [], {}
-    for effect in EFFECTS:
-        if effect == "clipping":
-            row, par = clipping_rows(final, clip, evidence, q, alpha, dataset, output_unit)
+    for effect in listed():   # one row per catalogue effect, in effects.md's order
+        if isinstance(effect, LimitEffect):   # tested by its stuck samples, not by a model extension
+            row, par = limit_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
             if row["detected"]:
                 unclipped = predict(obs, final.beta, layout, final.active, (None, None), final.structure)
-                before[effect] = obs.y - unclipped
+                before[effect.name] = obs.y - unclipped
         else:
-            row, par, reduced = catalogue_rows(final, cands, effect, alpha, dataset, output_unit)
+            row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit)
             if reduced is not None:
-                before[effect] = reduced.ev.resid
+                before[effect.name] = reduced.ev.resid
         rows.append(row)
         params += par
     step = step_row(final, dataset, output_unit)
@@ -349,4 +345,4 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     findings = conform(pl.DataFrame(rows, schema=schema("diagnosis").polars_schema), "diagnosis")
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
-    return Diagnosis(findings, parameters, refined, null, final, before, step_id, n_all)
+    return Diagnosis(findings, parameters, refined, final, before, n_all)

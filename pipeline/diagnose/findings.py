@@ -7,27 +7,18 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from rotcal.diagnose.candidates import STEP, Candidate, report_parameters
+from rotcal.diagnose.candidates import STEP, report_parameters
 from rotcal.diagnose.clipping import StuckValue
 from rotcal.diagnose.fitting import ModelFit, bic, score, without
 from rotcal.diagnose.model import predict
 from rotcal.diagnose.scans import Unexplained, _fmt
+from rotcal.model.effects import effect_named
+from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES
-
-SCOPE_WORDS = {
-    "centripetal": "axis {s} rotation segments",
-    "rate_ripple": "axis {s} rotation segments",
-    "axis_tilt": "axis {s} segments (static and rotation)",
-    "cubic_nonlinearity": "channel {s}, all segments",
-    "quadratic_nonlinearity": "channel {s}, all segments",
-    "offset_drift": "channel {s}, whole recording",
-    "channel_delay": "channel {s}, rotation segments",
-    "rate_error": "all rotation segments",
-}
 
 
 def _where(cands: list[Candidate]) -> str:
-    return "; ".join(SCOPE_WORDS[c.effect].format(s=c.scope) for c in cands)
+    return "; ".join(effect_named(c.effect).where.format(s=c.scope) for c in cands)
 
 
 def _param_text(params) -> str:
@@ -79,9 +70,10 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
     return _row(dataset, effect, True, _where(found), evidence, reduced.rms, final.rms, own, p), rows, reduced
 
 
-def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alpha: float,
-                  dataset: str, output_unit: str) -> tuple[dict, list[dict]]:
-    """Clipping's row: the model with and without the limits, on every sample."""
+def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alpha: float,
+                  dataset: str, output_unit: str, effect: str) -> tuple[dict, list[dict]]:
+    """The row of a limit ``effect`` (clipping): the model with and without
+    the limits, on every sample."""
     obs = final.obs
     k = sum(v is not None for v in clip)
     clipped = obs.y - final.ev.pred
@@ -94,7 +86,7 @@ def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, a
     strongest = min(evidence, key=lambda e: e.p_value)
     p = min(1.0, strongest.p_value * len(evidence))
     if not k:
-        return _row(dataset, "clipping", False, "tested: every channel's extremes",
+        return _row(dataset, effect, False, "tested: every channel's extremes",
                     f"not detected: no extreme value is repeated beyond chance (largest run {strongest.count} samples at "
                     f"{strongest.value:g} in channel {strongest.channel}; p = {_fmt(p)})",
                     rms(rss_before), rms(rss_before), float(k * np.log(3 * obs.n)), p), []
@@ -107,11 +99,11 @@ def clipping_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, a
         where.append(f"channels {', '.join(e.channel for e in hits)} at {limit:g} {output_unit} ({100 * share:.2g} % of samples)")
         detail.append(", ".join(f"{e.count} samples of {e.channel} at {limit:g} against {e.neighbour_count} one step inside"
                                 for e in hits))
-        params.append({"dataset": dataset, "effect": "clipping", "axis": "", "parameter": f"clip_{side}",
+        params.append({"dataset": dataset, "effect": effect, "axis": "", "parameter": f"clip_{side}",
                        "value": limit, "std_uncertainty": q, "unit": output_unit})
     evidence_text = (f"runs of samples stuck at the extremes: {'; '.join(detail)} (binomial p = {_fmt(p)}); "
                      f"samples the limit can have touched are left out of every fit")
-    return _row(dataset, "clipping", True, "; ".join(where), evidence_text, rms(rss_before), rms(rss_after), dbic, p), params
+    return _row(dataset, effect, True, "; ".join(where), evidence_text, rms(rss_before), rms(rss_after), dbic, p), params
 
 
 def step_row(final: ModelFit, dataset: str, output_unit: str) -> tuple[dict, ModelFit] | None:

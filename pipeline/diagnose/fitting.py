@@ -11,7 +11,7 @@ per-channel residual sums of squares.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2
@@ -123,7 +123,7 @@ def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = N
     idx = np.union1d(fit.idx, extra)
     step, _ = solve(G, b, idx)
     # the optimum's own gradient is ~0: the decrease is the extension's share
-    base_step, base_dec = solve(G, b, fit.idx)
+    _, base_dec = solve(G, b, fit.idx)
     dchi = max(float(b[idx] @ step) - base_dec, 0.0)
     rss = np.maximum(rss_after(ev, step, idx), 1e-300)
     k = extra.size + extra_params
@@ -157,6 +157,3 @@ def without(fit: ModelFit, drop: tuple[Candidate, ...]) -> ModelFit:
     structure = fit.structure if any(c.key == "unexplained@step" for c in active) else Structure()
     return fit_model(fit.obs, fit.layout, fit.beta, active, fit.clip, structure, fit.use)
 
-
-def with_structure(fit: ModelFit, structure: Structure) -> ModelFit:
-    return replace(fit, structure=structure)

@@ -7,7 +7,8 @@ a responsivity matrix R_f (rows u, v, w, output unit per g) and offsets O_f,
 
 with a from contract section 1. Extensions (``candidates``) add the effects
 of effects.md through the same forward model the simulator uses
-(``physics.specific_force``, ``nonlinearity``, ``drift_term``), and generic
+(``physics.specific_force``, ``nonlinearity``, ``offset_terms``); each
+effect of the catalogue supplies its own Jacobian column. Generic
 structures (an offset step). Every parameter, enabled or not, has an
 analytic Jacobian column at the current estimate; one weighted Gram matrix
 then gives the Gauss-Newton step of any subset of parameters, and so the
@@ -23,15 +24,15 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg
 
-from rotcal.diagnose.candidates import Candidate, effects_from
+from rotcal.diagnose.candidates import STEP, effects_from
+from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, catalogue, effect_named
+from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
-    AXES,
     Effects,
     Motion,
-    drift_term,
-    gravity_direction,
     gravity_direction_derivative,
     nonlinearity,
+    offset_terms,
     specific_force,
     true_angle,
     uniform_angle,
@@ -189,7 +190,8 @@ class Geometry:
 
 @dataclass(frozen=True, eq=False)
 class ChannelState:
-    """One channel's model quantities at the current estimate (per sample)."""
+    """One channel's model quantities at the current estimate (per sample);
+    the ``rotcal.model.effects.base.Channel`` the effects' columns read."""
 
     r: int
     geo: Geometry
@@ -197,42 +199,61 @@ class ChannelState:
     x1g: np.ndarray        # |R_row|: the output swing for 1 g
     y: np.ndarray          # offset-free linear output
     u: np.ndarray          # y / x1g
-    slope: np.ndarray      # d output / d y (the nonlinearity's chain factor)
+    slope: np.ndarray      # d output / d y (the gain effects' chain factor)
     d_theta: np.ndarray    # d output / d theta, per degree
+
+    @property
+    def theta(self) -> np.ndarray:
+        return self.geo.theta
+
+    @property
+    def base(self) -> np.ndarray:
+        return self.geo.base
+
+    @property
+    def stretch(self) -> np.ndarray:
+        return self.geo.stretch
 
 
 def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
     m, g = obs.motion, obs.g_local
-    tilt = np.ones(obs.n)
-    for ax, (tilt_deg,) in effects.per_axis("axis_tilt").items():
-        tilt[m.axis_idx == ax] = np.cos(np.deg2rad(tilt_deg))
+    scale = np.ones(obs.n)   # of d force / d theta (an axis tilt shrinks the rotating part)
+    for force_effect, state in effects.active(ForceEffect):
+        factor = force_effect.angle_scale(state, m)
+        if factor is not None:
+            scale = scale * factor
     out = {}
     rot = np.flatnonzero(m.rotating)
-    for delay in sorted(set(effects.delay_s)):
+    for delay in sorted(set(effects.delays())):
         theta = true_angle(m, effects, delay)
         base = uniform_angle(m, effects, delay)
         stretch = np.ones(obs.n)
-        for ax, (amp, phase) in effects.per_axis("rate_ripple").items():
-            on = m.axis_idx[rot] == ax
-            stretch[rot[on]] += np.deg2rad(amp) * np.cos(np.deg2rad(base[on] + phase))
+        for angle_effect, state in effects.active(AngleEffect):
+            slope = angle_effect.angle_slope(state, m, base)
+            if slope is not None:
+                stretch[rot] += slope
         out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
-                              gravity_direction_derivative(m.axis_idx, theta) * tilt[:, None], base, stretch)
+                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
     return out
 
 
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
     geometries = _geometries(obs, effects)
     R = layout.responsivity(beta)[obs.rate_idx]
-    k3, k2 = np.asarray(effects.k3), np.asarray(effects.k2)
+    gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
+    delays = effects.delays()
     states = []
     for r in range(3):
-        geo = geometries[effects.delay_s[r]]
+        geo = geometries[delays[r]]
         R_row = R[:, r]
         y = np.einsum("ij,ij->i", R_row, geo.force)
         x1g = np.sqrt(np.einsum("ij,ij->i", R_row, R_row))
         u = y / x1g
-        # d/dy of y (1 + k3 u^2)(1 + k2 u): the chain factor of every input
-        slope = (1 + 3 * k3[r] * u**2) * (1 + k2[r] * u) + (1 + k3[r] * u**2) * k2[r] * u
+        # d/dy of y f_1(u) f_2(u) ...: the chain factor of every input, one factor at a time
+        slope, product = np.ones(obs.n), np.ones(obs.n)
+        for effect, k in gains:
+            slope = effect.chain(k[r], slope, product, u)
+            product = product * effect.gain(k[r], u)
         states.append(ChannelState(r, geo, R_row, x1g, y, u, slope, slope * np.einsum("ij,ij->i", R_row, geo.deriv)))
     return states
 
@@ -247,77 +268,50 @@ def predict(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[C
 def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarray:
     y = np.column_stack([st.y for st in states])
     x1g = np.column_stack([st.x1g for st in states])
-    out = layout.offsets(beta)[obs.rate_idx] + drift_term(obs.motion, effects) + nonlinearity(y, x1g, effects)
-    if structure.step_t_s is not None and any(c.key == "unexplained@step" for c in active):
+    out = layout.offsets(beta)[obs.rate_idx] + offset_terms(obs.motion, effects) + nonlinearity(y, x1g, effects)
+    if structure.step_t_s is not None and STEP in active:
         after = (obs.motion.t_s >= structure.step_t_s)[:, None]
-        out = out + after * np.array([beta[layout.index[f"step_{c}"]] for c in "uvw"])[None, :]
-    low, high = effects.clip_low, effects.clip_high
-    if low is not None or high is not None:
-        out = np.clip(out, -np.inf if low is None else low, np.inf if high is None else high)
+        out = out + after * np.array([beta[layout.index[n]] for n in STEP.names])[None, :]
+    low, high = effects.limits()
+    if np.isfinite(low) or np.isfinite(high):
+        out = np.clip(out, low, high)
     return out
 
 
 class _Factors:
-    """Channel-independent parts of the extension columns, computed once per
-    evaluation (a column is a channel quantity times one of these)."""
+    """What the extension columns use besides their channel (the
+    ``rotcal.model.effects.base.ColumnContext``): channel-independent
+    factors are computed once per evaluation and cached."""
 
     def __init__(self, obs: Observations, effects: Effects, structure: Structure):
         self.obs, self.effects, self.structure = obs, effects, structure
-        m = obs.motion
-        self.rot = m.rotating
-        self.on = [m.axis_idx == a for a in range(3)]
+        self.motion, self.g_local = obs.motion, obs.g_local
+        self.on_axis = [obs.motion.axis_idx == a for a in range(3)]
         self.cache: dict = {}
 
-    def get(self, key, make):
+    def cached(self, key, make):
         if key not in self.cache:
             self.cache[key] = make()
         return self.cache[key]
 
+    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
+        """d output / d k of a gain effect: y times d f / d k and the other
+        gain factors, in the forward model's order."""
+        out = st.y
+        for other in catalogue():
+            if other is effect:
+                out = out * effect.gain_derivative(st.u)
+            elif isinstance(other, GainEffect) and other.name in self.effects.states:
+                out = out * other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u)
+        return out
+
     def column(self, name: str, cand: Candidate, st: ChannelState) -> np.ndarray:
         """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
-        m, fx = self.obs.motion, self.effects
-        k2, k3 = fx.k2[st.r], fx.k3[st.r]
-        if cand.effect == "cubic_nonlinearity":
-            return st.y * st.u**2 * (1 + k2 * st.u)
-        if cand.effect == "quadratic_nonlinearity":
-            return st.y * (1 + k3 * st.u**2) * st.u
-        if cand.effect == "offset_drift":
-            return self.get("drift", lambda: m.t_s - m.t0_s)
-        if cand.effect == "unexplained":
-            return self.get("step", lambda: (m.t_s >= self.structure.step_t_s).astype(float)
-                            if self.structure.step_t_s is not None else np.zeros(self.obs.n))
-        if cand.effect == "channel_delay":
-            return st.d_theta * st.geo.stretch * self.get(
-                "delay", lambda: np.where(self.rot, 360.0 * m.rate_hz * (1.0 + fx.rate_error), 0.0))
-        delay = fx.delay_s[st.r]
-        if cand.effect == "rate_error":
-            return st.d_theta * st.geo.stretch * self.get(("rate", delay), lambda: np.where(
-                self.rot, 360.0 * m.rate_hz * (m.t_s + delay - m.t_start_s), 0.0))
-        a = AXES.index(cand.scope)
-        if cand.effect == "rate_ripple":
-            wave = np.sin if name.endswith(".a_deg") else np.cos
-            def make():
-                out = np.zeros(self.obs.n)
-                idx = np.flatnonzero(self.rot)
-                sel = self.on[a][idx]
-                out[idx[sel]] = wave(np.deg2rad(st.geo.base[sel]))
-                return out
-            return st.d_theta * self.get((name, delay), make)
-        if cand.effect == "axis_tilt":
-            def make():
-                tilt = np.deg2rad(dict((e.axis, e.values[0]) for e in fx.axis_tilt).get(cand.scope, 0.0))
-                d_a = np.zeros((self.obs.n, 3))
-                on = self.on[a]
-                d_a[on] = -np.sin(tilt) * gravity_direction(m.axis_idx[on], st.geo.theta[on]) * (np.pi / 180.0)
-                d_a[on, a] += np.cos(tilt) * (np.pi / 180.0)
-                return d_a
-            return st.slope * np.einsum("ij,ij->i", st.R_row, self.get((name, delay), make))
-        if cand.effect == "centripetal":
-            j = AXES.index(name.split(".")[-1][2])  # centripetal.x.d_y_m -> component y
-            factor = self.get(("centripetal", a), lambda: np.where(
-                self.rot & self.on[a], -(2 * np.pi * m.rate_hz * (1.0 + fx.rate_error)) ** 2 / self.obs.g_local, 0.0))
-            return st.slope * st.R_row[:, j] * factor
-        raise ValueError(f"no Jacobian for {name}")  # a catalogue entry without a column is a programming error
+        if cand == STEP:
+            m = self.motion
+            return self.cached("step", lambda: (m.t_s >= self.structure.step_t_s).astype(float)
+                               if self.structure.step_t_s is not None else np.zeros(self.obs.n))
+        return effect_named(cand.effect).column(name, cand, st, self)
 
 
 def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],

@@ -241,7 +241,7 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
         p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
         if p >= alpha:
             continue
-        x2, _, sid, part, r, coef = max(stats, key=lambda st: st[0])
+        _, _, sid, part, r, coef = max(stats, key=lambda st: st[0])
         reduction = np.zeros(3)
         for st in stats:
             reduction[st[4]] += st[0] * res.sigma[st[4]] ** 2
@@ -267,7 +267,7 @@ def static_step_scan(res: Residuals, step_id: np.ndarray, alpha: float) -> list[
     is anti-conservative: K^2 is not calibrated at 50 samples."""
     out = []
     static = ~res.rotating & (step_id >= 0)
-    ids, first, size = np.unique(step_id[static], return_index=True, return_counts=True)
+    _, first, size = np.unique(step_id[static], return_index=True, return_counts=True)
     rows = np.flatnonzero(static)
     for r, channel in enumerate(CHANNELS):
         pooled, lag_sum, ss_sum, bias = [], 0.0, 0.0, 0.0

@@ -166,7 +166,7 @@ class ChunkedWriter:
             chunk_count=len(self._chunk_indexes), message_start_time=start, message_end_time=end,
             channel_message_counts=dict(self._counts),
         )
-        groups = [(Opcode.SCHEMA, self._schemas), (Opcode.CHANNEL, self._channels), (Opcode.STATISTICS, [stats]),
+        groups: list[tuple[int, list]] = [(Opcode.SCHEMA, self._schemas), (Opcode.CHANNEL, self._channels), (Opcode.STATISTICS, [stats]),
                   (Opcode.CHUNK_INDEX, self._chunk_indexes), (Opcode.ATTACHMENT_INDEX, []),
                   (Opcode.METADATA_INDEX, [])]
         summary, offsets = b"", []

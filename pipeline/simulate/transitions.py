@@ -9,9 +9,10 @@ turns the DUT by hand (``reorient_s``: a wobbling move with the hand's own
 acceleration) into the next axis's starting orientation (contract section 1).
 
 Angles are continuous through every transition. The plan's segments keep
-their commanded angle labels; transitions carry none. ``rate_error`` is
-folded in so that the true angle stays continuous (effects.md: the commanded
-angle becomes the true angle within a rotation segment).
+their commanded angle labels; transitions carry none. The true rate (the
+angle effects' rate factor, e.g. ``rate_error``) is folded in so that the
+true angle stays continuous (effects.md: the commanded angle becomes the
+true angle within a rotation segment).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class Phase:
     theta1_deg: float = 0.0   # move: target angle
     rate0_hz: float = 0.0     # ramp: start rate; rotation: the rate
     accel_deg_s2: float = 0.0  # ramp: signed angular acceleration
-    rate_error: float = 0.0   # rotation: the true rate is rate0 (1 + rate_error)
+    rate_factor: float = 1.0  # rotation: the true rate is rate0 rate_factor (1 + rate_error)
     plan_segment: int | None = None
 
     @property
@@ -68,7 +69,7 @@ class Phase:
         if self.kind == "ramp":
             return self.theta0_deg + 360.0 * self.rate0_hz * d + 0.5 * self.accel_deg_s2 * d * d
         if self.kind == "rotation":
-            return self.theta0_deg + 360.0 * self.rate0_hz * (1.0 + self.rate_error) * d
+            return self.theta0_deg + 360.0 * self.rate0_hz * self.rate_factor * d
         return self.theta0_deg
 
 
@@ -78,7 +79,7 @@ def minimum_jerk(tau: np.ndarray) -> np.ndarray:
     return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
 
 
-def plan_phases(plan: Plan, rate_error: float = 0.0) -> list[Phase]:
+def plan_phases(plan: Plan, rate_factor: float = 1.0) -> list[Phase]:
     """The continuous timeline of ``plan`` (true time from 0)."""
     dt = plan.dt_s
     steps = np.arange(0.0, 360.0, plan.step_deg)
@@ -108,7 +109,7 @@ def plan_phases(plan: Plan, rate_error: float = 0.0) -> list[Phase]:
             theta, rate = ramp.end_deg, target
             if target:
                 rot = add("rotation", axis, plan.rotation_samples * dt, theta0_deg=theta, rate0_hz=target,
-                          rate_error=rate_error, plan_segment=seg)
+                          rate_factor=rate_factor, plan_segment=seg)
                 theta, seg = rot.end_deg, seg + 1
         add("pause", axis, plan.pause_s, theta0_deg=theta)
     return phases
@@ -138,11 +139,11 @@ def _hand_path(start: np.ndarray, end: np.ndarray, tau: np.ndarray, rng: np.rand
     return direction, acceleration
 
 
-def schedule_continuous(plan: Plan, rate_error: float, rng: np.random.Generator
+def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
                         ) -> tuple[Motion, pl.DataFrame, list[Phase], HandMove]:
     """Samples every ``dt_s`` from 0 through the whole timeline: the table's
     motion, the plan labels (null in transitions) and the hand moves."""
-    phases = plan_phases(plan, rate_error)
+    phases = plan_phases(plan, rate_factor)
     dt_ns = int(round(plan.dt_s * 1e9))
     t_ns = np.arange(0, int(phases[-1].t1_s * 1e9), dt_ns, dtype=np.int64)
     t_s = t_ns / 1e9
@@ -160,7 +161,7 @@ def schedule_continuous(plan: Plan, rate_error: float, rng: np.random.Generator
     label_rate = np.full(n, np.nan)
     label_angle = np.full(n, np.nan)
     plan_segment = np.full(n, -1)
-    end_direction = None
+    end_direction = np.zeros(3)  # every phase sets it; the first phase is never a reorientation
     for k, p in enumerate(phases):
         on = which == k
         tau_s = t_s[on] - p.t0_s

@@ -1,0 +1,204 @@
+"""The simulator's request: the test plan of Gaitan & Geist 2021 (contract
+section 2, "The default test plan"), how the DUT is drawn, the site, the
+effects of the catalogue (``rotcal.model.effects``) and structures outside
+it, and the logger's time-base defects; from the CLI form
+``NAME:key=value`` or from a simulation TOML file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from rotcal.errors import ConfigError
+from rotcal.model.conventions import AXES, Dut
+from rotcal.model.effects import Effects, names
+from rotcal.simulate.timebase_sim import TimebaseDefects
+
+# Structures outside the catalogue of effects.md, for testing that rotcal
+# reports them as unexplained instead of forcing them onto a catalogue name.
+FOREIGN_NAMES = ("tone", "offset_step")
+
+@dataclass(frozen=True)
+class Plan:
+    """The test plan: per axis, a static step sequence then constant rotations.
+
+    ``continuous``: one recording with the transitions recorded too
+    (``rotcal.simulate.transitions``): step moves of ``step_move_s``, ramps at
+    ``ramp_deg_s2``, a rest of ``pause_s`` after the last rate of an axis and
+    a hand reorientation of ``reorient_s`` between axes.
+    """
+
+    axes: tuple[str, ...] = AXES
+    step_deg: float = 15.0
+    step_samples: int = 50
+    rates_hz: tuple[float, ...] = (0.01, 0.05, 0.1, 0.5)
+    rotation_samples: int = 4200
+    dt_s: float = 0.06
+    pause_s: float = 5.0
+    step_move_s: float = 1.0
+    continuous: bool = False
+    ramp_deg_s2: float = 10.0
+    reorient_s: float = 8.0
+
+    def checked(self) -> Plan:
+        """The plan, or a ConfigError naming the first value no plan can have."""
+        if not self.axes or any(a not in AXES for a in self.axes):
+            raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
+        _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
+                 not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
+        if not all(_is_number(f) for f in self.rates_hz):
+            raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
+        return self
+
+
+@dataclass(frozen=True)
+class DutSpec:
+    """How a DUT is drawn: nominal values and the spread of each."""
+
+    sensitivity: float = 1669.0
+    sensitivity_spread: float = 4.0
+    angle_spread_deg: float = 0.15
+    offset_range: float = 600.0
+    misalignment_max_deg: float = 4.0
+    noise_std: float = 8.0
+    full_scale: float = 32767.0   # 0: no limit (an output in g or m/s^2 need not have one)
+    integer_output: bool = True
+
+    def checked(self) -> DutSpec:
+        """The DUT spec, or a ConfigError naming the first value no DUT can have."""
+        _require(self, "dut", not_negative=("sensitivity_spread", "angle_spread_deg", "offset_range",
+                                            "misalignment_max_deg", "noise_std", "full_scale"))
+        if not _is_number(self.sensitivity) or self.sensitivity == 0:
+            raise ConfigError(f"dut: sensitivity = {self.sensitivity!r} must be a non-zero number")
+        if not isinstance(self.integer_output, bool):
+            raise ConfigError(f"dut: integer_output = {self.integer_output!r} must be true or false")
+        return self
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _require(spec, table: str, positive: tuple[str, ...] = (), not_negative: tuple[str, ...] = (),
+             counts: tuple[str, ...] = ()) -> None:
+    """A simulation table's values: numbers > 0, numbers >= 0, integers >= 1."""
+    for name in positive + not_negative + counts:
+        value = getattr(spec, name)
+        if name in counts:
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"{table}: {name} = {value!r} must be a whole number of at least 1")
+        elif not _is_number(value) or value < 0 or (name in positive and value == 0):
+            raise ConfigError(f"{table}: {name} = {value!r} must be a number {'> 0' if name in positive else '>= 0'}")
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    plan: Plan = field(default_factory=Plan)
+    dut: DutSpec = field(default_factory=DutSpec)
+    g_local: float = 9.80101
+    g_local_uncertainty: float = 3e-5
+    output_unit: str = "bit"
+    effects: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
+    foreign: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
+    timebase: TimebaseDefects = field(default_factory=TimebaseDefects)
+
+    def with_timebase(self, text: str) -> SimulationSpec:
+        """Time-base defects from ``key=value,...`` (the CLI form)."""
+        return replace(self, timebase=TimebaseDefects.parse(text, self.timebase))
+
+    def with_effects(self, *specs: str) -> SimulationSpec:
+        return replace(self, effects=self.effects + tuple(parse_effect(s) for s in specs))
+
+    def with_foreign(self, *specs: str) -> SimulationSpec:
+        return replace(self, foreign=self.foreign + tuple(parse_effect(s, FOREIGN_NAMES) for s in specs))
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """Samples with their plan labels, per-segment file names, and the truth."""
+
+    samples: pl.DataFrame
+    truth: dict
+    dut: Dut
+    effects: Effects
+
+
+def parse_effect(text: str, known: tuple[str, ...] | None = None) -> tuple[str, tuple[tuple[str, object], ...]]:
+    """``NAME:key=value,key=value`` (the CLI form) -> (name, params); the
+    names known are the catalogue's unless given."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    known = names() if known is None else known
+    if name not in known:
+        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(known)}")
+    params = []
+    for item in filter(None, (p.strip() for p in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ConfigError(f"effect {name}: {item!r} is not key=value")
+        key = key.strip()
+        value = value.strip()
+        params.append((key, value if key in ("axis", "channel") else _number(name, key, value)))
+    return name, tuple(params)
+
+
+def _number(effect: str, key: str, value: str) -> float:
+    try:
+        return float(value)
+    except ValueError:
+        raise ConfigError(f"effect {effect}: {key} = {value!r} is not a number") from None
+
+
+def spec_from_toml(path: Path) -> SimulationSpec:
+    """A simulation request file: ``[plan]``, ``[dut]``, ``[site]``,
+    ``[timebase]`` tables and ``[[effect]]`` entries (``name`` plus the
+    effect's parameters)."""
+    import tomllib
+
+    try:
+        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError("simulation file not found", path=path) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"simulation file is not valid TOML: {exc}", path=path) from None
+    unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit", "timebase"})
+    if unknown:
+        raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit, timebase)", path=path)
+
+    def build(cls, table: dict):
+        names = set(cls.__dataclass_fields__)
+        bad = sorted(set(table) - names)
+        if bad:
+            raise ConfigError(f"unknown key {bad[0]!r} (known: {', '.join(sorted(names))})", path=path)
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in table.items()})
+
+    site = doc.get("site", {})
+    bad_site = sorted(set(site) - {"g_local", "g_local_uncertainty"})
+    if bad_site:
+        raise ConfigError(f"unknown key {bad_site[0]!r} in [site]", path=path)
+    effects = []
+    for entry in doc.get("effect", []):
+        entry = dict(entry)
+        name = entry.pop("name", None)
+        if name not in names():
+            raise ConfigError(f"[[effect]] name {name!r} is not one of {', '.join(names())}", path=path)
+        bad = [k for k, v in entry.items() if k not in ("axis", "channel") and not _is_number(v)]
+        if bad:
+            raise ConfigError(f"[[effect]] {name}: {bad[0]} = {entry[bad[0]]!r} is not a number", path=path)
+        effects.append((name, tuple(sorted(entry.items()))))
+    try:
+        plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
+    except ConfigError as exc:
+        raise ConfigError(exc.problem, path=path) from None
+    return SimulationSpec(
+        plan=plan,
+        dut=dut,
+        g_local=site.get("g_local", 9.80101),
+        g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
+        output_unit=doc.get("output_unit", "bit"),
+        effects=tuple(effects),
+        timebase=build(TimebaseDefects, doc.get("timebase", {})).checked(),
+    )

@@ -1,0 +1,103 @@
+"""Writing a simulated dataset: per-segment CSV files, one unlabelled CSV or
+an MCAP capture, with ``dataset.toml`` and the truth (``truth.json``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import polars as pl
+
+from rotcal.errors import ConfigError
+from rotcal.model.conventions import CHANNELS
+from rotcal.simulate.spec import Simulation, SimulationSpec
+
+
+def segment_files(samples: pl.DataFrame) -> pl.DataFrame:
+    """One CSV file name per plan segment: ``NN_axis_static.csv`` or ``NN_axis_RATEhz.csv``."""
+    first = samples.filter(pl.col("plan_segment").is_not_null()).group_by("plan_segment", maintain_order=True).agg(pl.col("axis").first(), pl.col("rate_hz").first())
+    names = [
+        f"{seg:02d}_{axis}_{'static' if rate == 0 else f'{rate:g}hz'}.csv"
+        for seg, axis, rate in first.iter_rows()
+    ]
+    return first.with_columns(file=pl.Series(names))
+
+
+def _csv_columns(samples: pl.DataFrame, integer: bool, columns: tuple[str, ...]) -> pl.DataFrame:
+    out = samples.with_columns(t=pl.col("t_ns") / 1e9)
+    if integer:
+        out = out.with_columns(pl.col(c).cast(pl.Int64) for c in CHANNELS)
+    return out.select(columns)
+
+
+def write_csv_segments(sim: Simulation, directory: Path) -> list[Path]:
+    """The default layout: one CSV per segment with every label column."""
+    files = segment_files(sim.samples)
+    written = []
+    for seg, name in files.select("plan_segment", "file").iter_rows():
+        part = sim.samples.filter(pl.col("plan_segment") == seg)
+        path = directory / name
+        _csv_columns(part, sim.dut.integer_output, ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg")).write_csv(path)
+        written.append(path)
+    return written
+
+
+def write_csv_single(sim: Simulation, path: Path, columns: tuple[str, ...] = ("t", "u", "v", "w")) -> Path:
+    """Everything in one CSV, with only ``columns`` (an unlabelled recording)."""
+    _csv_columns(sim.samples, sim.dut.integer_output, columns).write_csv(path)
+    return path
+
+
+def table_messages(samples: pl.DataFrame, period_s: float = 0.1) -> pl.DataFrame:
+    """What a table controller publishes: at each segment's and step's start
+    and last sample, and every ``period_s`` during rotation."""
+    frame = samples.with_columns(
+        step=pl.struct("plan_segment", pl.when(pl.col("rate_hz") == 0).then(pl.col("angle_deg"))).rle_id()
+    )
+    edges = frame.filter(pl.col("step").is_first_distinct() | pl.col("step").is_last_distinct())
+    tick = ((pl.col("t_ns") - pl.col("t_ns").first().over("plan_segment")) // int(period_s * 1e9))
+    ticks = frame.filter((pl.col("rate_hz") != 0) & tick.is_first_distinct().over("plan_segment"))
+    return pl.concat([edges, ticks]).unique("t_ns", keep="first").sort("t_ns").select("t_ns", "axis", "rate_hz", "angle_deg")
+
+
+def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: str = "/imu",
+               table_topic: str = "/table/joint_states") -> Path:
+    """One MCAP: the DUT on ``imu_topic`` (Imu in CDR, or JSON with t, u, v, w)
+    and the table on ``table_topic`` (JointState in CDR, or JSON).
+
+    A continuous recording has no table messages: the table's messages
+    cover the plan's segments only, and a table silent through the
+    transitions (step moves, ramps, rests, the hand reorientation) would
+    label them as the segment before it (a label holds to the next
+    message, contract section 1) and bias every fit they join; its
+    segments are found from the signals, as in ``csv-unlabelled``."""
+    from rotcal.simulate.mcap_writer import write_capture
+
+    table = table_messages(sim.samples.filter(pl.col("plan_segment").is_not_null()))
+    if sim.truth["plan"]["continuous"]:
+        table = table.clear()
+    return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)
+
+
+def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: str = "csv", device_id: str | None = None) -> Path:
+    """A dataset directory: captures in ``fmt`` (csv, mcap-cdr, mcap-json),
+    ``dataset.toml`` and ``truth.json``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    if fmt == "csv":
+        write_csv_segments(sim, directory)
+    elif fmt in ("mcap-cdr", "mcap-json"):
+        write_mcap(sim, directory / "capture.mcap", encoding=fmt.split("-")[1])
+    elif fmt == "csv-unlabelled":
+        write_csv_single(sim, directory / "recording.csv")
+    else:
+        raise ConfigError(f"unknown format {fmt!r} (csv, csv-unlabelled, mcap-cdr, mcap-json)")
+    full_scale = f"full_scale = {spec.dut.full_scale:g}\n" if spec.dut.full_scale else ""
+    # a continuous recording comes with the plan's nominal rates, as a lab would write them down
+    # (a plan of static steps only has none to write: dataset.toml's rates_hz is never empty)
+    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if spec.plan.continuous and spec.plan.rates_hz else ""
+    (directory / "dataset.toml").write_text(
+        f'[device]\nid = "{device_id or directory.name}"\noutput_unit = "{spec.output_unit}"\n{full_scale}'
+        f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n{plan}"
+    )
+    (directory / "truth.json").write_text(json.dumps(sim.truth, indent=2) + "\n")
+    return directory
