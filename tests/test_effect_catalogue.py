@@ -9,7 +9,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.config import RunConfig
+from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.candidates import extensions
 from rotcal.diagnose.scenarios import draw_effect
 from rotcal.errors import ConfigError
@@ -118,7 +118,7 @@ def test_a_new_effect_is_one_definition(tmp_path):
         assert [c.key for c in extensions(("x",), ("x",), False)][-3:] == [f"offset_wobble@{c}" for c in CHANNELS]
 
         data = write_dataset(sim, spec, tmp_path / "data")
-        run_dataset(data, tmp_path / "out", config=RunConfig(workers=1))
+        run_dataset(data, tmp_path / "out", config=RunConfig(run=RunSection(workers=1)))
         findings = pl.read_parquet(tmp_path / "out" / "diagnosis.parquet")
         assert findings.height == 10 and findings["effect"][-1] == "offset_wobble"
         assert set(findings.filter(pl.col("detected"))["effect"]) == {"offset_wobble"}
