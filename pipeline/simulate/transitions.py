@@ -26,7 +26,7 @@ import polars as pl
 from rotcal.model.physics import Motion, axis_index, gravity_direction
 
 if TYPE_CHECKING:
-    from rotcal.simulate.core import Plan
+    from rotcal.simulate.spec import Plan
 
 HAND_WOBBLE_DEG = 12.0         # largest excursion of the hand off the direct path
 HAND_ACCELERATION = 0.6        # m/s^2, largest linear acceleration of a hand move
