@@ -27,7 +27,6 @@ import numpy as np
 import polars as pl
 from scipy.stats import chi2
 
-from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import STEP, Candidate, catalogue, report_parameters
 from rotcal.diagnose.clipping import StuckValue, clip_limits, quantum, stuck_values
@@ -44,6 +43,7 @@ from rotcal.diagnose.scans import (
 )
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, Motion, axis_index
+from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
 
 EFFECTS = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
@@ -280,11 +280,9 @@ def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tu
         idx = np.array([layout.index[n] for n in names])
         pos = np.searchsorted(final.idx, idx)
         state, state_cov = final.beta[idx], cov[np.ix_(pos, pos)]
-        value, jac, jac_g = intrinsic_jacobian(state, g_local)
-        noise = np.einsum("ij,jk,ik->i", jac, state_cov, jac)
-        out.append(IntrinsicResult(
-            float(rate), value, jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
-            state, state_cov, {"model fit": noise, "g_local": (jac_g * g_uncertainty) ** 2}, g_local))
+        # the model fits every sample at once: its noise is one input group, not split per segment
+        fit_input = whole_fit_input("model fit", float(final.n_total - final.n_params))
+        out.append(IntrinsicResult.from_state(float(rate), state, state_cov, g_local, g_uncertainty, [(fit_input, state_cov)]))
     return tuple(out)
 
 

@@ -1,5 +1,5 @@
-"""Samples without usable labels: their segments inferred from the signals,
-their rates measured, and their reduction without an angle reference.
+"""Samples without usable labels: their segments inferred from the signals
+and their rates measured.
 
 - Unlabelled samples (and static steps labelled without angles) go through
   blind segmentation (``rotcal.segment.blind``): constant rotations, static step
@@ -8,10 +8,7 @@ their rates measured, and their reduction without an angle reference.
   axis and rate but no angle) are fitted against their own phase
   (``rotcal.fit.sinefit``); their measured rates are checked against the
   nominal ones and the logger's clock (``rotcal.timebase.rates``).
-- Reduction: per rate, the rotation segments go to ``rotcal.combine.phasefree``
-  (segments with a table angle enter with their phase fixed); the dwells to
-  ``rotcal.combine.multiposition.orientation_free`` (rate 0) when no labelled
-  static sequence gives the static result.
+- Their reduction without an angle reference is ``rotcal.combine.unreferenced``.
 """
 
 from __future__ import annotations
@@ -20,11 +17,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
-from scipy.special import chdtrc
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, segment_coefficients
-from rotcal.combine.multiposition import OrientationFreeFit, orientation_free, pose_table
-from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
+from rotcal.combine.multiposition import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
@@ -32,8 +26,6 @@ from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.tables import conform, schema
 from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
-
-CONSISTENCY = 1e-3  # chi-square p-value below which the components measured twice disagree
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,32 +222,3 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     return Inference(samples, conform(every, "segments"), fits, frozenset(f.segment for f in fits), dwells,
                      (finding,) if found.rotations else (), tuple(warnings), tuple(notes))
 
-
-def reduce_unreferenced(fits: pl.DataFrame, own_phase: frozenset[int], dwells: pl.DataFrame, need_static: bool,
-                        g_local: float, g_uncertainty: float
-                        ) -> tuple[list[IntrinsicResult | CombineFailure], pl.DataFrame, list[str]]:
-    """Results of the rates that have rotation segments without an angle
-    reference, and of rate 0 from the dwells when ``need_static``; the
-    dwells with their |a| after calibration; warnings where the components
-    measured twice disagree."""
-    results, warnings = [], []
-    rotating = fits.filter((pl.col("kind") == "rotation") & (pl.col("status") == "ok"))
-    for rate in sorted(set(rotating.filter(pl.col("segment").is_in(list(own_phase)))["rate_hz"].to_list())):
-        segs = segment_coefficients(rotating.filter(pl.col("rate_hz") == rate))
-        solved = solve_phase_free(rate, [PhaseSegment(s.segment, s.axis, s.coef, s.cov, s.segment not in own_phase)
-                                         for s in segs], g_local, g_uncertainty)
-        if isinstance(solved, CombineFailure):
-            results.append(solved)
-            continue
-        results.append(solved.result)
-        if solved.dof > 0 and chdtrc(solved.dof, solved.chi2) < CONSISTENCY:
-            warnings.append(f"rate {rate:g} Hz: the components measured twice disagree beyond their uncertainties "
-                            f"(chi-square {solved.chi2:.3g} on {solved.dof} degrees of freedom)")
-    if need_static and dwells.height:
-        fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty)
-        if isinstance(fit, OrientationFreeFit):
-            results.append(fit.result)
-            dwells = dwells.with_columns(g_magnitude=pl.Series(fit.magnitude))
-        else:
-            results.append(CombineFailure(0.0, f"static dwells: {fit.reason}"))
-    return results, dwells, warnings
