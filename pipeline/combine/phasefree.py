@@ -108,7 +108,7 @@ def _turn(q: np.ndarray) -> tuple[float, float]:
 
 def _start(segments: list[PhaseSegment]) -> np.ndarray:
     """Closed-form rho (3 x 3) from one segment per axis (module docstring)."""
-    rep = {}
+    rep: dict[str, np.ndarray] = {}
     for seg in segments:
         rep.setdefault(seg.axis, _in_plane(seg.coef))
     gram_inv = np.linalg.inv(0.5 * sum(p @ p.T for p in rep.values()))

@@ -21,6 +21,7 @@ responsivity rows give the nine intrinsic parameters.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,7 @@ MIN_REFERENCE_POSES = 4
 
 
 def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source: str,
-                label: list[str | None], reference: np.ndarray) -> pl.DataFrame:
+                label: Sequence[str | None], reference: np.ndarray) -> pl.DataFrame:
     """One row per group of samples (``group`` = -1 outside every pose)."""
     t_ns = samples["t_ns"].to_numpy()
     counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)

@@ -127,7 +127,7 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
     for stage in range(2):
         for iteration in range(MAX_ITERATIONS):
             blocks = [_segment_system(s, k, j, beta, p, weights[k]) for k, (s, j) in enumerate(zip(segs, kappa_index))]
-            normal, rhs = sum(b[0] for b in blocks), sum(b[1] for b in blocks)
+            normal, rhs = sum((b[0] for b in blocks), np.zeros((p, p))), sum((b[1] for b in blocks), np.zeros(p))
             step = np.zeros(p)
             # the very first step leaves the rate scales alone: with the components still zero they are not identified
             free = slice(0, 9 + 3 * n_seg) if stage == iteration == 0 else slice(None)

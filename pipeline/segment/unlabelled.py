@@ -114,8 +114,8 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
         found.rows.append(_segment_row(dataset, found.key, capture, "pose", None, 0.0, int(t[s]), int(t[e - 1]),
                                        int(e - s), 1, "inferred", chi2_reduced=float(chi2[j])))
         found.key += 1
-    for j, (s, e) in enumerate(blind.dwells):
-        segment[s:e] = group[j]
+    for k, (s, e) in enumerate(blind.dwells):
+        segment[s:e] = group[k]
     interval_s = float(np.median(np.diff(t))) / 1e9
     found.dwells.append(pose_table(t, y, blind.dwells[:, 0], blind.dwells[:, 1]).with_columns(
         segment=pl.Series(group, dtype=pl.Int32), capture=pl.lit(capture),
@@ -144,15 +144,16 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     rate[free] = rate_classes(corrected[free])
     rows, updates, fits = [], [], []
     for k, r in enumerate(rotations):
-        measured_cols = {} if not usable[k] else {
-            "rate_measured_hz": float(corrected[k]), "rate_u_hz": float(u_corrected[k]), "t_phase_ns": r.fit.t_ref_ns}
+        fit = r.fit if usable[k] else None
+        measured_cols = {} if fit is None else {
+            "rate_measured_hz": float(corrected[k]), "rate_u_hz": float(u_corrected[k]), "t_phase_ns": fit.t_ref_ns}
         if r.label_source == "inferred":
             rows.append(_segment_row(dataset, r.key, r.capture, "rotation", r.axis, float(rate[k]), r.start_ns, r.end_ns,
                                      r.n_samples, 0, "inferred", axis_offset_deg=r.axis_offset_deg, chi2_reduced=r.chi2,
                                      **measured_cols))
         elif measured_cols:
             updates.append({"segment": r.key, **measured_cols})
-        fits.append(replace(r.fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if usable[k] else
+        fits.append(replace(fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if fit is not None else
                     SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")))
     return rows, updates, fits, drift.finding(dataset), drift.warnings()
 
@@ -183,7 +184,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     free = (seg_col < 0) | np.isin(seg_col, static_no_angle.to_numpy())
     seg_col[free] = -1
     t_all = samples["t_ns"].to_numpy()
-    found = _Found(int(segments["segment"].max() + 1) if segments.height else 0)
+    found = _Found(int(segments["segment"].to_numpy().max()) + 1 if segments.height else 0)
     # the outputs are gathered only for the samples a step needs (no copy of a whole labelled recording)
     captures = samples["capture"].filter(pl.Series(free)).unique(maintain_order=True).to_list()
     for capture in captures:
@@ -213,12 +214,12 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     every = every.with_columns(segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32)).sort("segment")
     seg_col = lookup[seg_col]
     samples = samples.with_columns(segment=pl.Series(np.ma.masked_array(seg_col, seg_col < 0), dtype=pl.Int32))
-    fits = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
+    numbered = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
     dwells = schema("dwells").empty() if not found.dwells else conform(
         pl.concat(found.dwells).sort("t_start_ns").with_columns(
             dataset=pl.lit(dataset), dwell=pl.int_range(pl.len(), dtype=pl.Int32),
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
-    return Inference(samples, conform(every, "segments"), fits, frozenset(f.segment for f in fits), dwells,
+    return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
                      (finding,) if found.rotations else (), tuple(warnings), tuple(notes))
 
