@@ -7,7 +7,7 @@ logic."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -139,38 +139,30 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
     what remains after failed segments cannot determine any rate's result
-    (the segment and fit tables, with the failure rows, are written then).
+    (the tables that describe the input, with the failure rows, are written then).
     """
     ds = load_dataset(path, meta_path, config.limits)
     seg = segment_and_fit(ds, config)
     reductions = reduce(seg, ds)
-    tables = [*seg.tables, *(t for r in ([] if isinstance(reductions, Failure) else reductions.all) for t in r.tables)]
     try:
         results, frames, warnings = determined(reductions, seg, path)
     except UndeterminedError:
-        publish([t for t in tables if t.name in INPUT_TABLES], out)
+        publish([t for t in _tables(seg, reductions) if t.name in INPUT_TABLES], out)
         raise
-    assert not isinstance(reductions, Failure)  # determined() raised for it
-    unit, labelled = ds.meta.output_unit, reductions.labelled
-    diagnosis, notes = diagnose_stage(seg, reductions, results, ds, config)
-    intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
-    outputs: list[Table | Figure] = [*tables]
-    if diagnosis is not None:
-        intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
-        outputs += _diagnosis_outputs(diagnosis, seg.fits, results, ds.name, unit, config)
-    outputs += [Table("intrinsic", intrinsic), Table("cross_sensitivity", cross_sensitivity_frame(
-        list(zip(results, frames)), ds.name, "baseline", unit, ds.meta.g_local_uncertainty))]
-    static = reductions.static
-    corrections, correction_warnings = corrections_from_poses(
-        table_step_poses(seg.samples, seg.segments) if static is None else static.positions)
-    outputs += _correction_tables(corrections, ds.name, unit)
-    # issue 3's tables exist only where the segments' phases are the table's
-    if labelled is not None and labelled.results:
-        metrology, metrology_notes = _metrology(seg.samples, seg.labelled_fits, list(labelled.results), ds, config)
-        outputs += metrology
-        notes += metrology_notes
-    return RunOutcome(ds.name, unit, results, warnings + tuple(correction_warnings), tuple(notes), publish(outputs, out),
-                      diagnosis, static)
+    assert isinstance(reductions, Reductions)  # determined() raises for a Failure
+    # issue 3's tables before the diagnosis, whose imports and figures then stay in memory
+    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, ds, config)
+    diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
+    corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
+    outputs = [*_tables(seg, reductions), *result_tables(results, frames, diagnosis, ds),
+               *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology]
+    return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
+                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), diagnosis, reductions.static)
+
+
+def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
+    """The tables of the segmentation and of every reduction."""
+    return [*seg.tables, *(t for r in ([] if isinstance(reductions, Failure) else reductions.all) for t in r.tables)]
 
 
 def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
@@ -232,55 +224,77 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
 
 
 def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
-                   config: RunConfig) -> tuple[Diagnosis | None, list[str]]:
+                   config: RunConfig) -> tuple[Diagnosis | None, tuple[str, ...]]:
     """The diagnosis of a table recording whose segments all have the table
-    angle (its models need it), with the run's notes."""
-    notes = list(seg.notes)
+    angle (its models need it), with its notes."""
     if reductions.unreferenced_rates:
-        notes.append("diagnosis skipped: segments without a table angle (its models need the angle)")
-        return None, notes
+        return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
     if not config.diagnosis.enabled or reductions.static is not None:
-        return None, notes
+        return None, ()
     from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
     diagnosis = diagnose(seg.samples, seg.segments, seg.fits, results, ds.name, ds.meta.output_unit,
                          ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None and diagnosis.final.obs.n < diagnosis.samples_available:
-        notes.append(f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} samples "
-                     f"(long segments thinned evenly; [diagnosis] max_samples)")
-    return diagnosis, notes
+        return diagnosis, (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
+                           f"samples (long segments thinned evenly; [diagnosis] max_samples)",)
+    return diagnosis, ()
 
 
-def _diagnosis_outputs(diagnosis: Diagnosis, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...], dataset: str,
-                       unit: str, config: RunConfig) -> list[Table | Figure]:
+def result_tables(results: tuple[IntrinsicResult, ...], frames: tuple[str, ...], diagnosis: Diagnosis | None,
+                  ds: Dataset) -> list[Table]:
+    """The ``intrinsic`` table (baseline, and refined by the diagnosis) and
+    the cross-sensitivities in each result's frame."""
+    unit = ds.meta.output_unit
+    intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
+    if diagnosis is not None:
+        intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
+    return [Table("intrinsic", intrinsic),
+            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit,
+                                                               ds.meta.g_local_uncertainty))]
+
+
+def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
+                      ds: Dataset, config: RunConfig) -> list[Table | Figure]:
+    """The diagnosis's findings and effect parameters, and its report when wanted."""
+    if diagnosis is None:
+        return []
     outputs: list[Table | Figure] = [Table("diagnosis", diagnosis.findings),
                                      Table("effect_parameters", diagnosis.parameters)]
     if config.diagnosis.report:
         def draw(out: Path) -> Path:
             from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
 
-            return write_report(diagnosis, fits, results, dataset, unit, out, config.report.figures)
+            return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
 
         outputs.append(Figure("diagnosis_report", draw))
     return outputs
 
 
-def _correction_tables(corrections: list, dataset: str, unit: str) -> list[Table | Figure]:
-    """AN4399's correction tables, where the static positions give a correction."""
+def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:
+    """AN4399's correction tables from the static positions (a table
+    recording's steps, or the static reduction's poses), with their warnings."""
+    positions = table_step_poses(seg.samples, seg.segments) if static is None else static.positions
+    corrections, warnings = corrections_from_poses(positions)
     if not corrections:
-        return []
-    tables: list[Table | Figure] = [Table("correction", correction_frame(corrections, dataset, unit)),
-                                    Table("correction_uncertainty", correction_uncertainty_frame(corrections, dataset, unit))]
+        return [], tuple(warnings)
+    dataset, unit = ds.name, ds.meta.output_unit
+    tables = [Table("correction", correction_frame(corrections, dataset, unit)),
+              Table("correction_uncertainty", correction_uncertainty_frame(corrections, dataset, unit))]
     by_temperature = temperature_frame(corrections, dataset, unit)
-    return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else [])
+    return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else []), tuple(warnings)
 
 
-def _metrology(samples: pl.DataFrame, fits: pl.DataFrame, results: list[IntrinsicResult], ds: Dataset,
-               config: RunConfig) -> tuple[list[Table | Figure], list[str]]:
+def metrology_stage(seg: Segmented, labelled: Reduction | None, ds: Dataset,
+                    config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
     """Issue 3's tables of a table (step or rotation) dataset: uncertainty
     budget, Geist's simultaneous solution and consistency checks, Gaitan's
     estimators, the frequency response with its plot, and the optional Monte
-    Carlo; with the notes they give."""
+    Carlo; with the notes they give. They exist only for the rates of the
+    segments whose phases are the table's (the labelled reduction)."""
+    if labelled is None or not labelled.results:
+        return [], ()
+    samples, fits, results = seg.samples, seg.labelled_fits, list(labelled.results)
     dataset, unit, g, u_g = ds.name, ds.meta.output_unit, ds.meta.g_local, ds.meta.g_local_uncertainty
     consistency = consistency_frame(fits, g, dataset, unit)
     response = frequency_response_frame(results, fits, dataset, unit)
@@ -304,10 +318,10 @@ def _metrology(samples: pl.DataFrame, fits: pl.DataFrame, results: list[Intrinsi
         mc = monte_carlo_frame(monte_carlo(fits, g, u_g, config.uncertainty), results, dataset, unit)
         outputs.append(Table("monte_carlo", mc))
         notes.append(monte_carlo_note(mc))
-    return outputs, notes
+    return outputs, tuple(notes)
 
 
-def publish(outputs: list[Table | Figure] | list[Table], out: Path) -> tuple[Path, ...]:
+def publish(outputs: Sequence[Table | Figure], out: Path) -> tuple[Path, ...]:
     """Write what the run produced into ``out``, in ``PUBLISH_ORDER``: each
     table as Parquet under its schema (``tables.write_parquet``), each
     figure drawn; the paths written."""
