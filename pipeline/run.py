@@ -1,10 +1,13 @@
 """One dataset through every stage: ingest -> time base -> segment (labels,
-then the signals for what labels leave out) -> fit -> combine, and the
-result tables written into the output directory. The CLI and the batch
-runner both call ``run_dataset``; neither holds pipeline logic."""
+then the signals for what labels leave out) -> fit -> combine (the
+reductions) -> metrology -> diagnose, and one writer at the end that
+publishes the tables the stages produced into the output directory. The CLI
+and the batch runner both call ``run_dataset``; neither holds pipeline
+logic."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -12,14 +15,14 @@ from typing import TYPE_CHECKING
 import polars as pl
 from threadpoolctl import threadpool_limits
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, combine, components_frame, intrinsic_frame
-from rotcal.combine.multiposition import PoseFailure
+from rotcal.combine.labelled import intrinsic_frame, reduce_labelled
 from rotcal.combine.poses import table_step_poses
 from rotcal.combine.static import StaticReduction, reduce_static
+from rotcal.combine.unreferenced import reduce_dwells, reduce_phase_free
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit.segments import fit_segments, fits_frame
-from rotcal.ingest import load_dataset
+from rotcal.ingest import Dataset, load_dataset
 from rotcal.metrology.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
 from rotcal.metrology.consistency import consistency_frame, consistency_note
 from rotcal.metrology.crosssens import cross_sensitivity_frame
@@ -27,8 +30,9 @@ from rotcal.metrology.gaitan import gaitan_frame
 from rotcal.metrology.response import frequency_response_frame
 from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
+from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.segment.labelled import segment_by_labels
-from rotcal.segment.unlabelled import infer_segments, reduce_unreferenced
+from rotcal.segment.unlabelled import infer_segments
 from rotcal.tables import write_parquet
 from rotcal.timebase.check import findings_frame, repair_timebase
 
@@ -51,6 +55,77 @@ class RunOutcome:
     static: StaticReduction | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class Figure:
+    """A file drawn into the output directory (a plot, the diagnosis
+    report): ``draw`` returns its path, or None when there is nothing to draw."""
+
+    name: str
+    draw: Callable[[Path], Path | None]
+
+
+# the run's files in the order they are published (and listed in RunOutcome.written)
+PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
+                 "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
+                 "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
+                 "frequency_response", "frequency_response_png", "monte_carlo", "poses")
+# the tables that describe the input rather than a result: published even when no rate can be determined
+INPUT_TABLES = ("segments", "fits", "timebase", "dwells")
+
+
+@dataclass(frozen=True, eq=False)
+class Segmented:
+    """A recording after the time base, segmentation and fit stages: its
+    samples and segments (the inferred ones added when it is a ``table``
+    recording), the segment fits, the segments fitted against their own
+    phase, the dwells, the tables and what to tell the user."""
+
+    samples: pl.DataFrame
+    segments: pl.DataFrame
+    fits: pl.DataFrame
+    own_phase: frozenset[int]
+    dwells: pl.DataFrame
+    table: bool
+    tables: tuple[Table, ...]
+    warnings: tuple[str, ...]
+    notes: tuple[str, ...]
+
+    @property
+    def labelled_fits(self) -> pl.DataFrame:
+        """The fits of the segments whose phase is the table angle."""
+        return self.fits.filter(~pl.col("segment").is_in(list(self.own_phase)))
+
+
+@dataclass(frozen=True, eq=False)
+class Reductions:
+    """The reductions of a recording: a table recording's labelled one and
+    those of its segments without an angle reference (which answer for
+    their rates instead of the labelled one), or a static recording's."""
+
+    labelled: Reduction | None
+    unreferenced: tuple[Reduction, ...]
+    static: StaticReduction | None
+
+    @property
+    def all(self) -> tuple[Reduction, ...]:
+        return tuple(r for r in (self.labelled, *self.unreferenced, self.static) if r is not None)
+
+    @property
+    def unreferenced_rates(self) -> frozenset[float]:
+        return frozenset(rate for r in self.unreferenced for rate in r.rates)
+
+    def framed(self) -> list[tuple[IntrinsicResult, str]]:
+        """Every result with the frame of its responsivity vectors, rates ordered by magnitude."""
+        return sorted(((res, r.frame) for r in self.all for res in r.results), key=lambda p: _rate_order(p[0].rate_hz))
+
+    def failures(self) -> list[Failure]:
+        return sorted((f for r in self.all for f in r.failures), key=lambda f: _rate_order(f.rate_hz))
+
+
+def _rate_order(rate_hz: float) -> tuple[float, float]:
+    return abs(rate_hz), rate_hz
+
+
 def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
     """Run the pipeline on one dataset (see ``_run``) with BLAS on one thread:
     rotcal's parallelism is across segments and datasets, and a threaded BLAS
@@ -64,131 +139,196 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
     what remains after failed segments cannot determine any rate's result
-    (the segment and fit tables, with the failure rows, are written first).
+    (the tables that describe the input, with the failure rows, are written then).
     """
     ds = load_dataset(path, meta_path, config.limits, config.run.workers)
+    seg = segment_and_fit(ds, config)
+    reductions = reduce(seg, ds)
+    try:
+        results, frames, warnings = determined(reductions, seg, path)
+    except UndeterminedError:
+        publish([t for t in _tables(seg, reductions) if t.name in INPUT_TABLES], out)
+        raise
+    assert isinstance(reductions, Reductions)  # determined() raises for a Failure
+    # issue 3's tables before the diagnosis, whose imports and figures then stay in memory
+    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, ds, config)
+    diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
+    corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
+    outputs = [*_tables(seg, reductions), *result_tables(results, frames, diagnosis, ds),
+               *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology]
+    return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
+                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), diagnosis, reductions.static)
+
+
+def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
+    """The tables of the segmentation and of every reduction."""
+    return [*seg.tables, *(t for r in ([] if isinstance(reductions, Failure) else reductions.all) for t in r.tables)]
+
+
+def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
+    """Time base, segments (labelled, then inferred from the signals) and
+    the segment fits of a dataset."""
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
-    # a table recording (labelled or found in the signals); otherwise the static path below
+    # a table recording (labelled or found in the signals); otherwise a static one (``reduce``)
     table = not inferred.segments.filter(pl.col("kind").is_in(["static", "rotation"])).is_empty()
-    own_phase = inferred.own_phase if table else frozenset()
     if table:
         samples, segments = inferred.samples, inferred.segments
     referenced = segments.filter(pl.col("angle_source") != "none")
     fits = fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers)
                       + (list(inferred.fits) if table else []), segments, ds.name)
-    written = [write_parquet(segments, out / "segments.parquet", "segments"),
-               write_parquet(fits, out / "fits.parquet", "fits"),
-               write_parquet(pl.concat([timebase.findings, findings_frame(list(inferred.findings) if table else [])]),
-                             out / "timebase.parquet", "timebase")]
-    labelled_fits = fits.filter(~pl.col("segment").is_in(list(own_phase)))
-    combined = combine(labelled_fits, ds.meta.g_local, ds.meta.g_local_uncertainty)
-    unreferenced, consistency = [], []
-    if table:
-        static_labelled = any(isinstance(r, IntrinsicResult) and r.rate_hz == 0 for r in combined)
-        unreferenced, dwells, consistency = reduce_unreferenced(fits, own_phase, inferred.dwells, not static_labelled,
-                                                                ds.meta.g_local, ds.meta.g_local_uncertainty)
-        if dwells.height:
-            written.append(write_parquet(dwells, out / "dwells.parquet", "dwells"))
-    replaced = {r.rate_hz for r in unreferenced}
-    combined = sorted([r for r in combined if r.rate_hz not in replaced] + unreferenced, key=lambda r: (abs(r.rate_hz), r.rate_hz))
-    results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
-    failed = fits.filter(fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
-    warnings = tuple(
-        list(timebase.warnings) + (list(inferred.warnings) + consistency if table else [])
-        + [f"segment {s} ({a}, {r:g} Hz): {why}" for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows()]
-        + [f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in combined if isinstance(f, CombineFailure)]
-    )
-    notes = ds.notes + (inferred.notes if table else ())
-    static = None
-    if not results and not table:
-        static = reduce_static(samples, segments, ds.name, ds.meta.g_local, ds.meta.g_local_uncertainty)
-        if isinstance(static, PoseFailure):
-            raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {static.reason}", path=path)
-        results = (static.result,)
-    if not results:
+    findings = pl.concat([timebase.findings, findings_frame(list(inferred.findings) if table else [])])
+    return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
+                     (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
+                     tuple(timebase.warnings) + (inferred.warnings if table else ()),
+                     ds.notes + (inferred.notes if table else ()))
+
+
+def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
+    """The reductions of a recording. A table recording: its labelled
+    segments (``combine.labelled``), and those without an angle reference
+    (``combine.unreferenced``: rotations fitted against their own phase, and
+    the dwells when no labelled static sequence gives the static result). A
+    static recording: its poses (``combine.static``), or why they cannot be
+    reduced."""
+    g, u = ds.meta.g_local, ds.meta.g_local_uncertainty
+    if not seg.table:
+        static = reduce_static(seg.samples, seg.segments, ds.name, g, u)
+        return static if isinstance(static, Failure) else Reductions(None, (), static)
+    labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name)
+    phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
+    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u)
+    return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
+
+
+def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
+               ) -> tuple[tuple[IntrinsicResult, ...], tuple[str, ...], tuple[str, ...]]:
+    """The results (rates ordered by magnitude), the frames of their
+    responsivity vectors and the warnings: failed segments and rates.
+    Raises ``UndeterminedError`` when no rate is determined."""
+    if isinstance(reductions, Failure):
+        raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {reductions.reason}", path=path)
+    failed = seg.fits.filter(seg.fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
+    warnings = (seg.warnings + tuple(w for r in reductions.all for w in r.warnings)
+                + tuple(f"segment {s} ({a}, {r:g} Hz): {why}"
+                        for s, a, r, why in failed.select("segment", "axis", "rate_hz", "reason").iter_rows())
+                + tuple(f"rate {f.rate_hz:g} Hz not determined: {f.reason}" for f in reductions.failures()))
+    framed = reductions.framed()
+    if not framed:
         if not warnings:
             raise UndeterminedError("no static or rotation segments: the samples carry no axis and rate labels", path=path)
         more = f" (and {len(warnings) - 1} more problems)" if len(warnings) > 1 else ""
         raise UndeterminedError(f"no rate can be determined: {warnings[0]}{more}", path=path)
+    return tuple(r for r, _ in framed), tuple(f for _, f in framed), warnings
+
+
+def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
+                   config: RunConfig) -> tuple[Diagnosis | None, tuple[str, ...]]:
+    """The diagnosis of a table recording whose segments all have the table
+    angle (its models need it), with its notes."""
+    if reductions.unreferenced_rates:
+        return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
+    if not config.diagnosis.enabled or reductions.static is not None:
+        return None, ()
+    from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
+
+    diagnosis = diagnose(seg.samples, seg.segments, seg.fits, results, ds.name, ds.meta.output_unit,
+                         ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
+    if diagnosis is not None and diagnosis.final.obs.n < diagnosis.samples_available:
+        return diagnosis, (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
+                           f"samples (long segments thinned evenly; [diagnosis] max_samples)",)
+    return diagnosis, ()
+
+
+def result_tables(results: tuple[IntrinsicResult, ...], frames: tuple[str, ...], diagnosis: Diagnosis | None,
+                  ds: Dataset) -> list[Table]:
+    """The ``intrinsic`` table (baseline, and refined by the diagnosis) and
+    the cross-sensitivities in each result's frame."""
     unit = ds.meta.output_unit
     intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
-    # per-segment components, and issue 3's tables, exist only where the segments' phases are the table's
-    labelled_results = [r for r in results if r.rate_hz not in replaced]
-    # issue 3's tables before the diagnosis, whose imports and figures then stay in memory; listed in their place
-    metrology = (_metrology_tables(samples, labelled_fits, labelled_results, ds.name, unit, ds.meta.g_local,
-                                   ds.meta.g_local_uncertainty, out, config)
-                 if static is None and labelled_results else ([], []))
-    diagnosis = None
-    if replaced:
-        notes += ("diagnosis skipped: segments without a table angle (its models need the angle)",)
-    elif config.diagnosis.enabled and static is None:
-        from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
-
-        diagnosis = diagnose(samples, segments, fits, results, ds.name, unit, ds.meta.g_local_uncertainty,
-                             ds.meta.angle_source == "measured", config.diagnosis)
     if diagnosis is not None:
-        if diagnosis.final.obs.n < diagnosis.samples_available:
-            notes += (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} samples "
-                      f"(long segments thinned evenly; [diagnosis] max_samples)",)
         intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
-        written += [write_parquet(diagnosis.findings, out / "diagnosis.parquet", "diagnosis"),
-                    write_parquet(diagnosis.parameters, out / "effect_parameters.parquet", "effect_parameters")]
-        if config.diagnosis.report:
+    return [Table("intrinsic", intrinsic),
+            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit,
+                                                               ds.meta.g_local_uncertainty))]
+
+
+def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
+                      ds: Dataset, config: RunConfig) -> list[Table | Figure]:
+    """The diagnosis's findings and effect parameters, and its report when wanted."""
+    if diagnosis is None:
+        return []
+    outputs: list[Table | Figure] = [Table("diagnosis", diagnosis.findings),
+                                     Table("effect_parameters", diagnosis.parameters)]
+    if config.diagnosis.report:
+        def draw(out: Path) -> Path:
             from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
 
-            written.append(write_report(diagnosis, fits, results, ds.name, unit, out, config.report.figures))
-    written.append(write_parquet(intrinsic, out / "intrinsic.parquet", "intrinsic"))
-    if static is None:
-        written.append(write_parquet(components_frame(labelled_fits, labelled_results, ds.name),
-                                     out / "components.parquet", "components"))
-    # the dwells' orientation-free result is in the intrinsic frame; phase-free rotations in the table's
-    frames = [static.frame if static is not None else "intrinsic" if r.rate_hz == 0 and r.rate_hz in replaced else "table"
-              for r in results]
-    written.append(write_parquet(
-        cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit, ds.meta.g_local_uncertainty),
-        out / "cross_sensitivity.parquet", "cross_sensitivity"))
-    corrections, correction_warnings = corrections_from_poses(table_step_poses(samples, segments) if static is None else static.positions)
-    warnings += tuple(correction_warnings)
-    if corrections:
-        written += [write_parquet(correction_frame(corrections, ds.name, unit), out / "correction.parquet", "correction"),
-                    write_parquet(correction_uncertainty_frame(corrections, ds.name, unit),
-                                  out / "correction_uncertainty.parquet", "correction_uncertainty")]
-        by_temperature = temperature_frame(corrections, ds.name, unit)
-        if not by_temperature.is_empty():
-            written.append(write_parquet(by_temperature, out / "correction_temperature.parquet", "correction_temperature"))
-    written += metrology[0]
-    notes = list(notes) + metrology[1]
-    if static is not None:
-        written.append(write_parquet(static.check, out / "poses.parquet", "poses"))
-    return RunOutcome(ds.name, unit, results, warnings, tuple(notes), tuple(written), diagnosis, static)
+            return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
+
+        outputs.append(Figure("diagnosis_report", draw))
+    return outputs
 
 
-def _metrology_tables(samples: pl.DataFrame, fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str,
-                      unit: str, g: float, u_g: float, out: Path, config: RunConfig) -> tuple[list[Path], list[str]]:
+def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:
+    """AN4399's correction tables from the static positions (a table
+    recording's steps, or the static reduction's poses), with their warnings."""
+    positions = table_step_poses(seg.samples, seg.segments) if static is None else static.positions
+    corrections, warnings = corrections_from_poses(positions)
+    if not corrections:
+        return [], tuple(warnings)
+    dataset, unit = ds.name, ds.meta.output_unit
+    tables = [Table("correction", correction_frame(corrections, dataset, unit)),
+              Table("correction_uncertainty", correction_uncertainty_frame(corrections, dataset, unit))]
+    by_temperature = temperature_frame(corrections, dataset, unit)
+    return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else []), tuple(warnings)
+
+
+def metrology_stage(seg: Segmented, labelled: Reduction | None, ds: Dataset,
+                    config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
     """Issue 3's tables of a table (step or rotation) dataset: uncertainty
     budget, Geist's simultaneous solution and consistency checks, Gaitan's
     estimators, the frequency response with its plot, and the optional Monte
-    Carlo; with the notes they give."""
+    Carlo; with the notes they give. They exist only for the rates of the
+    segments whose phases are the table's (the labelled reduction)."""
+    if labelled is None or not labelled.results:
+        return [], ()
+    samples, fits, results = seg.samples, seg.labelled_fits, list(labelled.results)
+    dataset, unit, g, u_g = ds.name, ds.meta.output_unit, ds.meta.g_local, ds.meta.g_local_uncertainty
     consistency = consistency_frame(fits, g, dataset, unit)
     response = frequency_response_frame(results, fits, dataset, unit)
     both = [r for r in simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if isinstance(r, IntrinsicResult)]
-    written = [
-        write_parquet(budget_frame(results, dataset, unit), out / "uncertainty_budget.parquet", "uncertainty_budget"),
-        write_parquet(simultaneous_frame(both, results, dataset, unit), out / "simultaneous.parquet", "simultaneous"),
-        write_parquet(consistency, out / "consistency.parquet", "consistency"),
-        write_parquet(gaitan_frame(fits, g, u_g, dataset, unit), out / "gaitan_estimators.parquet", "gaitan_estimators"),
-        write_parquet(response, out / "frequency_response.parquet", "frequency_response"),
+    outputs: list[Table | Figure] = [
+        Table("uncertainty_budget", budget_frame(results, dataset, unit)),
+        Table("simultaneous", simultaneous_frame(both, results, dataset, unit)),
+        Table("consistency", consistency),
+        Table("gaitan_estimators", gaitan_frame(fits, g, u_g, dataset, unit)),
+        Table("frequency_response", response),
     ]
     if config.report.figures:
-        from rotcal.report.plot import frequency_response_png  # matplotlib only when there is a plot to draw
+        def draw(out: Path) -> Path | None:
+            from rotcal.report.plot import frequency_response_png  # matplotlib only when there is a plot to draw
 
-        png = frequency_response_png(response, out / "frequency_response.png", dataset)
-        written += [png] if png else []
+            return frequency_response_png(response, out / "frequency_response.png", dataset)
+
+        outputs.append(Figure("frequency_response_png", draw))
     notes = [n for n in [consistency_note(consistency)] if n]
     if config.uncertainty.monte_carlo:
         mc = monte_carlo_frame(monte_carlo(fits, g, u_g, config.uncertainty), results, dataset, unit)
-        written.append(write_parquet(mc, out / "monte_carlo.parquet", "monte_carlo"))
+        outputs.append(Table("monte_carlo", mc))
         notes.append(monte_carlo_note(mc))
-    return written, notes
+    return outputs, tuple(notes)
+
+
+def publish(outputs: Sequence[Table | Figure], out: Path) -> tuple[Path, ...]:
+    """Write what the run produced into ``out``, in ``PUBLISH_ORDER``: each
+    table as Parquet under its schema (``tables.write_parquet``), each
+    figure drawn; the paths written."""
+    written = []
+    for item in sorted(outputs, key=lambda o: PUBLISH_ORDER.index(o.name)):
+        path = (write_parquet(item.data, out / f"{item.name}.parquet", item.name) if isinstance(item, Table)
+                else item.draw(out))
+        if path is not None:
+            written.append(path)
+    return tuple(written)

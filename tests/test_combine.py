@@ -5,8 +5,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.combine.labelled import SegmentCoefficients, combine_rate, intrinsic_jacobian, segment_coefficients
+from rotcal.combine.labelled import SegmentCoefficients, combine_rate, segment_coefficients
 from rotcal.metrology.coverage import simulate_errors
+from rotcal.model.results import intrinsic_jacobian
 from rotcal.run import run_dataset
 from rotcal.simulate.core import DutSpec, SimulationSpec
 from tests.conftest import truth_of

@@ -172,10 +172,11 @@ def test_gaitan_case_centripetal_22_cm(tmp_path):
 def test_jacobian_matches_finite_differences(make_dataset):
     """Every parameter's analytic Jacobian column against central
     differences of the forward model, at a state with every effect on."""
-    from rotcal.combine.labelled import IntrinsicResult, combine
+    from rotcal.combine.labelled import combine
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
     from rotcal.ingest import load_dataset
+    from rotcal.model.results import IntrinsicResult
     from rotcal.run import run_dataset as _run  # noqa: F401
     from rotcal.segment.labelled import segment_by_labels
 

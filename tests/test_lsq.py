@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rotcal.errors import UndeterminedError
-from rotcal.fit.lsq import excess_is_significant, ols, psd_part
+from rotcal.fit.lsq import excess_is_significant, nonlinear, ols, psd_part
 
 
 def _design(rng, n):
@@ -70,3 +70,27 @@ def test_excess_significance_and_psd_part():
     assert not excess_is_significant(10.0, 10) and excess_is_significant(30.0, 10) and not excess_is_significant(5.0, 0)
     m = np.array([[2.0, 0.0], [0.0, -1.0]])
     np.testing.assert_allclose(psd_part(m), [[2.0, 0.0], [0.0, 0.0]], atol=1e-15)
+
+
+def test_nonlinear_gives_the_estimate_covariance_and_dof_of_a_known_problem():
+    """y = a exp(-b t) with unit-variance noise: the estimate is the least-squares
+    minimum (zero gradient), its covariance (J'J)^-1 matches the scatter of
+    repeated fits, the gain is d(estimate)/d(observation)."""
+    t = np.linspace(0, 4, 40)
+    truth = np.array([5.0, 0.7])
+
+    def fit_of(y):
+        return nonlinear(lambda p: (p[0] * np.exp(-p[1] * t) - y) / 0.1,
+                         lambda p: np.column_stack([np.exp(-p[1] * t), -p[0] * t * np.exp(-p[1] * t)]) / 0.1,
+                         np.array([1.0, 0.1]), 1e-12)
+
+    rng = np.random.default_rng(3)
+    fits = [fit_of(truth[0] * np.exp(-truth[1] * t) + rng.normal(0, 0.1, t.size)) for _ in range(400)]
+    one = fits[0]
+    assert one.converged and one.dof == 38
+    np.testing.assert_allclose(one.jac.T @ one.residuals, 0.0, atol=1e-6)  # |J| |r| ~ 1e3
+    np.testing.assert_allclose(one.gain @ one.jac, np.eye(2), atol=1e-10)
+    np.testing.assert_allclose(one.cov, one.gain @ one.gain.T, rtol=1e-10)
+    scatter = np.cov(np.array([f.x for f in fits]).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(scatter)), np.sqrt(np.diag(one.cov)), rtol=0.15)
+    assert np.mean([f.chi2 for f in fits]) == pytest.approx(38, rel=0.05)

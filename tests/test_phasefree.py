@@ -5,9 +5,10 @@ the same coefficients, and its coverage (issue 5)."""
 import numpy as np
 import pytest
 
-from rotcal.combine.labelled import CombineFailure, SegmentCoefficients, combine_rate
+from rotcal.combine.labelled import SegmentCoefficients, combine_rate
 from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
 from rotcal.model.physics import AXES, COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
+from rotcal.model.results import Failure
 
 G = 9.80101
 
@@ -99,7 +100,7 @@ def test_a_missing_axis_is_a_failure_with_its_reason():
     resp, offsets = _dut(rng)
     segs = [PhaseSegment(k, a, _labelled_coef(resp, offsets, a), np.eye(9)) for k, a in enumerate(("x", "y"))]
     out = solve_phase_free(0.05, segs, G, 0.0)
-    assert isinstance(out, CombineFailure)
+    assert isinstance(out, Failure)
     # x and y measure every component once: the reason names what is missing (it read "leave  unmeasured")
     assert out.reason == ("segments about axes x, y only: rotations without a table angle need all three axes "
                           "to solve their unknown starting angles")

@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from rotcal.combine.multiposition import PoseFailure, pose_arrays, pose_table
+from rotcal.combine.multiposition import pose_arrays, pose_table
 from rotcal.combine.poses import LABEL_REFERENCE, correct_poses, labelled_poses, reference_fit
 from rotcal.ingest import load_dataset
+from rotcal.model.results import Failure
 from rotcal.segment.labelled import segment_by_labels
 from tests.conftest import REAL, REPO
 from tests.posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
@@ -49,9 +50,9 @@ def test_uncertainty_covers_over_repeated_sessions():
 def test_refuses_too_few_or_coplanar_references():
     sim = hand_placed(2, samples=20, directions=FACES)
     few = reference_fit(_jig_poses(sim).head(3), G_LOCAL, 0.0)
-    assert isinstance(few, PoseFailure) and "at least 4" in few.reason
+    assert isinstance(few, Failure) and "at least 4" in few.reason
     flat = reference_fit(_jig_poses(sim).head(4), G_LOCAL, 0.0)  # x and y faces only: z never excited
-    assert isinstance(flat, PoseFailure) and "do not determine the 12 parameters" in flat.reason
+    assert isinstance(flat, Failure) and "do not determine the 12 parameters" in flat.reason
 
 
 # --- imucal's annotated session (../shared/data/real/imucal_session) ---

@@ -65,15 +65,15 @@ def test_simultaneous_with_fitted_rates_agrees_within_uncertainty(make_dataset):
 
 @pytest.mark.parametrize("axes", [("x", "y"), ("x",)])
 def test_missing_axes_give_a_failure_not_a_crash(make_dataset, axes):
-    from rotcal.combine.labelled import CombineFailure
     from rotcal.metrology.simultaneous import segment_samples, simultaneous_rate
+    from rotcal.model.results import Failure
     red = reduce_dataset(make_dataset(31))
     segs = [s for s in segment_samples(red.samples, red.fits, 0.1, False) if s.axis in axes]
     out = simultaneous_rate(0.1, segs, 9.80101, 3e-5)
     if len(axes) == 2:
-        assert not isinstance(out, CombineFailure)
+        assert not isinstance(out, Failure)
     else:
-        assert isinstance(out, CombineFailure) and "unmeasured" in out.reason
+        assert isinstance(out, Failure) and "unmeasured" in out.reason
 
 
 def test_a_wrong_model_makes_the_two_solutions_disagree(make_dataset):

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.model.physics import ANGLE_PAIRS, AXES, CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
+from rotcal.model.physics import AXES, CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
+from rotcal.model.results import BudgetInput, Failure, IntrinsicResult, Reduction, Table
 from rotcal.tables import conform, schema
 
 STATE = tuple(f"rho_{r}{s}" for r in CHANNELS for s in AXES) + tuple(f"O_{r}" for r in CHANNELS)
@@ -40,66 +41,6 @@ class Estimate:
     axis: str
     index: int
     sign: float
-
-
-@dataclass(frozen=True)
-class BudgetInput:
-    """One input group of an uncertainty budget: the noise of one segment's
-    fit (``segment``, ``axis``, with the fit's residual degrees of freedom)
-    or ``g_local`` (a Type B input, infinite degrees of freedom)."""
-
-    label: str
-    source: str
-    segment: int | None
-    axis: str
-    dof: float
-
-
-@dataclass(frozen=True, eq=False)
-class IntrinsicResult:
-    """The nine intrinsic parameters of one rate with their covariance.
-
-    ``state`` is (g r_u, g r_v, g r_w, O) in output units with covariance
-    ``state_cov``; ``budget`` maps each input group (a segment, or
-    ``g_local``) to its variance contribution to each parameter, and
-    ``inputs`` describes those groups in the same order.
-    """
-
-    rate_hz: float
-    value: np.ndarray
-    cov: np.ndarray
-    state: np.ndarray
-    state_cov: np.ndarray
-    budget: dict[str, np.ndarray]
-    g_local: float
-    g_uncertainty: float = 0.0
-    inputs: tuple[BudgetInput, ...] = ()
-
-    @property
-    def std_uncertainty(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
-
-    @property
-    def responsivity(self) -> np.ndarray:
-        """Rows r_u, r_v, r_w in the table frame, output unit per m/s^2."""
-        return self.state[:9].reshape(3, 3) / self.g_local
-
-    @property
-    def g_sensitivity(self) -> np.ndarray:
-        """d(parameters)/d(g_local): nonzero for the sensitivities only."""
-        return intrinsic_jacobian(self.state, self.g_local)[2]
-
-    @property
-    def noise_cov(self) -> np.ndarray:
-        """The covariance without the g_local part (the fits' noise only)."""
-        jac = intrinsic_jacobian(self.state, self.g_local)[1]
-        return jac @ self.state_cov @ jac.T
-
-
-@dataclass(frozen=True)
-class CombineFailure:
-    rate_hz: float
-    reason: str
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,30 +101,6 @@ def combination_matrix(estimates: list[Estimate], variances: np.ndarray, n_obs: 
     return np.divide(L, totals, out=np.zeros_like(L), where=totals > 0)
 
 
-def intrinsic_jacobian(state: np.ndarray, g_local: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Intrinsic parameters of ``state`` and their Jacobians with respect to
-    the state and to g_local (Geist 2017 Eqs. 14 and 16 differentiated)."""
-    rho = state[:9].reshape(3, 3)
-    norm = np.linalg.norm(rho, axis=1)
-    unit = rho / norm[:, None]
-    value = np.zeros(9)
-    jac = np.zeros((9, 12))
-    value[:3] = norm / g_local
-    for r in range(3):
-        jac[r, 3 * r : 3 * r + 3] = unit[r] / g_local
-    for k, (i, j) in enumerate(ANGLE_PAIRS):
-        c = float(unit[i] @ unit[j])
-        value[3 + k] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-        scale = -np.degrees(1.0) / np.sqrt(max(1.0 - c * c, 1e-300))
-        jac[3 + k, 3 * i : 3 * i + 3] = scale * (unit[j] - c * unit[i]) / norm[i]
-        jac[3 + k, 3 * j : 3 * j + 3] = scale * (unit[i] - c * unit[j]) / norm[j]
-    value[6:] = state[9:]
-    jac[6:, 9:] = np.eye(3)
-    jac_g = np.zeros(9)
-    jac_g[:3] = -value[:3] / g_local
-    return value, jac, jac_g
-
-
 @dataclass(frozen=True, eq=False)
 class LinearStage:
     """The linear part of a rate's combination: every segment's coefficient
@@ -206,7 +123,7 @@ class LinearStage:
         return self.L @ self.cov @ self.L.T
 
 
-def linear_stage(rate_hz: float, segments: list[SegmentCoefficients]) -> LinearStage | CombineFailure:
+def linear_stage(rate_hz: float, segments: list[SegmentCoefficients]) -> LinearStage | Failure:
     """Stack a rate's segments and build L; a failure when some state element
     is measured by no segment."""
     estimates = estimates_for(segments)
@@ -214,26 +131,12 @@ def linear_stage(rate_hz: float, segments: list[SegmentCoefficients]) -> LinearS
     if np.any(counts == 0):
         missing = [STATE[i] for i in np.flatnonzero(counts == 0)]
         axes = sorted({s.axis for s in segments}) or ["none"]
-        return CombineFailure(rate_hz, f"segments about axes {', '.join(axes)} leave {', '.join(missing)} unmeasured")
+        return Failure(rate_hz, f"segments about axes {', '.join(axes)} leave {', '.join(missing)} unmeasured")
     coef = np.concatenate([s.coef for s in segments])
     cov = np.zeros((coef.size, coef.size))
     for k, seg in enumerate(segments):
         cov[9 * k : 9 * k + 9, 9 * k : 9 * k + 9] = seg.cov
     return LinearStage(rate_hz, tuple(segments), coef, cov, combination_matrix(estimates, np.diag(cov), coef.size))
-
-
-def result_from_state(rate_hz: float, state: np.ndarray, state_cov: np.ndarray, g_local: float, g_uncertainty: float,
-                      noise_parts: list[tuple[BudgetInput, np.ndarray]]) -> IntrinsicResult:
-    """The intrinsic parameters of a state (Eqs. 14, 16) with first-order
-    propagation; ``noise_parts`` are independent input groups, each with its
-    contribution to ``state_cov`` (they add up to it), for the budget."""
-    value, jac, jac_g = intrinsic_jacobian(state, g_local)
-    budget = {inp.label: np.einsum("ij,jk,ik->i", jac, part, jac) for inp, part in noise_parts}
-    g_input = BudgetInput("g_local", "g_local", None, "", float("inf"))
-    budget[g_input.label] = (jac_g * g_uncertainty) ** 2
-    cov = jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2
-    inputs = tuple(inp for inp, _ in noise_parts) + (g_input,)
-    return IntrinsicResult(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs)
 
 
 def segment_input(segment: int, axis: str, dof: int) -> BudgetInput:
@@ -242,21 +145,30 @@ def segment_input(segment: int, axis: str, dof: int) -> BudgetInput:
 
 
 def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: float,
-                 g_uncertainty: float) -> IntrinsicResult | CombineFailure:
+                 g_uncertainty: float) -> IntrinsicResult | Failure:
     """The intrinsic parameters of one rate from its segments."""
     stage = linear_stage(rate_hz, segments)
-    if isinstance(stage, CombineFailure):
+    if isinstance(stage, Failure):
         return stage
     parts = []
     for k, seg in enumerate(segments):
         Lk = stage.L[:, 9 * k : 9 * k + 9]
         parts.append((segment_input(seg.segment, seg.axis, seg.dof), Lk @ seg.cov @ Lk.T))
-    return result_from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
+    return IntrinsicResult.from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
 
 
-def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float) -> list[IntrinsicResult | CombineFailure]:
+def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float) -> list[IntrinsicResult | Failure]:
     """Every rate's intrinsic parameters (rate 0 is the static result)."""
     return [combine_rate(rate, segs, g_local, g_uncertainty) for rate, segs in rate_segments(fits)]
+
+
+def reduce_labelled(fits: pl.DataFrame, g_local: float, g_uncertainty: float, dataset: str) -> Reduction:
+    """The reduction of the segments whose phase is the table angle: every
+    rate's result in the table frame, with the ``components`` table."""
+    combined = combine(fits, g_local, g_uncertainty)
+    results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
+    return Reduction("table", results, tuple(f for f in combined if isinstance(f, Failure)),
+                     (Table("components", components_frame(fits, list(results), dataset)),), ())
 
 
 def units(output_unit: str) -> tuple[str, ...]:

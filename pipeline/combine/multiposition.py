@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
-from rotcal.fit.lsq import excess_is_significant
+from rotcal.fit.lsq import excess_is_significant, nonlinear
 from rotcal.model.physics import CHANNELS
+from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
 TRIL = np.tril_indices(3)  # (0,0) (1,0) (1,1) (2,0) (2,1) (2,2)
 MIN_SPREAD = 1e-3  # below it the directions are degenerate to within noise; weaker geometry shows in u
@@ -44,11 +44,6 @@ MAX_ITERATIONS = 30
 VARIANCE_FLOOR = 1e-24  # relative to g^2: keeps noise-free (simulated) poses finite
 TOO_ALIKE = ("the poses are too alike to identify the nine intrinsic parameters: their gravity directions lie "
              "near one circle on the sphere (one rotation axis, or a cone){detail}; add poses turned about another axis")
-
-
-@dataclass(frozen=True)
-class PoseFailure:
-    reason: str
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,13 +139,8 @@ def magnitude_and_gradient(params: np.ndarray, m: np.ndarray) -> tuple[np.ndarra
 
 def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray) -> np.ndarray:
     """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights."""
-    from scipy.optimize import least_squares  # here: scipy's import would slow every CLI start
-
-    fit = least_squares(
-        lambda p: (magnitude_and_gradient(p, m)[0] - g) / sigma,
-        start, jac=lambda p: magnitude_and_gradient(p, m)[2] / sigma[:, None], method="lm", x_scale="jac",
-    )
-    return fit.x
+    return nonlinear(lambda p: (magnitude_and_gradient(p, m)[0] - g) / sigma,
+                     lambda p: magnitude_and_gradient(p, m)[2] / sigma[:, None], start).x
 
 
 def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> float:
@@ -158,7 +148,9 @@ def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> f
     when the noise alone explains the residuals (``excess_is_significant``)."""
     from scipy.optimize import brentq  # here: scipy's import would slow every CLI start
 
-    chi2 = lambda tau2: float(np.sum(residuals**2 / (noise_var + tau2))) - dof
+    def chi2(tau2: float) -> float:
+        return float(np.sum(residuals**2 / (noise_var + tau2))) - dof
+
     if not excess_is_significant(chi2(0.0) + dof, dof):
         return 0.0
     upper = float(np.sum(residuals**2)) / dof
@@ -177,22 +169,22 @@ def direction_spread(directions: np.ndarray) -> float:
 
 
 def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                     min_poses: int = 12) -> OrientationFreeFit | PoseFailure:
+                     min_poses: int = 12) -> OrientationFreeFit | Failure:
     """The nine intrinsic parameters from static poses of unknown orientation.
 
     ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
-    ``pose_table``). Returns a ``PoseFailure`` with the reason when the poses
+    ``pose_table``). Returns a ``Failure`` (rate 0) with the reason when the poses
     are too few or too alike to identify the nine parameters.
     """
     n = poses.height
     if n < min_poses:
-        return PoseFailure(f"{n} static poses: at least {min_poses} are needed to identify the nine "
+        return Failure(0.0, f"{n} static poses: at least {min_poses} are needed to identify the nine "
                            "intrinsic parameters with residual degrees of freedom")
     m, cov = pose_arrays(poses)
     try:
         params = _ellipsoid_start(m, g_local)
     except np.linalg.LinAlgError:
-        return PoseFailure(TOO_ALIKE.format(detail=": their means do not span an ellipsoid"))
+        return Failure(0.0, TOO_ALIKE.format(detail=": their means do not span an ellipsoid"))
     dof = n - 9
     tau2 = 0.0
     floor = VARIANCE_FLOOR * g_local**2
@@ -209,29 +201,24 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
             break
     L = _lower(params)
     if not np.all(np.isfinite(params)) or np.any(np.diag(L) <= 0):
-        return PoseFailure("the orientation-free fit did not converge to a valid responsivity matrix")
+        return Failure(0.0, "the orientation-free fit did not converge to a valid responsivity matrix")
     a = np.linalg.solve(L, (m - params[6:]).T).T
     spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None])
     if spread < MIN_SPREAD:
-        return PoseFailure(TOO_ALIKE.format(detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
+        return Failure(0.0, TOO_ALIKE.format(detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
     chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof)
     weight = 1.0 / (noise_var + tau2)
     params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]))
     gain = params_cov @ (jac * weight[:, None]).T  # (9, n): d params / d residual
-    parts = {"pose noise": (gain * noise_var) @ gain.T, "excess scatter": (gain * tau2) @ gain.T}
     # state = g * rows of L (the g-free coefficient space of combine) and O
     lift = np.zeros((12, 9))
     for k, (i, j) in enumerate(zip(*TRIL)):
         lift[3 * i + j, k] = g_local
     lift[9:, 6:] = np.eye(3)
+    gain = lift @ gain
+    # the pose means' noise is known from many samples each; the excess scatter is estimated from the dof residuals
+    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T),
+             (whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T)]
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
-    state_cov = lift @ params_cov @ lift.T
-    value, jac_state, jac_g = intrinsic_jacobian(state, g_local)
-    budget = {name: np.einsum("ij,jk,ik->i", jac_state @ lift, part, jac_state @ lift) for name, part in parts.items()}
-    budget["g_local"] = (jac_g * g_uncertainty) ** 2
-    result = IntrinsicResult(
-        rate_hz=0.0, value=value,
-        cov=jac_state @ state_cov @ jac_state.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
-        state=state, state_cov=state_cov, budget=budget, g_local=g_local,
-    )
+    result = IntrinsicResult.from_state(0.0, state, lift @ params_cov @ lift.T, g_local, g_uncertainty, parts)
     return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread)

@@ -16,10 +16,10 @@ with rho = g r (output units), (a, b) the components of Geist's Eq. 5 for
 axis s and sigma_k = +-1. Each component of each vector is seen by two axes
 and each offset by three, so the angles are fixed by the requirement that the
 components measured twice agree: a joint weighted least-squares fit
-(Gauss-Newton) of the twelve state elements (rho, O) and every segment's
+of the twelve state elements (rho, O) and every segment's
 theta_k to all segments' coefficient vectors. The weights are each
 coefficient's inverse variance, as combine gives the labelled segments (Geist
-2017 Eqs. 10 and 12); the covariance of the estimate is propagated from every
+2017 Eqs. 10 and 12), solved by ``rotcal.fit.lsq.nonlinear``; the covariance of the estimate is propagated from every
 segment's full 9 x 9 covariance through the fit's linear response (a sandwich
 estimate), so the estimated angles' uncertainty is in it. To first order the
 intrinsic parameters do not depend on the angles at all (lengths and dot
@@ -48,21 +48,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotcal.combine.labelled import STATE, CombineFailure, IntrinsicResult, intrinsic_jacobian
+from rotcal.combine.labelled import STATE, segment_input
+from rotcal.fit.lsq import nonlinear
 from rotcal.model.physics import AXES, COS_COMPONENT, SIN_COMPONENT, axis_index
+from rotcal.model.results import Failure, IntrinsicResult
 
 
 @dataclass(frozen=True, eq=False)
 class PhaseSegment:
     """One rotation segment's coefficient vector (channel-major C, A, B),
-    its 9 x 9 covariance, its table axis, and whether its phase is the table
-    angle (``fixed``) or its own."""
+    its 9 x 9 covariance, its table axis, whether its phase is the table
+    angle (``fixed``) or its own, and its fit's residual degrees of freedom
+    (0: the noise treated as known)."""
 
     segment: int
     axis: str
     coef: np.ndarray
     cov: np.ndarray
     fixed: bool = False
+    dof: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,17 +108,17 @@ def _turn(q: np.ndarray) -> tuple[float, float]:
 
 def _start(segments: list[PhaseSegment]) -> np.ndarray:
     """Closed-form rho (3 x 3) from one segment per axis (module docstring)."""
-    rep = {}
+    rep: dict[str, np.ndarray] = {}
     for seg in segments:
         rep.setdefault(seg.axis, _in_plane(seg.coef))
     gram_inv = np.linalg.inv(0.5 * sum(p @ p.T for p in rep.values()))
     q = {axis: np.zeros((2, 2)) for axis in rep}  # columns: the plane's axes in the segment's phase frame
     for i, k in enumerate(AXES):
-        for l in AXES[i + 1 :]:
-            shared = ({*_plane(k)} & {*_plane(l)}).pop()
-            u, _, vt = np.linalg.svd(rep[k].T @ gram_inv @ rep[l])
+        for m in AXES[i + 1 :]:
+            shared = ({*_plane(k)} & {*_plane(m)}).pop()
+            u, _, vt = np.linalg.svd(rep[k].T @ gram_inv @ rep[m])
             q[k][:, _plane(k).index(shared)] = u[:, 0]
-            q[l][:, _plane(l).index(shared)] = vt[0]
+            q[m][:, _plane(m).index(shared)] = vt[0]
     rho = np.zeros((3, 3))
     for axis, p in rep.items():
         a, b = _plane(axis)
@@ -145,8 +149,8 @@ def _model(rho: np.ndarray, offset: np.ndarray, axis: str, theta: float, sigma: 
     return pred.ravel(), d_rho, d_off, d_theta
 
 
-def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: float, g_uncertainty: float,
-                     max_iterations: int = 50) -> PhaseFreeFit | CombineFailure:
+def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: float,
+                     g_uncertainty: float) -> PhaseFreeFit | Failure:
     """The intrinsic parameters of one rate from segments whose phases are
     (partly) unknown."""
     axes = {s.axis for s in segments}
@@ -155,10 +159,10 @@ def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: floa
                    if all(c not in _plane(ax) for ax in axes)]
         seen = ", ".join(sorted(axes)) or "none"
         if missing:
-            return CombineFailure(rate_hz, f"segments about axes {seen} leave {', '.join(missing)} unmeasured")
+            return Failure(rate_hz, f"segments about axes {seen} leave {', '.join(missing)} unmeasured")
         # two axes measure every component, but not the unknown starting angles as well
-        return CombineFailure(rate_hz, f"segments about axes {seen} only: rotations without a table angle need all "
-                                       "three axes to solve their unknown starting angles")
+        return Failure(rate_hz, f"segments about axes {seen} only: rotations without a table angle need all "
+                                "three axes to solve their unknown starting angles")
     rho = _start(segments)
     fixed = [s for s in segments if s.fixed]
     if fixed:
@@ -182,47 +186,41 @@ def solve_phase_free(rate_hz: float, segments: list[PhaseSegment], g_local: floa
     scale = [1.0 / np.sqrt(np.maximum(np.diag(s.cov), 1e-290)) for s in segments]
     n_par = 12 + len(free)
     column = {k: 12 + j for j, k in enumerate(free)}
+    weight = np.concatenate(scale)
 
-    def system(rho, offset, theta):
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        angles = theta.copy()
+        angles[free] = x[12:]
+        return x[:9].reshape(3, 3), x[9:12], angles
+
+    def system(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals (prediction - coefficients) and their Jacobian."""
+        rho, offset, angles = unpack(x)
         resid, jac = [], []
         for k, s in enumerate(segments):
-            pred, d_rho, d_off, d_theta = _model(rho, offset, s.axis, theta[k], sigma[k])
+            pred, d_rho, d_off, d_theta = _model(rho, offset, s.axis, angles[k], sigma[k])
             block = np.zeros((9, n_par))
             block[:, :9], block[:, 9:12] = d_rho, d_off
             if k in column:
                 block[:, column[k]] = d_theta
-            resid.append(scale[k] * (s.coef - pred))
-            jac.append(scale[k][:, None] * block)
-        return np.concatenate(resid), np.vstack(jac)
+            resid.append(pred - s.coef)
+            jac.append(block)
+        return np.concatenate(resid) * weight, np.vstack(jac) * weight[:, None]
 
-    for _ in range(max_iterations):
-        resid, jac = system(rho, offset, theta)
-        step = np.linalg.lstsq(jac, resid, rcond=None)[0]
-        rho = rho + step[:9].reshape(3, 3)
-        offset = offset + step[9:12]
-        theta = theta + np.array([step[column[k]] if k in column else 0.0 for k in range(len(segments))])
-        if np.all(np.abs(step) <= 1e-12 * np.maximum(np.abs(np.r_[rho.ravel(), offset, theta[free]]), 1.0)):
-            break
-    resid, jac = system(rho, offset, theta)
+    # tolerance 1e-12: the estimate then agrees with the former hand-written Gauss-Newton loop (steps below
+    # 1e-12 relative) within 8e-12 relative, 2e-6 of its uncertainty, on 200 noisy simulated DUTs
+    fit = nonlinear(lambda x: system(x)[0], lambda x: system(x)[1], np.r_[rho.ravel(), offset, theta[free]], 1e-12)
+    rho, offset, theta = unpack(fit.x)
     # the estimate's response to every segment's coefficients, and through it their covariance
-    response = np.linalg.solve(jac.T @ jac, jac.T) * np.concatenate(scale)[None, :]
+    response = fit.gain * weight[None, :]
     blocks = [response[:, 9 * k : 9 * k + 9] for k in range(len(segments))]
     cov = sum(b @ s.cov @ b.T for b, s in zip(blocks, segments))
-    state = np.r_[rho.ravel(), offset]
-    state_cov = cov[:12, :12]
-    value, jac_state, jac_g = intrinsic_jacobian(state, g_local)
-    budget = {f"segment {s.segment} ({s.axis})": np.einsum("ij,jk,ik->i", jac_state @ b[:12], s.cov, jac_state @ b[:12])
-              for b, s in zip(blocks, segments)}
-    budget["g_local"] = (jac_g * g_uncertainty) ** 2
-    result = IntrinsicResult(
-        rate_hz=rate_hz, value=value,
-        cov=jac_state @ state_cov @ jac_state.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
-        state=state, state_cov=state_cov, budget=budget, g_local=g_local,
-    )
+    parts = [(segment_input(s.segment, s.axis, s.dof), b[:12] @ s.cov @ b[:12].T) for b, s in zip(blocks, segments)]
+    result = IntrinsicResult.from_state(rate_hz, np.r_[rho.ravel(), offset], cov[:12, :12], g_local, g_uncertainty, parts)
     theta_u = np.full(len(segments), np.nan)
     theta_u[free] = np.degrees(np.sqrt(np.diag(cov)[12:]))
     theta_deg = np.where([s.fixed for s in segments], np.nan, np.degrees(theta) % 360.0)
     # consistency of the components measured twice, with the full covariances
     chi2 = sum(float(r @ np.linalg.lstsq(s.cov, r, rcond=None)[0])
-               for s, r in zip(segments, np.split(resid / np.concatenate(scale), len(segments))))
-    return PhaseFreeFit(result, theta_deg, theta_u, sigma < 0, chi2, int(resid.size - n_par))
+               for s, r in zip(segments, np.split(fit.residuals / weight, len(segments))))
+    return PhaseFreeFit(result, theta_deg, theta_u, sigma < 0, chi2, fit.dof)

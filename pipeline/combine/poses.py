@@ -21,17 +21,18 @@ responsivity rows give the nine intrinsic parameters.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
-from rotcal.combine.multiposition import PoseFailure, group_statistics, pose_arrays
+from rotcal.combine.multiposition import group_statistics, pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
+from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 from rotcal.segment.stillness import StillnessConfig, still_intervals
 
 LABEL_REFERENCE = {f"{axis}_{side}": tuple(float(sign * (a == axis)) for a in AXES)
@@ -41,7 +42,7 @@ MIN_REFERENCE_POSES = 4
 
 
 def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source: str,
-                label: list[str | None], reference: np.ndarray) -> pl.DataFrame:
+                label: Sequence[str | None], reference: np.ndarray) -> pl.DataFrame:
     """One row per group of samples (``group`` = -1 outside every pose)."""
     t_ns = samples["t_ns"].to_numpy()
     counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)
@@ -141,32 +142,28 @@ class ReferenceFit:
         return np.sqrt(np.diag(self.excess_cov))
 
 
-def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | PoseFailure:
+def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | Failure:
     """Responsivity rows and offsets from positions of known reference
     acceleration (Geist 2017 Eq. 19; ordinary least squares on the pose
     means, the normal equations of AN4399 Eq. 34 per channel)."""
     n = poses.height
     if n < MIN_REFERENCE_POSES:
-        return PoseFailure(f"{n} positions with a known reference: at least {MIN_REFERENCE_POSES} "
+        return Failure(0.0, f"{n} positions with a known reference: at least {MIN_REFERENCE_POSES} "
                            "are needed for the 12 parameters")
     m, cov = pose_arrays(poses)
     design = np.column_stack([references(poses), np.ones(n)])
     try:
         fit = ols(design, m, cov)
     except UndeterminedError as exc:
-        return PoseFailure(f"the reference accelerations do not determine the 12 parameters: {exc.problem}")
+        return Failure(0.0, f"the reference accelerations do not determine the 12 parameters: {exc.problem}")
     # coefficient order (channel, [ref_x, ref_y, ref_z, 1]) -> state (g r_u, g r_v, g r_w, O)
     order = np.array([4 * r + i for r in range(3) for i in range(3)] + [4 * r + 3 for r in range(3)])
     state = fit.coef.T.ravel()[order]
     state_cov = fit.cov[np.ix_(order, order)]
-    value, jac, jac_g = intrinsic_jacobian(state, g_local)
-    cov_values = jac @ state_cov @ jac.T
-    result = IntrinsicResult(
-        rate_hz=0.0, value=value, cov=cov_values + np.outer(jac_g, jac_g) * g_uncertainty**2,
-        state=state, state_cov=state_cov,
-        budget={"positions": np.diag(cov_values), "g_local": (jac_g * g_uncertainty) ** 2}, g_local=g_local,
-    )
     dof = 3 * fit.dof
+    # the positions' noise and excess scatter together: the sandwich covariance of one fit
+    result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
+                                        [(whole_fit_input("positions", float(dof or np.inf)), state_cov)])
     return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
 
 

@@ -18,23 +18,23 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import IntrinsicResult
-from rotcal.combine.multiposition import OrientationFreeFit, PoseFailure, orientation_free, pose_arrays
+from rotcal.combine.multiposition import OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, still_poses
 from rotcal.model.physics import AXES, CHANNELS
+from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.tables import conform
 
 FRAMES = {"label": "pose", "jig": "jig", "stillness": "intrinsic"}
 
 
 @dataclass(frozen=True, eq=False)
-class StaticReduction:
-    """The static result of a recording: how it was fitted, the frame of its
-    responsivity vectors, the fit, the positions used (pose table with
-    ``cov_mean``) and the per-pose check (schema ``poses``)."""
+class StaticReduction(Reduction):
+    """The static reduction of a recording (its one result, rate 0, and the
+    ``poses`` table), with how it was fitted, the fit, the positions used
+    (pose table with ``cov_mean``) and the per-pose check (schema
+    ``poses``)."""
 
     method: str
-    frame: str
     fit: ReferenceFit | OrientationFreeFit
     positions: pl.DataFrame
     check: pl.DataFrame
@@ -44,7 +44,7 @@ class StaticReduction:
         return self.fit.result
 
 
-def _fit(positions: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | OrientationFreeFit | PoseFailure:
+def _fit(positions: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | OrientationFreeFit | Failure:
     if positions["source"][0] == "stillness":
         return orientation_free(positions, g_local, g_uncertainty)
     return reference_fit(positions, g_local, g_uncertainty)
@@ -60,15 +60,15 @@ def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) ->
 
 
 def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g_local: float,
-                  g_uncertainty: float) -> StaticReduction | PoseFailure:
+                  g_uncertainty: float) -> StaticReduction | Failure:
     """The static result of a recording whose samples carry no table labels."""
     positions = labelled_poses(samples, segments)
     if positions.height == 0:
         positions = still_poses(samples)
         if positions.height == 0:
-            return PoseFailure("no still intervals found")
+            return Failure(0.0, "no still intervals found")
     fit = _fit(positions, g_local, g_uncertainty)
-    if isinstance(fit, PoseFailure):
+    if isinstance(fit, Failure):
         return fit
     m, cov = pose_arrays(positions)
     after = correct_poses(fit.result, m, cov)
@@ -77,7 +77,7 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     held_u = np.full(positions.height, np.nan)
     for k in (0, 1):
         other = _fit(positions.filter(pl.Series(fold != k)), g_local, g_uncertainty)
-        if not isinstance(other, PoseFailure):
+        if not isinstance(other, Failure):
             pred = _predict(other, positions.filter(pl.Series(fold == k)))
             held[fold == k], held_u[fold == k] = pred.magnitude, pred.magnitude_u
     source = positions["source"][0]
@@ -94,4 +94,5 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         norm_held_out_m_s2=held, u_norm_held_out_m_s2=held_u,
     )
     method = "orientation-free" if source == "stillness" else "reference"
-    return StaticReduction(method, FRAMES[source], fit, positions, conform(check, "poses"))
+    check = conform(check, "poses")
+    return StaticReduction(FRAMES[source], (fit.result,), (), (Table("poses", check),), (), method, fit, positions, check)

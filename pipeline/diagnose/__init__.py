@@ -27,7 +27,6 @@ import numpy as np
 import polars as pl
 from scipy.stats import chi2
 
-from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
@@ -46,6 +45,7 @@ from rotcal.fit.segments import segment_rows
 from rotcal.model.effects import LimitEffect, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES, CHANNELS, Motion
+from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
 
 
@@ -277,11 +277,9 @@ def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tu
         idx = np.array([layout.index[n] for n in names])
         pos = np.searchsorted(final.idx, idx)
         state, state_cov = final.beta[idx], cov[np.ix_(pos, pos)]
-        value, jac, jac_g = intrinsic_jacobian(state, g_local)
-        noise = np.einsum("ij,jk,ik->i", jac, state_cov, jac)
-        out.append(IntrinsicResult(
-            float(rate), value, jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2,
-            state, state_cov, {"model fit": noise, "g_local": (jac_g * g_uncertainty) ** 2}, g_local))
+        # the model fits every sample at once: its noise is one input group, not split per segment
+        fit_input = whole_fit_input("model fit", float(final.n_total - final.n_params))
+        out.append(IntrinsicResult.from_state(float(rate), state, state_cov, g_local, g_uncertainty, [(fit_input, state_cov)]))
     return tuple(out)
 
 

@@ -1,5 +1,15 @@
-"""Linear least squares with an honest covariance, for fits to a handful of
-static positions (pose means, table steps, jig positions).
+"""rotcal's least-squares core: nonlinear least squares through scipy's
+``least_squares`` (``nonlinear``), and linear least squares with an honest
+covariance for fits to a handful of static positions (``ols``: pose means,
+table steps, jig positions).
+
+``nonlinear`` minimises sum_i f_i(x)^2 of whitened residuals f (each divided
+by its standard deviation) with the Levenberg-Marquardt method (MINPACK);
+at the minimum it gives the estimate, the covariance (J^T J)^-1 of the
+whitened problem (GUM 6.3; Gauss-Markov) with J the Jacobian of f, the
+estimate's first-order response (J^T J)^-1 J^T to the residuals (for a
+sandwich covariance when the observations' full covariance is known) and
+the residual degrees of freedom.
 
 The estimate is ordinary least squares (AN4399 Eq. 34, the normal
 equations), solved through a QR factorisation of the column-scaled design so
@@ -25,6 +35,7 @@ distribution, and a 95 % interval needs k = t(0.975, dof) > 2.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +54,48 @@ def excess_is_significant(chi2: float, dof: int, level: float = EXCESS_LEVEL) ->
     from scipy.special import gammaincinv  # here, not at the top: scipy's import would slow every CLI start
 
     return dof > 0 and chi2 > 2.0 * gammaincinv(dof / 2.0, level)
+
+
+@dataclass(frozen=True, eq=False)
+class NonlinearFit:
+    """The minimum of a whitened least-squares problem: estimate ``x``, the
+    whitened residuals and the Jacobian there, and whether the solver
+    reported convergence."""
+
+    x: np.ndarray
+    residuals: np.ndarray
+    jac: np.ndarray
+    converged: bool
+
+    @property
+    def dof(self) -> int:
+        return int(self.residuals.size - self.x.size)
+
+    @property
+    def chi2(self) -> float:
+        return float(self.residuals @ self.residuals)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """(J^T J)^-1: the estimate's covariance when the whitened residuals have unit variance."""
+        return np.linalg.inv(self.jac.T @ self.jac)
+
+    @property
+    def gain(self) -> np.ndarray:
+        """(J^T J)^-1 J^T: d(estimate)/d(whitened observation), to first order."""
+        return np.linalg.solve(self.jac.T @ self.jac, self.jac.T)
+
+
+def nonlinear(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
+              tolerance: float = 1e-8) -> NonlinearFit:
+    """Minimise |fun(x)|^2 from ``x0`` (Levenberg-Marquardt, parameters
+    scaled by the Jacobian's columns); ``fun`` returns whitened residuals,
+    ``jac`` their Jacobian, ``tolerance`` the relative change of x, of the
+    cost and of the gradient at which the iteration stops."""
+    from scipy.optimize import least_squares  # here, not at the top: scipy's import would slow every CLI start
+
+    fit = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", xtol=tolerance, ftol=tolerance, gtol=tolerance)
+    return NonlinearFit(fit.x, fit.fun, fit.jac, bool(fit.status > 0))
 
 
 @dataclass(frozen=True, eq=False)

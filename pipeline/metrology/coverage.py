@@ -21,12 +21,13 @@ import numpy as np
 import polars as pl
 from scipy.stats import binom
 
-from rotcal.combine.labelled import IntrinsicResult, combine
+from rotcal.combine.labelled import combine
 from rotcal.config import FitConfig
 from rotcal.fit.segments import fit_segments, fits_frame
 from rotcal.ingest import Dataset, load_dataset
 from rotcal.metrology.uncertainty import COVERAGE_PROBABILITY
 from rotcal.model.physics import INTRINSIC
+from rotcal.model.results import IntrinsicResult
 from rotcal.segment.labelled import segment_by_labels
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import IntrinsicResult, intrinsic_jacobian
 from rotcal.errors import InputError
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
+from rotcal.model.results import IntrinsicResult, intrinsic_jacobian
 from rotcal.tables import conform, schema, write_parquet
 
 MATRIX_PARAMETERS = INTRINSIC[:6]

@@ -40,8 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import CombineFailure, LinearStage, intrinsic_jacobian, linear_stage, rate_segments, units
+from rotcal.combine.labelled import LinearStage, linear_stage, rate_segments, units
 from rotcal.model.physics import AXES, INTRINSIC
+from rotcal.model.results import Failure, intrinsic_jacobian
 from rotcal.tables import conform, schema
 
 # rotation axis -> (channel i, channel j) with phi = |phase_j - phase_i|, and the parameter's index in INTRINSIC
@@ -103,7 +104,7 @@ def gaitan_frame(fits: pl.DataFrame, g_local: float, g_uncertainty: float, datas
     rows = []
     for rate, segs in rate_segments(fits):
         stage = linear_stage(rate, segs)
-        if isinstance(stage, CombineFailure):
+        if isinstance(stage, Failure):
             continue
         gr = gaitan_rate(stage, g_local)
         if gr is None:

@@ -28,9 +28,10 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, intrinsic_jacobian, linear_stage, rate_segments
+from rotcal.combine.labelled import linear_stage, rate_segments
 from rotcal.metrology.consistency import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
+from rotcal.model.results import Failure, IntrinsicResult, intrinsic_jacobian
 from rotcal.tables import conform, schema
 
 
@@ -117,7 +118,7 @@ def _static_offset_cov_with_s0(fits: pl.DataFrame, g_local: float) -> dict[int, 
     static offsets and the DC sensitivities come from the same fits."""
     dc = dict(rate_segments(fits)).get(0.0)
     stage = linear_stage(0.0, dc) if dc else None
-    if stage is None or isinstance(stage, CombineFailure):
+    if stage is None or isinstance(stage, Failure):
         return {}
     jac = intrinsic_jacobian(stage.state, g_local)[1][:3] @ stage.L
     cross = stage.cov @ jac.T  # (coefficients, 3)

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, LinearStage, linear_stage, rate_segments, units
+from rotcal.combine.labelled import LinearStage, linear_stage, rate_segments, units
 from rotcal.config import UncertaintyConfig
 from rotcal.model.physics import INTRINSIC, intrinsic_from_vectors
+from rotcal.model.results import Failure, IntrinsicResult
 from rotcal.tables import conform, schema
 
 COVERAGE_PROBABILITY = math.erf(2.0 / math.sqrt(2.0))  # k = 2 for a normal distribution: 95.45 %
@@ -133,7 +134,7 @@ def monte_carlo_rate(stage: LinearStage, g_local: float, g_uncertainty: float, r
 def monte_carlo(fits: pl.DataFrame, g_local: float, g_uncertainty: float, config: UncertaintyConfig) -> list[MonteCarloResult]:
     """Every determined rate's Monte Carlo propagation, seeded per rate from
     ``config.monte_carlo_seed`` (the same inputs give the same draws)."""
-    stages = [s for s in (linear_stage(rate, segs) for rate, segs in rate_segments(fits)) if not isinstance(s, CombineFailure)]
+    stages = [s for s in (linear_stage(rate, segs) for rate, segs in rate_segments(fits)) if not isinstance(s, Failure)]
     seeds = np.random.SeedSequence(config.monte_carlo_seed).spawn(len(stages))
     return [monte_carlo_rate(stage, g_local, g_uncertainty, np.random.default_rng(seed), config.monte_carlo_max_draws)
             for stage, seed in zip(stages, seeds)]

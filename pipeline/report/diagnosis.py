@@ -20,9 +20,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import polars as pl  # noqa: E402
 
-from rotcal.combine.labelled import IntrinsicResult, units  # noqa: E402
+from rotcal.combine.labelled import units  # noqa: E402
 from rotcal.diagnose import Diagnosis  # noqa: E402
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC  # noqa: E402
+from rotcal.model.results import IntrinsicResult  # noqa: E402
 
 COLORS = ("tab:red", "tab:green", "tab:blue")
 

@@ -6,10 +6,11 @@ import numpy as np
 import polars as pl
 from rich.table import Table
 
-from rotcal.combine.labelled import IntrinsicResult, units
+from rotcal.combine.labelled import units
 from rotcal.combine.poses import ReferenceFit
 from rotcal.combine.static import StaticReduction
 from rotcal.model.physics import INTRINSIC
+from rotcal.model.results import IntrinsicResult
 
 COVERAGE_FACTOR = 2.0
 

@@ -1,5 +1,5 @@
-"""Samples without usable labels: their segments inferred from the signals,
-their rates measured, and their reduction without an angle reference.
+"""Samples without usable labels: their segments inferred from the signals
+and their rates measured.
 
 - Unlabelled samples (and static steps labelled without angles) go through
   blind segmentation (``rotcal.segment.blind``): constant rotations, static step
@@ -8,10 +8,7 @@ their rates measured, and their reduction without an angle reference.
   axis and rate but no angle) are fitted against their own phase
   (``rotcal.fit.sinefit``); their measured rates are checked against the
   nominal ones and the logger's clock (``rotcal.timebase.rates``).
-- Reduction: per rate, the rotation segments go to ``rotcal.combine.phasefree``
-  (segments with a table angle enter with their phase fixed); the dwells to
-  ``rotcal.combine.multiposition.orientation_free`` (rate 0) when no labelled
-  static sequence gives the static result.
+- Their reduction without an angle reference is ``rotcal.combine.unreferenced``.
 """
 
 from __future__ import annotations
@@ -20,11 +17,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
-from scipy.special import chdtrc
 
-from rotcal.combine.labelled import CombineFailure, IntrinsicResult, segment_coefficients
-from rotcal.combine.multiposition import OrientationFreeFit, orientation_free, pose_table
-from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
+from rotcal.combine.multiposition import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
@@ -32,8 +26,6 @@ from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.tables import conform, schema
 from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
-
-CONSISTENCY = 1e-3  # chi-square p-value below which the components measured twice disagree
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,8 +114,8 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
         found.rows.append(_segment_row(dataset, found.key, capture, "pose", None, 0.0, int(t[s]), int(t[e - 1]),
                                        int(e - s), 1, "inferred", chi2_reduced=float(chi2[j])))
         found.key += 1
-    for j, (s, e) in enumerate(blind.dwells):
-        segment[s:e] = group[j]
+    for k, (s, e) in enumerate(blind.dwells):
+        segment[s:e] = group[k]
     interval_s = float(np.median(np.diff(t))) / 1e9
     found.dwells.append(pose_table(t, y, blind.dwells[:, 0], blind.dwells[:, 1]).with_columns(
         segment=pl.Series(group, dtype=pl.Int32), capture=pl.lit(capture),
@@ -152,15 +144,16 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     rate[free] = rate_classes(corrected[free])
     rows, updates, fits = [], [], []
     for k, r in enumerate(rotations):
-        measured_cols = {} if not usable[k] else {
-            "rate_measured_hz": float(corrected[k]), "rate_u_hz": float(u_corrected[k]), "t_phase_ns": r.fit.t_ref_ns}
+        fit = r.fit if usable[k] else None
+        measured_cols = {} if fit is None else {
+            "rate_measured_hz": float(corrected[k]), "rate_u_hz": float(u_corrected[k]), "t_phase_ns": fit.t_ref_ns}
         if r.label_source == "inferred":
             rows.append(_segment_row(dataset, r.key, r.capture, "rotation", r.axis, float(rate[k]), r.start_ns, r.end_ns,
                                      r.n_samples, 0, "inferred", axis_offset_deg=r.axis_offset_deg, chi2_reduced=r.chi2,
                                      **measured_cols))
         elif measured_cols:
             updates.append({"segment": r.key, **measured_cols})
-        fits.append(replace(r.fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if usable[k] else
+        fits.append(replace(fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if fit is not None else
                     SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")))
     return rows, updates, fits, drift.finding(dataset), drift.warnings()
 
@@ -191,7 +184,7 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     free = (seg_col < 0) | np.isin(seg_col, static_no_angle.to_numpy())
     seg_col[free] = -1
     t_all = samples["t_ns"].to_numpy()
-    found = _Found(int(segments["segment"].max() + 1) if segments.height else 0)
+    found = _Found(int(segments["segment"].to_numpy().max()) + 1 if segments.height else 0)
     # the outputs are gathered only for the samples a step needs (no copy of a whole labelled recording)
     captures = samples["capture"].filter(pl.Series(free)).unique(maintain_order=True).to_list()
     for capture in captures:
@@ -221,41 +214,12 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     every = every.with_columns(segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32)).sort("segment")
     seg_col = lookup[seg_col]
     samples = samples.with_columns(segment=pl.Series(np.ma.masked_array(seg_col, seg_col < 0), dtype=pl.Int32))
-    fits = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
+    numbered = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
     dwells = schema("dwells").empty() if not found.dwells else conform(
         pl.concat(found.dwells).sort("t_start_ns").with_columns(
             dataset=pl.lit(dataset), dwell=pl.int_range(pl.len(), dtype=pl.Int32),
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
-    return Inference(samples, conform(every, "segments"), fits, frozenset(f.segment for f in fits), dwells,
+    return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
                      (finding,) if found.rotations else (), tuple(warnings), tuple(notes))
 
-
-def reduce_unreferenced(fits: pl.DataFrame, own_phase: frozenset[int], dwells: pl.DataFrame, need_static: bool,
-                        g_local: float, g_uncertainty: float
-                        ) -> tuple[list[IntrinsicResult | CombineFailure], pl.DataFrame, list[str]]:
-    """Results of the rates that have rotation segments without an angle
-    reference, and of rate 0 from the dwells when ``need_static``; the
-    dwells with their |a| after calibration; warnings where the components
-    measured twice disagree."""
-    results, warnings = [], []
-    rotating = fits.filter((pl.col("kind") == "rotation") & (pl.col("status") == "ok"))
-    for rate in sorted(set(rotating.filter(pl.col("segment").is_in(list(own_phase)))["rate_hz"].to_list())):
-        segs = segment_coefficients(rotating.filter(pl.col("rate_hz") == rate))
-        solved = solve_phase_free(rate, [PhaseSegment(s.segment, s.axis, s.coef, s.cov, s.segment not in own_phase)
-                                         for s in segs], g_local, g_uncertainty)
-        if isinstance(solved, CombineFailure):
-            results.append(solved)
-            continue
-        results.append(solved.result)
-        if solved.dof > 0 and chdtrc(solved.dof, solved.chi2) < CONSISTENCY:
-            warnings.append(f"rate {rate:g} Hz: the components measured twice disagree beyond their uncertainties "
-                            f"(chi-square {solved.chi2:.3g} on {solved.dof} degrees of freedom)")
-    if need_static and dwells.height:
-        fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty)
-        if isinstance(fit, OrientationFreeFit):
-            results.append(fit.result)
-            dwells = dwells.with_columns(g_magnitude=pl.Series(fit.magnitude))
-        else:
-            results.append(CombineFailure(0.0, f"static dwells: {fit.reason}"))
-    return results, dwells, warnings
