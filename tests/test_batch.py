@@ -7,13 +7,14 @@ import sqlite3
 from dataclasses import replace
 
 import jsonschema
-from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
 from rotcal.batch.manifest import run_lock
 from rotcal.batch.runner import dataset_id, discover, run_batch
 from rotcal.config import BatchConfig, RunConfig
 from rotcal.simulate.core import simulate, write_dataset
 from rotcal.tables import schema_text
+
+from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
 
 def test_dataset_ids_are_unique_safe_and_readable():
