@@ -54,7 +54,7 @@ def cli(monkeypatch, capsys):
     return invoke
 
 
-def pytest_collection_modifyitems(config, items):
+def pytest_collection_modifyitems(items):
     """``@pytest.mark.slow`` tests run only with ROTCAL_SLOW=1;
     ``@pytest.mark.real`` tests only where the real recordings are."""
     skips = {}

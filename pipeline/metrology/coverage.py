@@ -24,6 +24,7 @@ at all and the sensitivities would look over-covered.
 
 from __future__ import annotations
 
+import multiprocessing
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
@@ -96,7 +97,8 @@ def simulate_errors(n: int, first_seed: int = 0, spec: SimulationSpec = Simulati
     jobs = [(first_seed + k, spec, fit) for k in range(n)]
     if workers <= 1:
         return np.array([_job(j) for j in jobs])
-    with ProcessPoolExecutor(workers) as pool:
+    # spawned, as the batch's workers: a fork after polars' thread pool started deadlocks
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         return np.array(list(pool.map(_job, jobs, chunksize=4)))
 
 
