@@ -15,9 +15,10 @@ import polars as pl
 from rotcal.config import BatchConfig, DiagnosisConfig, RunConfig
 from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
 
+from testdata import REPO
+
 # One rate and short segments: a dataset of 8 small CSVs.
 SMALL = SimulationSpec(plan=Plan(step_samples=10, rates_hz=(0.5,), rotation_samples=200))
-REPO = Path(__file__).resolve().parents[1]
 # Batch does not care which stages run_dataset runs; the diagnosis and its
 # report take 7 times as long as the rest on a small dataset, so most batch
 # tests switch it off (test_batch.py keeps one test with the defaults).

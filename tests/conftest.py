@@ -1,9 +1,9 @@
-"""Shared test fixtures: seeded simulated datasets (cached per session) and
-the real recordings in ../shared/data/real, read in place."""
+"""Shared test fixtures: seeded simulated datasets (cached per session), the
+command line run in-process, and the markers ``slow`` (run with
+ROTCAL_SLOW=1) and ``real`` (skipped when the real recordings are absent)."""
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -12,9 +12,7 @@ import pytest
 
 from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("ROTCAL_SHARED", REPO.parent / "shared"))
-REAL = SHARED / "data" / "real"
+from testdata import REAL
 
 
 @pytest.fixture(scope="session")
@@ -37,10 +35,6 @@ def make_dataset(tmp_path_factory):
     return make
 
 
-def truth_of(dataset: Path) -> dict:
-    return json.loads((dataset / "truth.json").read_text())
-
-
 @pytest.fixture
 def cli(monkeypatch, capsys):
     """Run the ``rotcal`` entry point in-process: returns (exit code, stdout, stderr)."""
@@ -60,11 +54,15 @@ def cli(monkeypatch, capsys):
     return invoke
 
 
-def pytest_collection_modifyitems(config, items):
-    """``@pytest.mark.slow`` tests run only with ROTCAL_SLOW=1."""
-    if os.environ.get("ROTCAL_SLOW") == "1":
-        return
-    skip = pytest.mark.skip(reason="long statistical run: set ROTCAL_SLOW=1")
+def pytest_collection_modifyitems(items):
+    """``@pytest.mark.slow`` tests run only with ROTCAL_SLOW=1;
+    ``@pytest.mark.real`` tests only where the real recordings are."""
+    skips = {}
+    if os.environ.get("ROTCAL_SLOW") != "1":
+        skips["slow"] = pytest.mark.skip(reason="long statistical run: set ROTCAL_SLOW=1")
+    if not REAL.is_dir():
+        skips["real"] = pytest.mark.skip(reason=f"{REAL} not found: real recordings absent (set ROTCAL_SHARED)")
     for item in items:
-        if "slow" in item.keywords:
-            item.add_marker(skip)
+        for name, skip in skips.items():
+            if name in item.keywords:
+                item.add_marker(skip)

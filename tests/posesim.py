@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.model.physics import CHANNELS, INTRINSIC, Effects, intrinsic_from_vectors, observe
+from rotcal.model.physics import CHANNELS, Effects, intrinsic_from_vectors, observe
 from rotcal.simulate.core import DutSpec, draw_dut
 
 G_LOCAL = 9.80101
@@ -64,10 +64,6 @@ def hand_placed(seed: int, n_poses: int = 24, samples: int = 200, noise: float =
     t_ns = np.arange(len(y), dtype=np.int64) * int(round(dt_s * 1e9))
     truth = intrinsic_from_vectors(dut.responsivity, dut.offsets)
     return HandPlaced(t_ns, y, pose, d, truth, dut.responsivity, dut.offsets)
-
-
-def truth_dict(sim: HandPlaced) -> dict[str, float]:
-    return dict(zip(INTRINSIC, sim.truth.tolist()))
 
 
 def samples_frame(sim: HandPlaced) -> pl.DataFrame:

@@ -16,8 +16,9 @@ from rotcal.metrology.an4399 import (
 )
 from rotcal.run import run_dataset
 from rotcal.tables import schema
-from tests.conftest import truth_of
-from tests.posesim import G_LOCAL, hand_placed, random_directions
+
+from posesim import G_LOCAL, hand_placed, random_directions
+from testdata import truth_of
 
 PRINTED = 1e-5
 
@@ -126,10 +127,8 @@ def test_temperature_interpolation_with_simulated_calibrations():
     d = random_directions(rng, 12)
     w0 = _truth_correction(base.responsivity, base.offsets)
     dw = rng.normal(0, 1, w0.shape) * np.abs(w0).max(axis=1, keepdims=True) * 1e-4
-
     def truth_at(t):
         return w0 + dw * (t - 20) / 60 + 2 * dw * ((t - 20) / 60) ** 2
-
     fitted = []
     for t in (-40.0, 20.0, 85.0):
         w = truth_at(t)

@@ -7,7 +7,6 @@ import sqlite3
 from dataclasses import replace
 
 import jsonschema
-from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
 from rotcal.batch.manifest import run_lock
 from rotcal.batch.plan import dataset_id, discover
@@ -15,6 +14,8 @@ from rotcal.batch.runner import run_batch
 from rotcal.config import BatchConfig, RunConfig
 from rotcal.simulate.core import simulate, write_dataset
 from rotcal.tables import schema_text
+
+from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 
 
 def test_dataset_ids_are_unique_safe_and_readable():

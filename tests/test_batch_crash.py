@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+from rotcal.batch.runner import run_batch
+
 from batch_support import (
     REPO,
     SERIAL,
@@ -23,8 +25,6 @@ from batch_support import (
     run_cli,
     summary_of,
 )
-
-from rotcal.batch.runner import run_batch
 
 
 def published(out: Path) -> int:

@@ -5,11 +5,12 @@ with a single in-process worker.)"""
 
 from dataclasses import replace
 
-from batch_support import NO_DIAGNOSIS, SERIAL, assert_same_tables, make_root, manifest_rows, result_tables
 from distributed import LocalCluster
 
 from rotcal.batch.runner import run_batch
 from rotcal.config import BatchConfig, load_config
+
+from batch_support import NO_DIAGNOSIS, SERIAL, assert_same_tables, make_root, manifest_rows, result_tables
 
 TIMING = {"run_id", "started_at", "finished_at", "duration_s"}
 

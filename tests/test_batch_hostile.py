@@ -13,11 +13,12 @@ import subprocess
 import sys
 
 import zstandard
-from batch_support import NO_DIAGNOSIS, REPO, SMALL, make_root
 from mcap.data_stream import RecordBuilder
 from mcap.records import Chunk, Header
 
 from rotcal.simulate.core import simulate, write_dataset
+
+from batch_support import NO_DIAGNOSIS, REPO, SMALL, make_root
 
 MAGIC = b"\x89MCAP0\r\n"
 LIMIT = 1 << 20  # the test's limits: 1 MiB lines, records, chunks and dataset.toml

@@ -6,10 +6,11 @@ import duckdb
 import jsonschema
 import polars as pl
 import pyarrow.dataset as pads
-from batch_support import assert_clean, config_file, make_root, manifest_rows
 
 from rotcal.batch.plan import dataset_id
 from rotcal.tables import schema_text
+
+from batch_support import assert_clean, config_file, make_root, manifest_rows
 
 
 def test_one_corrupt_dataset_among_fifty(cli, tmp_path):

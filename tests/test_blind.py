@@ -6,7 +6,8 @@ import pytest
 from rotcal.ingest import load_dataset
 from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
 from rotcal.simulate.core import Plan, SimulationSpec, simulate
-from tests.conftest import REAL, REPO
+
+from testdata import REAL, REPO
 
 
 def _arrays(sim):
@@ -76,6 +77,7 @@ def test_axis_is_named_after_the_closest_channel():
     assert off == pytest.approx(45.0)
 
 
+@pytest.mark.real
 def test_xsens_hand_placed_poses_with_no_setting_beyond_the_format():
     """Issue 5 acceptance: the real recording segments into its static poses
     (38 +- 2, the initial rest included), no rotations, no step sequences."""
@@ -88,6 +90,7 @@ def test_xsens_hand_placed_poses_with_no_setting_beyond_the_format():
     assert t[first[0]] < 1e9 and 45e9 < t[first[1] - 1] < 55e9
 
 
+@pytest.mark.real
 def test_driving_robot_dwells_never_overlap_and_the_run_refuses_in_one_line(tmp_path):
     """The Jackal recording (a robot driving, no calibration motion): still
     intervals a few samples apart, whose dwells, each extended against its

@@ -10,7 +10,8 @@ from rotcal.metrology.coverage import simulate_errors
 from rotcal.model.results import intrinsic_jacobian
 from rotcal.run import run_dataset
 from rotcal.simulate.core import DutSpec, SimulationSpec
-from tests.conftest import truth_of
+
+from testdata import truth_of
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
 

@@ -11,7 +11,8 @@ import pytest
 from rotcal.metrology.crosssens import cross_sensitivity, intrinsic_from_matrix, inverse_jacobian
 from rotcal.model.physics import rotation_matrix
 from rotcal.run import run_dataset
-from tests.conftest import REAL, REPO, truth_of
+
+from testdata import REAL, REPO, truth_of
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +120,7 @@ def test_cli_without_uncertainties_and_without_labels(cli, tmp_path):
     assert got["std_uncertainty"].is_nan().all()
 
 
+@pytest.mark.real
 def test_imucal_matrix_gives_the_intrinsic_parameters_of_its_calibration(cli, tmp_path):
     """imucal's K_a R_a is the responsivity matrix in the case frame:
     P = (K_a R_a)^-1, and its intrinsic parameters are rotcal's fit of the

@@ -9,7 +9,8 @@ import polars as pl
 import pytest
 
 from rotcal.run import run_dataset
-from tests.conftest import REPO
+
+from testdata import REPO
 
 
 @pytest.mark.parametrize("fmt", ["mcap-cdr", "mcap-json"])

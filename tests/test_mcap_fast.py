@@ -17,7 +17,8 @@ from rotcal.ingest.meta import load_meta
 from rotcal.model.physics import JOINT_SIGN
 from rotcal.simulate.core import Plan, SimulationSpec, simulate, table_messages
 from rotcal.simulate.mcap_writer import write_capture
-from tests.conftest import REAL
+
+from testdata import REAL
 
 SMALL = SimulationSpec(plan=Plan(rotation_samples=300, step_samples=5))  # 3,960 samples, two 1 MiB chunks in CDR
 
@@ -95,6 +96,7 @@ def test_fast_path_equals_per_message_path_on_simulated_captures(small, monkeypa
         assert frame["axis"].to_list() == sim.samples["axis"].to_list()
 
 
+@pytest.mark.real
 def test_fast_path_equals_per_message_path_on_the_real_jackal_file(monkeypatch):
     frame = _both(monkeypatch, REAL / "jackal_mcap" / "test2_ros2.mcap")
     assert frame.height == 3061

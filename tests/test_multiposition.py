@@ -10,7 +10,8 @@ from rotcal.combine.multiposition import magnitude_and_gradient, orientation_fre
 from rotcal.model.physics import INTRINSIC, rotation_matrix
 from rotcal.model.results import Failure
 from rotcal.simulate.core import DutSpec, SimulationSpec, simulate
-from tests.posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
+
+from posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
 
 # 99.9 % binomial interval of the fraction within 2u around 95.45 %
 COVERAGE = 0.9545

@@ -12,8 +12,9 @@ from rotcal.combine.poses import LABEL_REFERENCE, correct_poses, labelled_poses,
 from rotcal.ingest import load_dataset
 from rotcal.model.results import Failure
 from rotcal.segment.labelled import segment_by_labels
-from tests.conftest import REAL, REPO
-from tests.posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
+
+from posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
+from testdata import REAL, REPO
 
 FACES = np.array([LABEL_REFERENCE[k] for k in ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")])
 
@@ -71,6 +72,7 @@ def _means_by_label(poses):
     return dict(zip(poses["label"], m))
 
 
+@pytest.mark.real
 def test_imucal_poses_and_the_gravity_imucal_expects(imucal):
     ds, poses, _ = imucal
     assert ds.meta.g_local == 9.81  # FerrarisCalibration(grav=9.81), imucal/ferraris_calibration.py
@@ -79,6 +81,7 @@ def test_imucal_poses_and_the_gravity_imucal_expects(imucal):
     assert set(poses["source"]) == {"label"}
 
 
+@pytest.mark.real
 def test_forward_fit_reproduces_imucal_scale_and_misalignment(imucal):
     """The 12-parameter forward fit on the six pose means gives K_a R_a
     (counts per m/s^2; imucal's model acc = R_a^-1 K_a^-1 (raw - b_a)) to
@@ -91,6 +94,7 @@ def test_forward_fit_reproduces_imucal_scale_and_misalignment(imucal):
     assert fit.dof == 6
 
 
+@pytest.mark.real
 def test_ferraris_offsets_are_each_channels_own_pair_midpoint(imucal):
     """Why rotcal's offsets differ from imucal's b_a. With B the midpoints
     (U_p + U_a) / 2 of the three up/down pairs (column j: pair j, row r:
@@ -118,6 +122,7 @@ def test_ferraris_offsets_are_each_channels_own_pair_midpoint(imucal):
     assert np.abs(fit.residuals).max() == pytest.approx(17.10, abs=0.01)
 
 
+@pytest.mark.real
 def test_imucal_calibration_and_rotcal_fit_magnitudes(imucal):
     """|a| per pose: imucal's own calibration gives g within 0.02 % in its
     six poses (Ferraris forces each channel's pair to +-g); rotcal's fit,

@@ -2,10 +2,14 @@
 
 
 import numpy as np
+import pytest
 
 from rotcal.ingest import load_dataset
 from rotcal.segment.stillness import still_intervals
-from tests.conftest import REAL, REPO
+
+from testdata import REAL, REPO
+
+pytestmark = pytest.mark.real
 
 
 def test_jackal_mcap_ingests_all_imu_samples():

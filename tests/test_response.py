@@ -10,7 +10,8 @@ from rotcal.combine.labelled import combine
 from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.response import frequency_response_frame
 from rotcal.report.plot import frequency_response_png
-from tests.conftest import truth_of
+
+from testdata import truth_of
 
 
 def test_clean_dataset_shows_no_frequency_dependence(make_dataset):

@@ -5,7 +5,8 @@ import numpy as np
 
 from rotcal.run import run_dataset
 from rotcal.simulate.core import DutSpec, SimulationSpec, simulate, write_dataset
-from tests.conftest import truth_of
+
+from testdata import truth_of
 
 
 def test_simulated_dut_without_full_scale_is_not_clipped(tmp_path):

@@ -10,7 +10,8 @@ from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from rotcal.model.physics import INTRINSIC
 from rotcal.simulate.core import DutSpec, SimulationSpec
-from tests.conftest import truth_of
+
+from testdata import truth_of
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
 

@@ -12,7 +12,8 @@ from rotcal.errors import ConfigError
 from rotcal.fit.segments import design, fit_segment
 from rotcal.metrology.coverage import reduce_dataset
 from rotcal.model.physics import INTRINSIC
-from tests.conftest import truth_of
+
+from testdata import truth_of
 
 FOUR = FitConfig(sine_fit="four_parameter")
 

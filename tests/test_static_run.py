@@ -8,8 +8,9 @@ import pytest
 
 from rotcal.run import run_dataset
 from rotcal.tables import schema
-from tests.conftest import REAL, REPO
-from tests.posesim import G_LOCAL, hand_placed, samples_frame
+
+from posesim import G_LOCAL, hand_placed, samples_frame
+from testdata import REAL, REPO
 
 # Xsens factory calibration (PROVENANCE.txt): counts per m/s^2 and counts
 XSENS_SCALE = np.array([415.0, 413.0, 415.0])
@@ -23,6 +24,7 @@ def xsens(tmp_path_factory):
     return outcome, pl.read_parquet(out / "poses.parquet"), out
 
 
+@pytest.mark.real
 def test_xsens_orientation_free_matches_the_factory_calibration(xsens):
     """Fitted on all still intervals: sensitivities within 0.5 % and offsets
     within 10 counts of the Xsens factory calibration."""
@@ -38,6 +40,7 @@ def test_xsens_orientation_free_matches_the_factory_calibration(xsens):
     assert set(pl.read_parquet(out / "cross_sensitivity.parquet")["frame"]) == {"intrinsic"}
 
 
+@pytest.mark.real
 def test_xsens_every_other_pose_held_out(xsens):
     """Fitted on every other still interval (the even ones, the initial rest
     first), the poses left out have |a| within 0.1 % of g_local. The odd
@@ -54,6 +57,7 @@ def test_xsens_every_other_pose_held_out(xsens):
     assert np.abs(poses["deviation_rel"].to_numpy()).max() < 3e-4
 
 
+@pytest.mark.real
 def test_xsens_run_prints_parameters_and_the_magnitude_check(cli, tmp_path):
     status, stdout, stderr = cli("run", REAL / "imu_tk_xsens", "--meta", REPO / "configs" / "imu_tk_xsens.toml",
                                  "--out", tmp_path)
@@ -63,6 +67,7 @@ def test_xsens_run_prints_parameters_and_the_magnitude_check(cli, tmp_path):
     assert "poses.parquet" in stdout
 
 
+@pytest.mark.real
 def test_imucal_run_prints_the_twelve_parameter_fit_and_every_pose(cli, tmp_path):
     status, stdout, stderr = cli("run", REAL / "imucal_session", "--meta", REPO / "configs" / "imucal_session.toml",
                                  "--out", tmp_path)

@@ -11,8 +11,9 @@ import pytest
 from rotcal.errors import UndeterminedError
 from rotcal.run import run_dataset
 from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
-from tests.conftest import truth_of
-from tests.unlabelled_checks import DEFECTS, check_seed
+
+from testdata import truth_of
+from unlabelled_checks import DEFECTS, check_seed
 
 
 def _assert_segmented(c):
