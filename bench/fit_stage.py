@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from functools import partial
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -55,6 +56,11 @@ def curve_fit_each(samples: pl.DataFrame, segments: pl.DataFrame) -> None:
             curve_fit(sine, theta, y)  # as written by hand: default starting values
 
 
+def _sums(arrays: list[np.ndarray]) -> list:
+    """The floor: one pass over each column."""
+    return [np.sum(a) for a in arrays]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rotation-samples", type=int, default=100_000)
@@ -65,9 +71,9 @@ def main() -> None:
         n = samples.height
         arrays = [samples[c].to_numpy() for c in ("angle_deg", "u", "v", "w")]
         with threadpool_limits(limits=1, user_api="blas"):  # as run_dataset does
-            ours = best_of(lambda: fit_segments(samples, segments, FitConfig()), args.repeats)
-            floor = best_of(lambda: [np.sum(a) for a in arrays], args.repeats)
-            reference = best_of(lambda: curve_fit_each(samples, segments), max(1, args.repeats // 2))
+            ours = best_of(partial(fit_segments, samples, segments, FitConfig()), args.repeats)
+            floor = best_of(partial(_sums, arrays), args.repeats)
+            reference = best_of(partial(curve_fit_each, samples, segments), max(1, args.repeats // 2))
         what = f"fit stage ({segments.height} segments, {n:,} samples)"
         report(what, n, "samples", ours, "curve_fit per segment and channel", reference)
         ratio = floor / ours

@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import tempfile
+from functools import partial
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -65,8 +66,8 @@ def main() -> None:
         for encoding, reference in (("cdr", reference_cdr), ("json", reference_json)):
             path = write_mcap(sim, Path(tmp) / f"{encoding}.mcap", encoding=encoding)
             assert len(reference(path)) == n
-            ours = best_of(lambda: read_mcap_capture(path, meta, None, Limits()), args.repeats)
-            theirs = best_of(lambda: reference(path), args.repeats)
+            ours = best_of(partial(read_mcap_capture, path, meta, None, Limits()), args.repeats)
+            theirs = best_of(partial(reference, path), args.repeats)
             report(f"MCAP {encoding.upper()} ingest ({n:,} Imu messages, {path.stat().st_size / 1e6:.1f} MB)",
                    n, "messages", ours, "make_reader + per-message decode", theirs)
 

@@ -72,9 +72,9 @@ def run(
     _print_outcome(run_dataset(dataset, out_dir, meta, cfg), quiet)
 
 
-def _spec(config: Path | None, effect: list[str]) -> SimulationSpec:
+def _spec(config: Path | None, effect: list[str] | None) -> SimulationSpec:
     spec = spec_from_toml(config) if config else SimulationSpec()
-    return spec.with_effects(*effect)
+    return spec.with_effects(*(effect or ()))
 
 
 @app.command(name="simulate")
@@ -82,7 +82,7 @@ def simulate_cmd(
     directory: Annotated[Path, typer.Argument(help="where to write the dataset")],
     seed: Annotated[int, typer.Option(help="random seed; the same seed gives the same files")] = 1,
     fmt: Annotated[str, typer.Option("--format", help=FORMATS)] = "csv",
-    effect: Annotated[list[str], typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = [],
+    effect: Annotated[list[str] | None, typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = None,
     # rich reads [name] in help text as markup: the backslashes keep the table names
     config: Annotated[Path | None, typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
@@ -102,7 +102,7 @@ def simulate_cmd(
 def demo(
     directory: Annotated[Path, typer.Option("--dir", help="where the demo writes data and results")] = Path("rotcal-demo"),
     seed: Annotated[int, typer.Option(help="random seed of the simulated DUT")] = 1,
-    effect: Annotated[list[str], typer.Option(help="NAME:key=value,... to switch an effect on")] = [],
+    effect: Annotated[list[str] | None, typer.Option(help="NAME:key=value,... to switch an effect on")] = None,
 ) -> None:
     """Simulate a default dataset and run the pipeline on it."""
     spec = _spec(None, effect)

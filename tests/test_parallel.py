@@ -4,13 +4,14 @@ stage, the MCAP reader and the batch pool each keeping to it."""
 import threading
 
 import pytest
-from batch_support import SERIAL, make_root
 
 from rotcal import parallel
 from rotcal.batch.runner import run_batch
 from rotcal.config import BatchConfig, FitConfig, Limits, RunConfig
 from rotcal.fit import segments
 from rotcal.ingest import mcap_fast
+
+from batch_support import SERIAL, make_root
 
 
 @pytest.fixture

@@ -189,8 +189,8 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
 
     def job(row: dict) -> SegmentFit:
         part = samples.slice(*rows[row["segment"]])
-        theta = part["angle_deg"]
-        theta = (theta.fill_null(np.nan) if theta.null_count() else theta).to_numpy()
+        angle = part["angle_deg"]
+        theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
         return _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
 

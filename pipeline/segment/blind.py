@@ -270,14 +270,14 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     # dwells: edges refined against each dwell's own mean; a dwell starts
     # no earlier than the previous one ends (both may explain the few samples
     # between two still intervals when the DUT barely moved)
-    dwells = []
+    found: list[tuple[int, int]] = []
     for j, (s, e) in enumerate(cores):
         mean = y[s:e].mean(axis=0)
-        low = max(raw[j - 1, 1] if j else 0, dwells[-1][1] if dwells else 0, raw[j, 0] - w_still)
+        low = max(raw[j - 1, 1] if j else 0, found[-1][1] if found else 0, raw[j, 0] - w_still)
         high = min(raw[j + 1, 0] if j + 1 < len(raw) else n, raw[j, 1] + w_still)
-        dwells.append(_extend(s, e, low, high, lambda i, m=mean: ((y[i] - m) ** 2 / var).mean(axis=1),
+        found.append(_extend(s, e, low, high, lambda i, m=mean: ((y[i] - m) ** 2 / var).mean(axis=1),
                               config.cusum_kappa))
-    dwells = np.array(dwells, dtype=np.int64).reshape(-1, 2)
+    dwells = np.array(found, dtype=np.int64).reshape(-1, 2)
     means = np.array([y[s:e].mean(axis=0) for s, e in dwells]).reshape(-1, 3)
 
     sample = y[:: max(1, n // 20000)]
