@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 
 def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import polars as pl
 
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 
 def _simulate(args: tuple[int, Path]) -> None:

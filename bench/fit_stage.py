@@ -31,7 +31,7 @@ from rotcal.config import FitConfig  # noqa: E402
 from rotcal.fit.segments import fit_segments, segment_rows  # noqa: E402
 from rotcal.ingest.labels import label_columns  # noqa: E402
 from rotcal.segment.labelled import segment_by_labels  # noqa: E402
-from rotcal.simulate.core import Plan, SimulationSpec, simulate  # noqa: E402
+from rotcal.simulate import Plan, SimulationSpec, simulate  # noqa: E402
 from rotcal.tables import conform  # noqa: E402
 
 

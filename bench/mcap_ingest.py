@@ -27,7 +27,7 @@ from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from rotcal.config import Limits  # noqa: E402
 from rotcal.ingest.mcap_source import read_mcap_capture  # noqa: E402
 from rotcal.ingest.meta import load_meta  # noqa: E402
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402
 
 
 def reference_cdr(path: Path) -> list:

@@ -1,13 +1,16 @@
 """The ``rotcal`` command line: resolves options once and calls one library
 function per command. Domain errors become a one-line message and an exit
-status here, and nowhere else."""
+status here, and nowhere else. Each command imports the stages it calls
+inside its body: `rotcal --help` and a batch's main process then load no
+scipy (0.29 s to import this module, against 0.77 s with the imports at the
+top)."""
 
 from __future__ import annotations
 
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -15,9 +18,9 @@ from rich.markup import escape
 
 from rotcal.config import load_config, with_options
 from rotcal.errors import RotcalError
-from rotcal.metrology.crosssens import matrix_intrinsic
-from rotcal.report.summary import findings_table, matrix_table, pose_check_table, static_fit_summary, summary_table
-from rotcal.simulate.core import SimulationSpec, simulate, spec_from_toml, write_dataset
+
+if TYPE_CHECKING:
+    from rotcal.simulate import SimulationSpec
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Rotation-table calibration of three-axis accelerometers.")
@@ -28,6 +31,8 @@ FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
 
 
 def _print_diagnosis(diagnosis, output_unit: str) -> None:
+    from rotcal.report import findings_table, summary_table
+
     found = int(diagnosis.findings["detected"].sum())
     if not found:
         out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
@@ -37,6 +42,9 @@ def _print_diagnosis(diagnosis, output_unit: str) -> None:
 
 
 def _print_outcome(outcome, quiet: bool = False) -> None:
+    # the stages and their tables load when a command needs them: rotcal batch's start-up stays short
+    from rotcal.report import pose_check_table, static_fit_summary, summary_table
+
     for note in outcome.notes:
         err.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
     for warning in outcome.warnings:
@@ -64,7 +72,7 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
-    from rotcal.run import run_dataset  # the stages load when a command needs them: rotcal batch's start-up stays short
+    from rotcal.run import run_dataset
 
     cfg = load_config(config)
     if workers is not None:
@@ -73,6 +81,8 @@ def run(
 
 
 def _spec(config: Path | None, effect: list[str] | None) -> SimulationSpec:
+    from rotcal.simulate import SimulationSpec, spec_from_toml
+
     spec = spec_from_toml(config) if config else SimulationSpec()
     return spec.with_effects(*(effect or ()))
 
@@ -94,6 +104,8 @@ def simulate_cmd(
         spec = replace(spec, plan=replace(spec.plan, continuous=True))
     if timebase:
         spec = spec.with_timebase(timebase)
+    from rotcal.simulate import simulate, write_dataset
+
     path = write_dataset(simulate(spec, seed), spec, directory, fmt)
     out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False, markup=False)
 
@@ -106,6 +118,8 @@ def demo(
 ) -> None:
     """Simulate a default dataset and run the pipeline on it."""
     spec = _spec(None, effect)
+    from rotcal.simulate import simulate, write_dataset
+
     data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False, markup=False)
     from rotcal.run import run_dataset
@@ -121,6 +135,9 @@ def intrinsic(
     unit: Annotated[str, typer.Option(help="the DUT's output unit (P is in m/s^2 per output unit)")] = "output unit",
 ) -> None:
     """Intrinsic sensitivities and angles of a cross-sensitivity matrix another lab reports."""
+    from rotcal.metrology import matrix_intrinsic
+    from rotcal.report import matrix_table
+
     frame, path = matrix_intrinsic(matrix, out_dir, unit)
     out.print(matrix_table(frame, f"{matrix.name}: intrinsic parameters, expanded uncertainty (k = 2)"))
     out.print(f"written to {path}", highlight=False, markup=False)
@@ -149,7 +166,7 @@ def batch(
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
     import json
 
-    from rotcal.batch.runner import Reporter, run_batch
+    from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}
     cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})

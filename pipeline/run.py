@@ -15,26 +15,40 @@ from typing import TYPE_CHECKING
 import polars as pl
 from threadpoolctl import threadpool_limits
 
-from rotcal.combine.labelled import intrinsic_frame, reduce_labelled
-from rotcal.combine.poses import table_step_poses
-from rotcal.combine.static import StaticReduction, reduce_static
-from rotcal.combine.unreferenced import reduce_dwells, reduce_phase_free
+from rotcal.combine import (
+    StaticReduction,
+    intrinsic_frame,
+    reduce_dwells,
+    reduce_labelled,
+    reduce_phase_free,
+    reduce_static,
+    table_step_poses,
+)
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
-from rotcal.fit.segments import fit_segments, fits_frame
+from rotcal.fit import fit_segments, fits_frame
 from rotcal.ingest import Dataset, load_dataset
-from rotcal.metrology.an4399 import correction_frame, correction_uncertainty_frame, corrections_from_poses, temperature_frame
-from rotcal.metrology.consistency import consistency_frame, consistency_note
-from rotcal.metrology.crosssens import cross_sensitivity_frame
-from rotcal.metrology.gaitan import gaitan_frame
-from rotcal.metrology.response import frequency_response_frame
-from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
-from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_note
-from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
-from rotcal.segment.labelled import segment_by_labels
-from rotcal.segment.unlabelled import infer_segments
+from rotcal.metrology import (
+    budget_frame,
+    consistency_frame,
+    consistency_note,
+    correction_frame,
+    correction_uncertainty_frame,
+    corrections_from_poses,
+    cross_sensitivity_frame,
+    frequency_response_frame,
+    gaitan_frame,
+    monte_carlo,
+    monte_carlo_frame,
+    monte_carlo_note,
+    simultaneous,
+    simultaneous_frame,
+    temperature_frame,
+)
+from rotcal.model import Failure, IntrinsicResult, Reduction, Table
+from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.tables import write_parquet
-from rotcal.timebase.check import findings_frame, repair_timebase
+from rotcal.timebase import findings_frame, repair_timebase
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis

@@ -21,7 +21,7 @@ import time
 
 from rotcal.config import FitConfig
 from rotcal.metrology.coverage import coverage_frame, simulate_errors
-from rotcal.simulate.core import SimulationSpec
+from rotcal.simulate import SimulationSpec
 
 
 def main() -> int:

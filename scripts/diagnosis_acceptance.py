@@ -23,7 +23,7 @@ from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.scenarios import draw_effect, draw_foreign
 from rotcal.model.effects import names
 from rotcal.run import run_dataset
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 PAIRS = (("centripetal", "channel_delay"), ("cubic_nonlinearity", "axis_tilt"),
          ("quadratic_nonlinearity", "rate_ripple"), ("offset_drift", "axis_tilt"), ("rate_error", "clipping"))

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from rotcal.config import DiagnosisConfig, RunConfig  # noqa: E402
 from rotcal.run import run_dataset  # noqa: E402
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset  # noqa: E402
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset  # noqa: E402
 from tests.unlabelled_checks import DEFECTS, check_seed  # noqa: E402
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import polars as pl
 
 from rotcal.config import BatchConfig, DiagnosisConfig, RunConfig
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 from testdata import REPO
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 from testdata import REAL
 

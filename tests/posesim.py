@@ -10,7 +10,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.model.physics import CHANNELS, Effects, intrinsic_from_vectors, observe
-from rotcal.simulate.core import DutSpec, draw_dut
+from rotcal.simulate import DutSpec, draw_dut
 
 G_LOCAL = 9.80101
 

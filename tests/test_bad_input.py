@@ -7,7 +7,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from rotcal.simulate.core import Plan, SimulationSpec
+from rotcal.simulate import Plan, SimulationSpec
 
 SMALL = SimulationSpec(plan=Plan(rates_hz=(0.1,), rotation_samples=600, step_samples=10))
 

@@ -16,7 +16,7 @@ import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.records import Chunk, Header
 
-from rotcal.simulate.core import simulate, write_dataset
+from rotcal.simulate import simulate, write_dataset
 
 from batch_support import NO_DIAGNOSIS, REPO, SMALL, make_root
 

@@ -5,7 +5,7 @@ import pytest
 
 from rotcal.ingest import load_dataset
 from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
-from rotcal.simulate.core import Plan, SimulationSpec, simulate
+from rotcal.simulate import Plan, SimulationSpec, simulate
 
 from testdata import REAL, REPO
 

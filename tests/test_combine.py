@@ -9,7 +9,7 @@ from rotcal.combine.labelled import SegmentCoefficients, combine_rate, segment_c
 from rotcal.metrology.coverage import simulate_errors
 from rotcal.model.results import intrinsic_jacobian
 from rotcal.run import run_dataset
-from rotcal.simulate.core import DutSpec, SimulationSpec
+from rotcal.simulate import DutSpec, SimulationSpec
 
 from testdata import truth_of
 

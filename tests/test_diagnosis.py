@@ -16,7 +16,7 @@ from rotcal.diagnose import STEP, _start, extensions, kept_per_segment, observat
 from rotcal.diagnose.model import Layout, Structure, evaluate, predict
 from rotcal.diagnose.scans import step_scan_p
 from rotcal.run import run_dataset
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 ONE_WORKER = RunConfig(run=RunSection(workers=1))
 

@@ -18,7 +18,7 @@ from rotcal.model.effects import Effects, catalogue, effect_named, listed, names
 from rotcal.model.effects.base import Candidate, OffsetEffect, Parameter
 from rotcal.model.physics import noise_free_output
 from rotcal.run import run_dataset
-from rotcal.simulate.core import SimulationSpec, build_effects, schedule, simulate, spec_from_toml, write_dataset
+from rotcal.simulate import SimulationSpec, build_effects, schedule, simulate, spec_from_toml, write_dataset
 
 TABLE_ORDER = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
                "rate_error", "rate_ripple", "axis_tilt", "offset_drift")

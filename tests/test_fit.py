@@ -8,7 +8,7 @@ import pytest
 from rotcal.config import FitConfig, RunConfig, RunSection
 from rotcal.fit.segments import arc_deg, design, fit_segment, linear_fit, refusal
 from rotcal.run import run_dataset
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 
 def test_noise_free_coefficients_are_exact():

@@ -15,7 +15,7 @@ from rotcal.errors import InputError, LimitError
 from rotcal.ingest import mcap_columns, mcap_fast, mcap_source, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.model.physics import JOINT_SIGN
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, table_messages
+from rotcal.simulate import Plan, SimulationSpec, simulate, table_messages
 from rotcal.simulate.mcap_writer import write_capture
 
 from testdata import REAL

@@ -9,7 +9,7 @@ import pytest
 from rotcal.combine.multiposition import magnitude_and_gradient, orientation_free, pose_table
 from rotcal.model.physics import INTRINSIC, rotation_matrix
 from rotcal.model.results import Failure
-from rotcal.simulate.core import DutSpec, SimulationSpec, simulate
+from rotcal.simulate import DutSpec, SimulationSpec, simulate
 
 from posesim import G_LOCAL, hand_placed, pose_bounds, random_directions
 

@@ -4,7 +4,7 @@ at the edges of what the defaults show."""
 import numpy as np
 
 from rotcal.run import run_dataset
-from rotcal.simulate.core import DutSpec, SimulationSpec, simulate, write_dataset
+from rotcal.simulate import DutSpec, SimulationSpec, simulate, write_dataset
 
 from testdata import truth_of
 

@@ -9,7 +9,7 @@ from rotcal.config import FitConfig
 from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from rotcal.model.physics import INTRINSIC
-from rotcal.simulate.core import DutSpec, SimulationSpec
+from rotcal.simulate import DutSpec, SimulationSpec
 
 from testdata import truth_of
 

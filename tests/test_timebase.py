@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rotcal.errors import InputError
-from rotcal.simulate.core import Plan, SimulationSpec, simulate
+from rotcal.simulate import Plan, SimulationSpec, simulate
 from rotcal.timebase.check import check_capture
 
 PERIOD_NS = 60_000_000

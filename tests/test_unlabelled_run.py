@@ -10,7 +10,7 @@ import pytest
 
 from rotcal.errors import UndeterminedError
 from rotcal.run import run_dataset
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 from testdata import truth_of
 from unlabelled_checks import DEFECTS, check_seed
@@ -100,7 +100,7 @@ def test_simulate_and_run_from_the_command_line(cli, tmp_path):
 
 
 def test_simulation_toml_with_plan_and_timebase_tables(tmp_path):
-    from rotcal.simulate.core import spec_from_toml
+    from rotcal.simulate import spec_from_toml
 
     toml = tmp_path / "sim.toml"
     toml.write_text("[plan]\ncontinuous = true\nramp_deg_s2 = 20.0\n\n[timebase]\ndrop_fraction = 0.01\njitter_s = 0.002\n")

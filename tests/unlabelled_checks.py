@@ -13,7 +13,7 @@ import polars as pl
 
 from rotcal.model.physics import INTRINSIC
 from rotcal.run import run_dataset
-from rotcal.simulate.core import Plan, SimulationSpec, simulate, write_dataset
+from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 DEFECTS = "drop_fraction=0.01,duplicate_fraction=0.005,repeat_stamp_fraction=0.005,jitter_s=0.005,clock_drift_ppm=200"
 

@@ -43,7 +43,7 @@ from rotcal.metrology.uncertainty import COVERAGE_PROBABILITY
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
 from rotcal.segment.labelled import segment_by_labels
-from rotcal.simulate.core import SimulationSpec, simulate, write_dataset
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 CONFIDENCE = 0.999
 # per parameter: nine parameters together fail an honest run with p < 1e-4

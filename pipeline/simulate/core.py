@@ -30,17 +30,9 @@ from rotcal.model.physics import (
     rotation_matrix,
     unit_vectors_from_angles,
 )
-from rotcal.simulate.spec import DutSpec, Plan, Simulation, SimulationSpec, spec_from_toml
+from rotcal.simulate.spec import DutSpec, Plan, Simulation, SimulationSpec
 from rotcal.simulate.timebase_sim import apply_defects
 from rotcal.simulate.transitions import schedule_continuous, timeline
-from rotcal.simulate.writers import (
-    segment_files,
-    table_messages,
-    write_csv_segments,
-    write_csv_single,
-    write_dataset,
-    write_mcap,
-)
 
 
 def draw_dut(spec: DutSpec, rng: np.random.Generator) -> tuple[Dut, dict]:
@@ -194,8 +186,3 @@ def _resolve(effects: Effects, described: list[dict], clean: np.ndarray) -> Effe
             effects = effects.with_state(effect.name, effect.state(None, {"axis": d["axis"], **d["parameters"]}))
     return effects
 
-
-# The simulator's public names, wherever defined: callers import them from here.
-__all__ = ["DutSpec", "Plan", "Simulation", "SimulationSpec", "build_effects", "draw_dut", "schedule", "segment_files",
-           "simulate", "spec_from_toml", "table_messages", "write_csv_segments", "write_csv_single", "write_dataset",
-           "write_mcap"]
