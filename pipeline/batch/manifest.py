@@ -58,7 +58,7 @@ class LockedError(RotcalError):
 
 @dataclass(frozen=True)
 class DatasetRecord:
-    """One row of ``batch_datasets`` (see its contract for the columns)."""
+    """One row of ``batch_datasets`` (see its schema for the columns)."""
 
     dataset_path: str
     dataset_id: str

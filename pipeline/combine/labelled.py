@@ -2,7 +2,7 @@
 nine intrinsic parameters, with first-order (GUM) propagation of the full
 covariance of every fit coefficient and of g_local.
 
-Rotation about axis s gives (contract section 1, Geist 2017 Eqs. 5 to 9)
+Rotation about axis s gives (docs/conventions.md, Geist 2017 Eqs. 5 to 9)
 
     A = -g r_a,   B = g r_b,   C = O_rs,
 
@@ -13,7 +13,7 @@ weighted mean: Geist's Eqs. 10 and 12 when the standard errors are equal,
 and the best linear unbiased estimate when they are not. Uncertainties are
 propagated through the linear combination and the Jacobians of Eqs. 14 and
 16 with every covariance kept, instead of the printed Eqs. 11, 13, 15 and
-17 (ERRATA.md: Eqs. 11 and 13 overstate a mean's standard error by sqrt(2)
+17 (docs/method.md, "Printing errors in the papers": Eqs. 11 and 13 overstate a mean's standard error by sqrt(2)
 and sqrt(3); Eq. 17 pairs the wrong terms and drops correlations).
 """
 
@@ -176,7 +176,7 @@ def units(output_unit: str) -> tuple[str, ...]:
 
 
 def intrinsic_frame(results: list[IntrinsicResult], dataset: str, model: str, output_unit: str) -> pl.DataFrame:
-    """The contract's long ``intrinsic`` table."""
+    """The long ``intrinsic`` table (docs/outputs.md)."""
     rows = [
         {"dataset": dataset, "model": model, "rate_hz": res.rate_hz, "parameter": name, "value": val,
          "std_uncertainty": u, "unit": unit}

@@ -1,5 +1,5 @@
 """Intrinsic parameters of one rate from rotation segments without a phase
-reference (contract section 1: a segment without angle_deg has an unknown
+reference (docs/conventions.md: a segment without angle_deg has an unknown
 theta0).
 
 A segment about axis s fitted against its own phase phi (theta = theta_k +-

@@ -8,8 +8,8 @@ aligned with the reference frame, AN4399's G_p) where it is known:
 
 - labelled poses (imucal's ``x_p``, ``x_a``, ...): that axis reads +1 g or
   -1 g, the others 0, in the frame of the DUT's case;
-- jig positions: ``gx, gy, gz`` as recorded (contract section 2);
-- table steps: gravity of contract section 1 at the step's angle, in the
+- jig positions: ``gx, gy, gz`` as recorded (docs/inputs.md);
+- table steps: gravity of docs/conventions.md at the step's angle, in the
   table frame;
 - still intervals found by ``stillness``: unknown (null).
 
@@ -86,7 +86,7 @@ def labelled_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFram
 
 def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFrame:
     """Every step of the static table segments as a pose, its reference the
-    gravity of contract section 1 at the commanded angle."""
+    gravity of docs/conventions.md at the commanded angle."""
     static = segments.filter((pl.col("kind") == "static") & (pl.col("angle_source") != "none"))["segment"]
     rows = segment_rows(samples)
     # the static segments' rows only: a few thousand of a capture's millions

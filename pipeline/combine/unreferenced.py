@@ -1,5 +1,5 @@
-"""The reductions of segments without an angle reference (contract section
-1: a segment without angle_deg has an unknown theta0), found by
+"""The reductions of segments without an angle reference (docs/conventions.md:
+a segment without angle_deg has an unknown theta0), found by
 ``rotcal.segment.unlabelled``:
 
 - per rate, the rotation segments fitted against their own phase go to

@@ -1,5 +1,5 @@
 """Diagnose: where a recording departs from the papers' model, which physics
-of effects.md explains it, the model extended by it and refitted, and what
+of docs/effects.md explains it, the model extended by it and refitted, and what
 remains unexplained.
 
 1. The null model (``model``): the fitted intrinsic model of every rate,
@@ -317,7 +317,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
 
     rows, params, before = [], [], {}
-    for effect in listed():   # one row per catalogue effect, in effects.md's order
+    for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
         if isinstance(effect, LimitEffect):   # tested by its stuck samples, not by a model extension
             row, par = limit_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
             if row["detected"]:

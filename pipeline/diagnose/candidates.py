@@ -5,7 +5,7 @@ reports as ``unexplained`` (an offset step).
 
 Internal parameters are chosen by each effect so that its extension is
 smooth at zero (ripple as (a cos p, a sin p) rather than (a, p)); its
-``report`` turns them into the parameters effects.md names, with
+``report`` turns them into the parameters docs/effects.md names, with
 uncertainties.
 """
 
@@ -36,5 +36,5 @@ def effects_from(values: dict[str, float], clip: tuple[float | None, float | Non
 
 
 def report_parameters(cand: Candidate, value: np.ndarray, cov: np.ndarray, output_unit: str) -> list[ReportedParameter]:
-    """The effects.md parameters of a fitted extension, by first-order propagation."""
+    """The docs/effects.md parameters of a fitted extension, by first-order propagation."""
     return effect_named(cand.effect).report(cand, value, cov, output_unit)

@@ -5,8 +5,8 @@ a responsivity matrix R_f (rows u, v, w, output unit per g) and offsets O_f,
 
     R_r(t) = O_f,r + R_f,r . a(theta(t)) / g,
 
-with a from contract section 1. Extensions (``candidates``) add the effects
-of effects.md through the same forward model the simulator uses
+with a from docs/conventions.md. Extensions (``candidates``) add the effects
+of docs/effects.md through the same forward model the simulator uses
 (``physics.specific_force``, ``nonlinearity``, ``offset_terms``); each
 effect of the catalogue supplies its own Jacobian column. Generic
 structures (an offset step). Every parameter, enabled or not, has an

@@ -1,4 +1,4 @@
-"""Effect sizes to test, drawn across the ranges effects.md gives for the
+"""Effect sizes to test, drawn across the ranges docs/effects.md gives for the
 default test plan (each catalogue effect's ``sizes``; most of them
 concealed), and the structures outside the catalogue; used by the
 acceptance script, the tests and the demo."""

@@ -3,7 +3,7 @@
     R_r(theta) = C + A sin(theta) + B cos(theta),
 
 which is Gaitan & Geist 2021 Eq. 17 with omega t replaced by the commanded
-angle theta (contract section 1) for constant rotation, and Geist 2017
+angle theta (docs/conventions.md) for constant rotation, and Geist 2017
 Eqs. 6 to 9 (with the signs of Eq. 5) for a static step sequence: the same
 regression on every sample of every step, which weights each step mean by
 its sample count and pools the noise of all samples.

@@ -1,9 +1,9 @@
 """Four-parameter sine fit (IEEE Std 1057-2017 4.1.3.3, IEEE Std 1241-2010
 4.1.4.3) for rotation segments whose rate is not trusted.
 
-The three-parameter fit (``fit.py``) takes the table angle as given. When
+The three-parameter fit (``fit.segments``) takes the table angle as given. When
 the true rate differs from the commanded one (stage rate error, logger
-clock drift: ``rate_error`` of effects.md) the angle error grows along the
+clock drift: ``rate_error`` of docs/effects.md) the angle error grows along the
 segment and biases every coefficient. Here the rate is fitted too: the
 angle becomes
 

@@ -1,4 +1,4 @@
-"""CSV captures (contract section 2, with ``[format]`` for loggers' layouts)."""
+"""CSV captures (docs/inputs.md, "CSV captures", with ``[format]`` for loggers' layouts)."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def _header(source: bytes | Path, fmt: CsvFormat, path: Path) -> list[str]:
 
 
 def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limits: Limits) -> pl.DataFrame:
-    """One CSV capture as contract columns (``t`` in seconds, labels raw)."""
+    """One CSV capture as the columns of docs/inputs.md (``t`` in seconds, labels raw)."""
     if path.stat().st_size == 0:
         raise InputError("the file is empty", path=path)
     check_line_lengths(path, limits.max_line_bytes)

@@ -39,8 +39,8 @@ def label_columns(
 ) -> pl.DataFrame:
     """Canonical sample columns of one capture.
 
-    ``frame`` has ``t`` (s) or ``t_ns``, ``u, v, w`` and any optional contract
-    columns, whose labels came from ``label_source``; ``spec`` supplies
+    ``frame`` has ``t`` (s) or ``t_ns``, ``u, v, w`` and any optional columns
+    of docs/inputs.md, whose labels came from ``label_source``; ``spec`` supplies
     labels the file lacks.
     """
     if "t_ns" not in frame.columns:

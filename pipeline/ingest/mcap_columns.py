@@ -38,7 +38,7 @@ class DecodedTopic:
     """One channel's messages as columns, in file order.
 
     CDR channels have ``t_ns`` (header stamp, or log time where the stamp is
-    zero, contract section 2) and their fields; JSON channels ``log_ns`` and
+    zero, docs/inputs.md) and their fields; JSON channels ``log_ns`` and
     ``frame``, the messages' fields as parsed.
     """
 

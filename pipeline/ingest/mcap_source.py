@@ -1,6 +1,6 @@
 """MCAP captures: ``sensor_msgs/msg/Imu`` (CDR) or JSON messages on the DUT
 topic, and an optional table channel (``sensor_msgs/msg/JointState`` or JSON)
-whose labels are mapped onto the DUT's time stamps (contract sections 1, 2).
+whose labels are mapped onto the DUT's time stamps (docs/inputs.md, "MCAP captures").
 
 Files are decoded by ``mcap_fast`` (whole chunks into columns) where it knows
 the layouts, else message by message (``mcap_messages``); both feed the same

@@ -1,6 +1,7 @@
 """The table channel of an MCAP capture (``sensor_msgs/msg/JointState`` or
 JSON): its messages as a track of commanded axis, rate and angle, mapped
-onto the DUT's time stamps (contract sections 1, 2). Read message by message
+onto the DUT's time stamps (docs/inputs.md, "MCAP captures"; the signs of
+docs/conventions.md). Read message by message
 (``table_track``) or from ``mcap_fast``'s columns (``fast_table_track``);
 both give the same track."""
 
@@ -167,7 +168,7 @@ def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The table message in force (index into ``track``, -1 before the
-    first), rate and angle at each DUT stamp (contract section 1).
+    first), rate and angle at each DUT stamp (docs/inputs.md, "Table channel").
 
     Labels hold from the last table message. Angles are linearly interpolated
     between messages of the same run (same axis and rate) after unwrapping

@@ -1,5 +1,5 @@
 """``dataset.toml``: read, validate against ``schemas/dataset_toml.json``,
-and resolve defaults once into a frozen record (contract section 2)."""
+and resolve defaults once into a frozen record (docs/inputs.md)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ class CsvFormat:
     delimiter: str = ","
     header: bool = True
     names: tuple[str, ...] | None = None
-    columns: tuple[tuple[str, str], ...] = ()  # (contract name, file column)
+    columns: tuple[tuple[str, str], ...] = ()  # (CSV column name of docs/inputs.md, file column)
     sample_rate_hz: float | None = None
     pose_column: str | None = None
 

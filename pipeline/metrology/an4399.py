@@ -185,7 +185,7 @@ def coefficient_units(input_unit: str) -> tuple[str, ...]:
 
 
 def correction_frame(corrections: list[Correction], dataset: str, input_unit: str) -> pl.DataFrame:
-    """The contract's ``correction`` table (section 4)."""
+    """The ``correction`` table (docs/outputs.md)."""
     rows = [{"dataset": dataset, "parameters": c.parameters, "channel": c.channel, "temperature_c": c.temperature_c,
              **dict(zip(COEFFICIENTS, c.coef)), "input_unit": input_unit, "sum_sq_residual": c.sum_sq_residual}
             for c in corrections]

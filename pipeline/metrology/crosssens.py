@@ -111,7 +111,7 @@ def _numbers(path: Path, line_no: int, cells: list[str]) -> list[float]:
 
 
 def read_matrix_csv(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """A cross-sensitivity matrix file (contract section 3): rows x, y, z and
+    """A cross-sensitivity matrix file (docs/inputs.md, "rotcal intrinsic --matrix FILE"): rows x, y, z and
     columns u, v, w of P, optionally followed by three rows of standard
     uncertainties. A header row (``,u,v,w``) and a first column of row
     labels are optional; lines starting with ``#`` are comments."""

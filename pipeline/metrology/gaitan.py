@@ -2,7 +2,8 @@
 reconstruction (Geist 2017 Eqs. 10 to 16).
 
 Sensitivities from the sine amplitudes, Eqs. 8 to 10 with the subscripts
-corrected (ERRATA.md; Eq. 8 also prints B^z_uz for B^x_uz): for rotation
+corrected (docs/method.md, "Printing errors in the papers"; Eq. 8 also prints
+B^z_uz for B^x_uz): for rotation
 about axis s a channel's amplitude is A^2 + B^2 = g^2 (|r|^2 - r_s^2), so the
 sum over the three axes is 2 g^2 |r|^2 and
 
@@ -13,7 +14,7 @@ writing a channel's signal A sin(theta) + B cos(theta) as
 sqrt(A^2 + B^2) sin(theta + p), its phase is p = atan2(B, A). The paper's
 atan(B / A) is ambiguous by 180 degrees and was resolved by plotting; here
 atan2 takes the quadrant from the signs of A and B (A = -g r_a, B = g r_b,
-contract section 1), and the wrapped phase difference d of two channels,
+docs/conventions.md), and the wrapped phase difference d of two channels,
 in (-180, 180], has |d| equal to the angle between the projections of the
 two responsivity vectors on the plane perpendicular to the rotation axis
 ((A, B) = g (-r_a, r_b) is a reflection of (r_a, r_b), which keeps angles).
@@ -27,7 +28,7 @@ square of the misalignment.
 Uncertainties are propagated to first order with the full covariance of
 the segments' coefficients (A-B correlation of a non-whole number of turns,
 correlation between channels) and g_local; the printed Eqs. 18 to 20 (too
-large by sqrt(2) g, ERRATA.md) and 24 to 27 (independent A, B and phases;
+large by sqrt(2) g, docs/method.md) and 24 to 27 (independent A, B and phases;
 subscripts corrected: Eq. 25 prints SE{A^y_vx} for SE{A^z_vx}, Eq. 27
 SE{A^y_uz} inside its last denominator) are evaluated beside them for
 comparison.

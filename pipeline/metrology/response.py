@@ -18,7 +18,7 @@ which come from the same DC fits.
 The omega^2 fit: O(f) = O_0 + k omega^2, omega = 2 pi f, weighted least
 squares over all rates including DC (independent points), with chi^2 and
 its p-value as the test that the change is quadratic in the rate. For the
-``centripetal`` effect of effects.md, k = -r . d. Per rotation axis the
+``centripetal`` effect of docs/effects.md, k = -r . d. Per rotation axis the
 fit uses each segment's own offset C (the centripetal vector d differs per
 axis); the ``combined`` fit uses the intrinsic offsets O_r.
 """

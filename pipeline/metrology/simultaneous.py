@@ -5,8 +5,8 @@ r_s1 = r_s2) and one offset per segment and channel (Geist's O_rs),
 
     R_r = O_rk - (g r)_a sin(theta) + (g r)_b cos(theta),
 
-(a, b) = (y, z), (x, z), (x, y) for a segment about x, y, z (contract
-section 1; Eq. 9 with the signs of Eq. 5). Segments fitted with the
+(a, b) = (y, z), (x, z), (x, y) for a segment about x, y, z
+(docs/conventions.md; Eq. 9 with the signs of Eq. 5). Segments fitted with the
 four-parameter sine fit keep their rate as a parameter here too
 (theta = theta_0 + kappa_k (theta_cmd - theta_0)), so its uncertainty is
 carried.

@@ -1,4 +1,4 @@
-"""The conventions of contract section 1 that every stage shares: the table
+"""The conventions of docs/conventions.md that every stage shares: the table
 and DUT frames, the signs and angles of gravity during rotation (Geist 2017
 Eq. 5), the intrinsic parameters (Geist 2017 Eq. 14, 16), the device under
 test and what the table did at each sample (the forward model's inputs)."""
@@ -14,7 +14,7 @@ CHANNELS = ("u", "v", "w")
 INTRINSIC = ("s_u", "s_v", "s_w", "phi_uv", "phi_vw", "phi_wu", "O_u", "O_v", "O_w")
 ANGLE_PAIRS = ((0, 1), (1, 2), (2, 0))  # phi_uv, phi_vw, phi_wu
 
-# Geist 2017 Eq. 5 with the signs of contract section 1: rotation about axis s
+# Geist 2017 Eq. 5 with the signs of docs/conventions.md: rotation about axis s
 # puts gravity at g * (-sin theta) on component SIN_COMPONENT[s] and
 # g * cos theta on COS_COMPONENT[s].
 SIN_COMPONENT = np.array([1, 0, 0])

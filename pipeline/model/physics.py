@@ -1,6 +1,6 @@
-"""The forward model: the conventions of contract section 1
+"""The forward model: the conventions of docs/conventions.md
 (``rotcal.model.conventions``) with the effects of the catalogue
-(``rotcal.model.effects``), applied in the order effects.md gives, for each
+(``rotcal.model.effects``), applied in the order docs/effects.md gives, for each
 sample and channel:
 
 1. the commanded angle becomes the true angle (angle effects; rotation
@@ -60,7 +60,7 @@ def uniform_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarra
 def true_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
     """The true table angle seen by a channel sampled ``delay_s`` after its
     stamp: the uniform angle at the true rate plus each angle effect's term
-    (e.g. ``rate_ripple``); static steps are exact (effects.md, order)."""
+    (e.g. ``rate_ripple``); static steps are exact (docs/effects.md, order)."""
     theta = motion.theta_cmd_deg.astype(float).copy()
     base = uniform_angle(motion, effects, delay_s)
     true = base
@@ -111,7 +111,7 @@ def offset_terms(motion: Motion, effects: Effects) -> np.ndarray:
 
 
 def noise_free_output(motion: Motion, dut: Dut, effects: Effects, g_local: float) -> np.ndarray:
-    """Outputs (n, 3) before noise, rounding and limits (effects.md order)."""
+    """Outputs (n, 3) before noise, rounding and limits (docs/effects.md order)."""
     forces = channel_forces(motion, effects, g_local)
     y = np.column_stack([forces[r] @ dut.responsivity[r] for r in range(3)])
     x1g = np.linalg.norm(dut.responsivity, axis=1) * g_local
@@ -120,7 +120,7 @@ def noise_free_output(motion: Motion, dut: Dut, effects: Effects, g_local: float
 
 def observe(clean: np.ndarray, dut: Dut, effects: Effects, rng: np.random.Generator) -> np.ndarray:
     """Add white noise, round to the integer output and apply the output
-    limits: the limit effects' and the DUT's full scale (effects.md order)."""
+    limits: the limit effects' and the DUT's full scale (docs/effects.md order)."""
     out = clean + rng.standard_normal(clean.shape) * np.asarray(dut.noise_std)[None, :]
     if dut.integer_output:
         out = np.round(out)

@@ -1,6 +1,6 @@
 """Simulate: synthetic datasets from the forward model (``rotcal.model.physics``)
-with the test plan of Gaitan & Geist 2021 (contract section 2, "The default
-test plan"), any effect of the catalogue (``rotcal.model.effects``)
+with the test plan of Gaitan & Geist 2021 (the defaults of
+``rotcal.simulate.spec.Plan``), any effect of the catalogue (``rotcal.model.effects``)
 switched on, seeded and deterministic. The truth used is returned with the
 samples and written beside the data (``rotcal.simulate.writers``); the
 request is a ``SimulationSpec`` (``rotcal.simulate.spec``)."""
@@ -122,7 +122,7 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         motion, labels = schedule(spec.plan, plan_rng)
     clean = noise_free_output(motion, dut, effects, spec.g_local)
     if phases is not None and hand.mask.any():
-        # a hand move: the same output chain after r . a (effects.md order) with the hand's specific force
+        # a hand move: the same output chain after r . a (docs/effects.md order) with the hand's specific force
         linear = hand.specific_force(spec.g_local) @ dut.responsivity.T
         x1g = np.linalg.norm(dut.responsivity, axis=1) * spec.g_local
         clean[hand.mask] = dut.offsets + offset_terms(motion, effects)[hand.mask] + nonlinearity(linear, x1g, effects)

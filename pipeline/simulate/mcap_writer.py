@@ -1,6 +1,6 @@
 """Write captures as MCAP: the DUT as ``sensor_msgs/msg/Imu`` (CDR) or JSON
-messages, the table as ``sensor_msgs/msg/JointState`` (CDR) or JSON (contract
-section 2). Used by the simulator; zstd-compressed chunks.
+messages, the table as ``sensor_msgs/msg/JointState`` (CDR) or JSON
+(docs/inputs.md, "MCAP captures"). Used by the simulator; zstd-compressed chunks.
 
 CDR captures are written a chunk at a time: the messages have fixed layouts
 (``ros2_cdr``), so a chunk's records are one structured numpy array, and the

@@ -1,5 +1,5 @@
-"""The simulator's request: the test plan of Gaitan & Geist 2021 (contract
-section 2, "The default test plan"), how the DUT is drawn, the site, the
+"""The simulator's request: the test plan of Gaitan & Geist 2021 (the
+defaults of ``Plan``), how the DUT is drawn, the site, the
 effects of the catalogue (``rotcal.model.effects``) and structures outside
 it, and the logger's time-base defects; from the CLI form
 ``NAME:key=value`` or from a simulation TOML file."""
@@ -17,7 +17,7 @@ from rotcal.model.conventions import AXES, Dut
 from rotcal.model.effects import Effects, names
 from rotcal.simulate.timebase_sim import TimebaseDefects
 
-# Structures outside the catalogue of effects.md, for testing that rotcal
+# Structures outside the catalogue of docs/effects.md, for testing that rotcal
 # reports them as unexplained instead of forcing them onto a catalogue name.
 FOREIGN_NAMES = ("tone", "offset_step")
 

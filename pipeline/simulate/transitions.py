@@ -6,12 +6,12 @@ Per axis: the static steps, each move between two steps recorded as motion
 ``ramp_deg_s2`` into the first rate, ramps from rate to rate, ramps down to
 rest after the last one and rests ``pause_s``; between axes the operator
 turns the DUT by hand (``reorient_s``: a wobbling move with the hand's own
-acceleration) into the next axis's starting orientation (contract section 1).
+acceleration) into the next axis's starting orientation (theta = 0 of docs/conventions.md).
 
 Angles are continuous through every transition. The plan's segments keep
 their commanded angle labels; transitions carry none. The true rate (the
 angle effects' rate factor, e.g. ``rate_error``) is folded in so that the
-true angle stays continuous (effects.md: the commanded angle becomes the
+true angle stays continuous (docs/effects.md: the commanded angle becomes the
 true angle within a rotation segment).
 """
 

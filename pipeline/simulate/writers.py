@@ -69,7 +69,7 @@ def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: st
     cover the plan's segments only, and a table silent through the
     transitions (step moves, ramps, rests, the hand reorientation) would
     label them as the segment before it (a label holds to the next
-    message, contract section 1) and bias every fit they join; its
+    message, docs/inputs.md) and bias every fit they join; its
     segments are found from the signals, as in ``csv-unlabelled``."""
     from rotcal.simulate.mcap_writer import write_capture
 

@@ -1,11 +1,11 @@
-"""The effect catalogue: the physics of effects.md that the papers' linear
+"""The effect catalogue: the physics of docs/effects.md that the papers' linear
 model leaves out, one module per effect (``base`` says what an effect
 defines). The simulator (``rotcal.simulate``), the forward model
 (``rotcal.model.physics``) and the diagnosis (``rotcal.diagnose``) all read
 this registry; a new effect is a new module here that defines ``EFFECT``.
 
 ``catalogue()`` lists the effects in the forward model's order (by stage,
-then by their row in effects.md's table), ``listed()`` in the table's order
+then by their row in docs/effects.md's table), ``listed()`` in the table's order
 (the order of the diagnosis table).
 """
 
@@ -72,7 +72,7 @@ def catalogue() -> tuple[Effect, ...]:
 
 
 def listed() -> tuple[Effect, ...]:
-    """The effects in the order of effects.md's table."""
+    """The effects in the order of docs/effects.md's table."""
     return tuple(sorted(_REGISTRY, key=lambda e: (e.listed, e.name)))
 
 

@@ -3,7 +3,7 @@ sizes to test, its term of the forward model, its simulator option, its
 diagnosis model and its finding sentence.
 
 An effect is a subclass of one of the forward model's stages (the order of
-effects.md, "The order of the forward model"):
+docs/effects.md, "The order of the forward model"):
 
 1. ``AngleEffect``: the commanded angle becomes the true angle (a rate
    factor, an added angle term) on rotation segments;
@@ -37,7 +37,7 @@ ALL = (0, 1, 2)  # a parameter that enters every channel's equation
 
 @dataclass(frozen=True)
 class Parameter:
-    """A parameter as effects.md names it, with its unit ("output unit" is
+    """A parameter as docs/effects.md names it, with its unit ("output unit" is
     the dataset's) and meaning."""
 
     name: str
@@ -114,7 +114,7 @@ def scope_rank(scope: str) -> int:
 
 
 class Effect:
-    """One physics of effects.md. Subclasses set the class attributes and
+    """One physics of docs/effects.md. Subclasses set the class attributes and
     override the hooks of their stage, the simulator and the diagnosis."""
 
     name: ClassVar[str]
@@ -124,7 +124,7 @@ class Effect:
     sizes: ClassVar[tuple[float, float]]        # the size range to test on the default plan
     size_of: ClassVar[str]                      # what ``sizes`` measures
     where: ClassVar[str]                        # the finding's location, ``{s}`` the scope
-    # Its row in effects.md's table: the diagnosis table lists effects in this order.
+    # Its row in docs/effects.md's table: the diagnosis table lists effects in this order.
     listed: ClassVar[int] = 1000
     # Where its parameters sit in the diagnosis's parameter vector (candidates sort by
     # (slot, scope, listed)): the order the solver has always used, so every figure
@@ -175,7 +175,7 @@ class Effect:
         raise NotImplementedError
 
     def report(self, cand: Candidate, value: np.ndarray, cov: np.ndarray, output_unit: str) -> list[ReportedParameter]:
-        """The effects.md parameters of a fitted extension, with uncertainties."""
+        """The docs/effects.md parameters of a fitted extension, with uncertainties."""
         units = {p.name: p.unit.replace("output unit", output_unit) for p in self.parameters}
         u = np.sqrt(np.diag(cov))
         return [ReportedParameter(n, float(v), float(s), units[n]) for n, v, s in zip(cand.names, value, u)]
