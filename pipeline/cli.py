@@ -158,7 +158,7 @@ def batch(
     root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
     out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
     config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
-    workers: Annotated[int | None, typer.Option(min=0, help="cores in all: datasets processed at once on the local pool, one core each; 0 = one per core")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, help="cores in all, shared by the datasets processed at once on the local pool; 0 = every core it may run on")] = None,
     executor: Annotated[str | None, typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,

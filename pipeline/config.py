@@ -110,7 +110,7 @@ class DiagnosisConfig:
 class BatchConfig:
     """``rotcal batch``: how many datasets run at once, and where."""
 
-    workers: int = _key(0, "datasets processed at once on the local process pool, one core each; 0 = one per core", ge=0)
+    workers: int = _key(0, "cores in all, shared by the datasets processed at once on the local pool; 0 = every core it may run on", ge=0)
     executor: Annotated[str, AfterValidator(_executor)] = _key(
         "local", "or dask://HOST:PORT: an existing Dask distributed scheduler", json_schema_extra={"pattern": f"^({EXECUTOR.pattern})$"})
 

@@ -4,7 +4,7 @@ refined against baseline, unexplained structures, and the Gaitan 2021 case.
 
     python scripts/diagnosis_acceptance.py [--seeds 10] [--clean 20] [--workers 2] [--out DIR]
 
-Sizes are drawn across the ranges of effects.md (each catalogue effect's ``sizes``, rotcal.diagnose.scenarios).
+Sizes are drawn across the ranges of docs/effects.md (each catalogue effect's ``sizes``, rotcal.diagnose.scenarios).
 Prints a Markdown report (the tables in docs/measured.md come from it).
 """
 

@@ -55,7 +55,7 @@ RESULT_5 = ([[1.02571, -0.02758, 0.00259, -0.02851, -0.00852], [0.03867, 1.04124
 def test_worked_examples_reproduce_from_their_printed_inputs(example, parameters, printed):
     """W, V and gamma within 1e-5 of the printed values, P within 0.5 %
     (example 4's W_xz prints 0.00415 where its inputs give 0.0041554, a
-    rounding: ERRATA.md)."""
+    rounding: docs/method.md, printing errors)."""
     raw = np.array(example["G"])
     reference = g_p(example["theta"], example["phi"])
     corrections, warnings = fit_corrections(raw, reference, models=(parameters,))
@@ -176,7 +176,7 @@ def test_too_few_positions_for_a_model_become_warnings():
 
 
 def test_corrections_from_simulated_table_steps(make_dataset, tmp_path):
-    """The default plan's 72 static steps (reference: contract section 1):
+    """The default plan's 72 static steps (reference: docs/conventions.md):
     the 12-parameter correction is the inverse of the true responsivity in g
     per count, within its uncertainty; correction.parquet is the contract's."""
     ds = make_dataset(41)
@@ -200,7 +200,7 @@ def test_corrections_from_simulated_table_steps(make_dataset, tmp_path):
 
 
 def test_cubic_nonlinearity_is_taken_up_by_gamma(make_dataset, tmp_path):
-    """A cubic nonlinearity k3 on w (effects.md): the 15-parameter fit finds
+    """A cubic nonlinearity k3 on w (docs/effects.md): the 15-parameter fit finds
     gamma_z near -k3 / (g s_w)^3 (g per count^3) and removes most of the
     12-parameter residual."""
     ds = make_dataset(42, effects=("cubic_nonlinearity:k3_w=2e-3",))

@@ -57,7 +57,7 @@ EFFECTS = [
 
 @pytest.mark.parametrize("name, spec, expected", EFFECTS, ids=[e[0] for e in EFFECTS])
 def test_each_catalogue_effect_is_found_named_and_measured(tmp_path, name, spec, expected):
-    """Sizes near the small (concealed) end of effects.md's ranges."""
+    """Sizes near the small (concealed) end of docs/effects.md's ranges."""
     _, truth, findings, params = _diagnose(tmp_path, 40, effects=(spec,))
     named = set(findings.filter(pl.col("detected"))["effect"])
     assert named == {name}

@@ -83,7 +83,7 @@ def test_the_catalogue_table_lists_every_parameter_with_its_unit_and_sizes():
 
 @pytest.mark.parametrize("name", TABLE_ORDER)
 def test_every_drawn_scenario_is_an_option_the_simulator_accepts(name):
-    """The sizes of effects.md, drawn as ``NAME:key=value``, parsed and built."""
+    """The sizes of docs/effects.md, drawn as ``NAME:key=value``, parsed and built."""
     option = draw_effect(name, np.random.default_rng(3))
     spec = SimulationSpec().with_effects(option)
     effects, described = build_effects(spec.effects, np.random.default_rng(0))

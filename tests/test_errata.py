@@ -1,5 +1,5 @@
 """The papers' printed standard-error formulas against the real scatter of
-repeated noisy fits (ERRATA.md), and rotcal's propagation against the same
+repeated noisy fits (docs/method.md, printing errors), and rotcal's propagation against the same
 scatter. 800 replicates of three rotation segments of a deliberately
 non-nominal DUT (unequal sensitivities and noise, one angle far from 90
 degrees), where the errors of the printed forms show."""

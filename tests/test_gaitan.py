@@ -84,7 +84,7 @@ def test_gaitan_table_through_the_pipeline(make_dataset):
     frame = gaitan_frame(red.fits, 9.80101, 3e-5, "ds", "bit")
     assert frame.height == 5 * 6
     s_rows = frame.filter(pl.col("parameter").str.starts_with("s_"))
-    # Eqs. 18 to 20 as printed are sqrt(2) g too large (ERRATA.md)
+    # Eqs. 18 to 20 as printed are sqrt(2) g too large (docs/method.md, printing errors)
     np.testing.assert_allclose(s_rows["printed_over_statistical"], np.sqrt(2) * G, rtol=0.01)
     # the sensitivity estimators agree with the full vector within the uncertainty of their difference
     assert np.abs(s_rows["z_difference"].to_numpy()).max() < 4

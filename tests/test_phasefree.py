@@ -19,7 +19,7 @@ def _dut(rng):
 
 
 def _labelled_coef(resp, offsets, axis):
-    """Coefficients against the table angle (contract section 1): A = -g r_a, B = g r_b, C = O."""
+    """Coefficients against the table angle (docs/conventions.md): A = -g r_a, B = g r_b, C = O."""
     s = AXES.index(axis)
     return np.column_stack([offsets, -G * resp[:, SIN_COMPONENT[s]], G * resp[:, COS_COMPONENT[s]]]).ravel()
 

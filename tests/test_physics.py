@@ -1,4 +1,4 @@
-"""The measurement conventions of contract section 1, checked by hand."""
+"""The measurement conventions of docs/conventions.md, checked by hand."""
 
 import numpy as np
 import pytest

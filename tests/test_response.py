@@ -52,7 +52,7 @@ def test_centripetal_slope_per_axis_is_minus_r_dot_d(make_dataset):
     frame = frequency_response_frame(red.results, red.fits, "ds", "bit")
     slopes = frame.filter(pl.col("quantity") == "offset_omega2_slope")
     x = slopes.filter(pl.col("axis") == "x").sort("parameter")
-    expected = -resp @ d  # output change -w^2 r.d (effects.md)
+    expected = -resp @ d  # output change -w^2 r.d (docs/effects.md)
     assert np.all(np.abs(x["value"].to_numpy() - expected) < 4 * x["std_uncertainty"].to_numpy())
     assert x["p_value"].min() > 1e-4  # the omega^2 law holds
     others = slopes.filter(pl.col("axis").is_in(["y", "z"]))

@@ -24,7 +24,7 @@ def _dut(rng):
 
 
 def _segments(rng, resp, offsets, own_phase):
-    """Noisy coefficients of one rotation per axis (contract section 1), turned by an unknown angle when ``own_phase``."""
+    """Noisy coefficients of one rotation per axis (docs/conventions.md), turned by an unknown angle when ``own_phase``."""
     cov = np.kron(np.eye(3), np.diag([1.0, 2.0, 2.0]) * 64.0 / 4200)
     out = []
     for k, axis in enumerate(AXES):

@@ -75,7 +75,7 @@ def _validate(doc: dict, path: Path) -> None:
     elif err.validator == "enum":
         problem = f"{where} = {err.instance!r} is not one of {err.validator_value}"
     elif err.validator == "propertyNames":
-        problem = f"[{where}] maps unknown contract column {err.instance!r}"
+        problem = f"[{where}] maps an unknown column {err.instance!r}"
     else:
         problem = f"{where}: {err.message}"
     raise InputError(f"invalid dataset.toml value: {problem}", path=path)
