@@ -130,3 +130,17 @@ def test_a_new_effect_is_one_definition(tmp_path):
     assert "offset_wobble" not in names()
     with pytest.raises(ConfigError, match="unknown effect 'offset_wobble'"):
         SimulationSpec().with_effects("offset_wobble:wobble_v=12")
+
+
+@pytest.mark.parametrize(("request_text", "message"), [
+    ("channel_delay", "give its size, one of delay_v_s, delay_w_s"),
+    ("axis_tilt:axis=x", "give its size, one of tilt_deg"),
+    ("rate_ripple:axis=y,ripple_phase_deg=30", "give its size, one of ripple_deg"),
+    ("centripetal:axis=x,radius_m=-5", "radius_m = -5.0 is a magnitude and cannot be negative"),
+    ("clipping:below_max=-0.01", "below_max = -0.01 is a magnitude and cannot be negative"),
+])
+def test_an_effect_without_its_size_or_with_a_negative_magnitude_is_refused(request_text, message):
+    """Asked for with no size it would be simulated as absent; a negative
+    radius was silently taken as its absolute value."""
+    with pytest.raises(ConfigError, match=message):
+        build_effects(SimulationSpec().with_effects(request_text).effects, np.random.default_rng(1))

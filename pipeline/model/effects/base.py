@@ -130,6 +130,12 @@ class Effect:
     # (slot, scope, listed)): the order the solver has always used, so every figure
     # stays bit-identical; a new effect's parameters go last.
     slot: ClassVar[int] = 1000
+    # Option keys of which a request must give at least one (its size: an
+    # effect asked for with none of them would be simulated as absent), and
+    # option keys that are magnitudes, never negative. Empty ``sizes_given``
+    # means every option but ``axis``.
+    sizes_given: ClassVar[frozenset[str]] = frozenset()
+    magnitudes: ClassVar[frozenset[str]] = frozenset()
 
     # --- the simulator -------------------------------------------------
     def complete(self, params: dict, rng: np.random.Generator) -> dict:
@@ -138,6 +144,12 @@ class Effect:
         unknown = sorted(set(params) - self.options)
         if unknown:
             raise ConfigError(f"effect {self.name}: unknown parameter {unknown[0]!r} (known: {', '.join(sorted(self.options))})")
+        sizes = self.sizes_given or self.options - {"axis"}
+        if not sizes & set(params):
+            raise ConfigError(f"effect {self.name}: give its size, one of {', '.join(sorted(sizes))}")
+        negative = sorted(k for k in self.magnitudes & set(params) if float(params[k]) < 0)
+        if negative:
+            raise ConfigError(f"effect {self.name}: {negative[0]} = {params[negative[0]]} is a magnitude and cannot be negative")
         return dict(params)
 
     def need_axis(self, params: dict) -> str:

@@ -24,6 +24,7 @@ class Centripetal(ForceEffect):
     parameters = (Parameter("radius_m", "m", "distance from the axis, abs(d)"), Parameter("d_x_m", "m", "component x of d"),
                   Parameter("d_y_m", "m", "component y of d"), Parameter("d_z_m", "m", "component z of d"))
     options = frozenset({"axis", "radius_m", "d_x_m", "d_y_m", "d_z_m"})
+    magnitudes = frozenset({"radius_m"})
     sizes = (0.03, 0.25)
     size_of = "radius_m on one axis"
     where = "axis {s} rotation segments"

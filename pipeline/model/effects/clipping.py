@@ -17,6 +17,7 @@ class Clipping(LimitEffect):
     parameters = (Parameter("clip_low", "output unit", "lower limit"), Parameter("clip_high", "output unit", "upper limit"))
     # below_max / above_min: a limit as a fraction below the largest (above the smallest) noise-free output
     options = frozenset({"clip_low", "clip_high", "below_max", "above_min"})
+    magnitudes = frozenset({"below_max", "above_min"})
     sizes = (0.002, 0.008)
     size_of = "the limit, as a fraction below the largest output"
     where = "every channel's extremes"

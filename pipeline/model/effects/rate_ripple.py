@@ -17,6 +17,8 @@ class RateRipple(AngleEffect):
     physics = "once-per-revolution speed ripple: theta -> theta + a sin(theta + p)"
     parameters = (Parameter("ripple_deg", "degree", "amplitude a"), Parameter("ripple_phase_deg", "degree", "phase p"))
     options = frozenset({"axis", "ripple_deg", "ripple_phase_deg"})
+    sizes_given = frozenset({"ripple_deg"})
+    magnitudes = frozenset({"ripple_deg"})
     sizes = (0.03, 0.2)
     size_of = "ripple_deg"
     where = "axis {s} rotation segments"
