@@ -7,6 +7,7 @@ top)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -23,9 +24,28 @@ if TYPE_CHECKING:
     from rotcal.simulate import SimulationSpec
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  context_settings={"help_option_names": ["-h", "--help"]},
                   help="Rotation-table calibration of three-axis accelerometers.")
-out = Console()
-err = Console(stderr=True)
+# Piped or logged output has no terminal width to honour: tables are printed
+# whole (rich would cut them to 80 columns: "paramet…"); a user's COLUMNS wins.
+_UNBOUNDED = 1000
+out = Console(width=None if sys.stdout.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
+err = Console(stderr=True, width=None if sys.stderr.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from rotcal import __version__
+
+        out.print(f"rotcal {__version__}", highlight=False, markup=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="print rotcal's version and exit")] = False,
+) -> None:
+    """Rotation-table calibration of three-axis accelerometers."""
 
 FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
 
