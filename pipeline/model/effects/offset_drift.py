@@ -15,7 +15,7 @@ class OffsetDrift(OffsetEffect):
     parameters = tuple(Parameter(f"drift_{c}", "output unit per s", f"drift rho of {c}") for c in CHANNELS)
     options = frozenset(p.name for p in parameters)
     sizes = (0.006, 0.03)
-    size_of = "abs(rho) on one channel, counts per s"
+    size_of = "abs(rho) on one channel, bit per s"
     where = "channel {s}, whole recording"
     listed = 8
     slot = 1
