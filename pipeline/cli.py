@@ -58,7 +58,7 @@ def _print_diagnosis(diagnosis, output_unit: str) -> None:
         out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
         return
     out.print(findings_table(diagnosis.findings, f"diagnosis: {found} finding{'s' if found > 1 else ''}"))
-    out.print(summary_table(diagnosis.refined, output_unit, "refined intrinsic parameters (diagnosed effects modelled), k = 2"))
+    out.print(summary_table(diagnosis.refined, output_unit, "refined intrinsic parameters (diagnosed effects modelled), value ± U (95 %)"))
 
 
 def _print_outcome(outcome, quiet: bool = False) -> None:
@@ -71,7 +71,7 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
         out.print(summary_table(outcome.results, outcome.output_unit,
-                                f"{outcome.dataset}: intrinsic parameters, expanded uncertainty (k = 2)"))
+                                f"{outcome.dataset}: intrinsic parameters, value ± U (95 %)"))
         if outcome.diagnosis is not None:
             _print_diagnosis(outcome.diagnosis, outcome.output_unit)
         if outcome.static is not None:

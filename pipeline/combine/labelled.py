@@ -179,9 +179,11 @@ def intrinsic_frame(results: list[IntrinsicResult], dataset: str, model: str, ou
     """The long ``intrinsic`` table (docs/outputs.md)."""
     rows = [
         {"dataset": dataset, "model": model, "rate_hz": res.rate_hz, "parameter": name, "value": val,
-         "std_uncertainty": u, "unit": unit}
+         "std_uncertainty": u, "dof": dof if np.isfinite(dof) else None, "coverage_factor": k, "expanded_uncertainty": k * u,
+         "unit": unit}
         for res in results
-        for name, val, u, unit in zip(INTRINSIC, res.value, res.std_uncertainty, units(output_unit))
+        for name, val, u, dof, k, unit in zip(INTRINSIC, res.value, res.std_uncertainty, res.dof, res.coverage_factor,
+                                              units(output_unit))
     ]
     return conform(pl.DataFrame(rows, schema=schema("intrinsic").polars_schema), "intrinsic") if rows else schema("intrinsic").empty()
 

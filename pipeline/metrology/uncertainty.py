@@ -32,13 +32,10 @@ def budget_frame(results: list[IntrinsicResult], dataset: str, output_unit: str)
     rows = []
     for res in results:
         total = np.diag(res.cov)
-        dof_terms = np.zeros(9)
         for inp in res.inputs:
-            var = res.budget[inp.label]
-            dof_terms += np.where(np.isfinite(inp.dof), var**2 / inp.dof, 0.0)
-            rows += _budget_rows(dataset, res.rate_hz, inp.source, inp.segment, inp.axis, var, total, inp.dof, output_unit)
-        nu_eff = np.divide(total**2, dof_terms, out=np.full(9, np.inf), where=dof_terms > 0)
-        rows += _budget_rows(dataset, res.rate_hz, "combined", None, "", total, total, nu_eff, output_unit)
+            rows += _budget_rows(dataset, res.rate_hz, inp.source, inp.segment, inp.axis, res.budget[inp.label], total,
+                                 inp.dof, output_unit)
+        rows += _budget_rows(dataset, res.rate_hz, "combined", None, "", total, total, res.dof, output_unit)
     if not rows:
         return schema("uncertainty_budget").empty()
     return conform(pl.DataFrame(rows, schema_overrides=schema("uncertainty_budget").polars_schema, strict=False),

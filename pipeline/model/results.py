@@ -19,12 +19,23 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
+from scipy.special import stdtrit
 
 from rotcal.model.physics import ANGLE_PAIRS
 
 # BudgetInput.source of an input group that is a whole fit's noise, not split
 # per segment or position: the reduction has no finer per-input breakdown
 WHOLE_FIT = "fit"
+
+# The coverage probability of every expanded uncertainty rotcal prints or
+# writes: U = k u with k the t quantile for the effective degrees of freedom
+# (GUM G.4.1, G.6.4); k = 1.96 for infinitely many.
+EXPANDED_COVERAGE = 0.95
+
+
+def coverage_factor(dof: np.ndarray) -> np.ndarray:
+    """k_p = t_p(nu_eff) for ``EXPANDED_COVERAGE`` (GUM G.3.4, Table G.2)."""
+    return stdtrit(np.asarray(dof, float), 0.5 + EXPANDED_COVERAGE / 2)
 
 
 def intrinsic_jacobian(state: np.ndarray, g_local: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,6 +132,25 @@ class IntrinsicResult:
     def g_sensitivity(self) -> np.ndarray:
         """d(parameters)/d(g_local): nonzero for the sensitivities only."""
         return intrinsic_jacobian(self.state, self.g_local)[2]
+
+    @property
+    def dof(self) -> np.ndarray:
+        """Each parameter's effective degrees of freedom from its budget
+        (Welch-Satterthwaite, GUM G.4.1); inf where only inputs of infinite
+        degrees of freedom (g_local, a Type B input) contribute."""
+        total = np.diag(self.cov)
+        terms = np.zeros(9)
+        for inp in self.inputs:
+            terms += np.where(np.isfinite(inp.dof), self.budget[inp.label] ** 2 / inp.dof, 0.0)
+        return np.divide(total**2, terms, out=np.full(9, np.inf), where=terms > 0)
+
+    @property
+    def coverage_factor(self) -> np.ndarray:
+        return coverage_factor(self.dof)
+
+    @property
+    def expanded_uncertainty(self) -> np.ndarray:
+        return self.coverage_factor * self.std_uncertainty
 
     @property
     def noise_cov(self) -> np.ndarray:

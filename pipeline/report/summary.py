@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import polars as pl
+from rich.console import Group
 from rich.table import Table
+from rich.text import Text
 
 from rotcal.combine.labelled import units
 from rotcal.combine.poses import ReferenceFit
@@ -12,7 +14,7 @@ from rotcal.combine.static import StaticReduction
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
 
-COVERAGE_FACTOR = 2.0
+COVERAGE_FACTOR = 2.0  # tables without degrees of freedom (the |a| check, another lab's matrix)
 
 
 def rate_label(rate_hz: float) -> str:
@@ -26,9 +28,13 @@ def _digits(u: float) -> int:
     return max(0, 1 - int(np.floor(np.log10(u))))
 
 
-def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title: str) -> Table:
-    """The nine parameters per rate: value +- expanded uncertainty (k = 2)."""
-    table = Table(title=title, title_justify="left")
+def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title: str) -> Group:
+    """The nine parameters per rate: value +- expanded uncertainty (95 %,
+    each value's k from its effective degrees of freedom)."""
+    # title and note as lines of their own: a table's title wraps at its width
+    k = np.concatenate([res.coverage_factor for res in results]) if results else np.array([np.nan])
+    note = f"U = k u, k from each value's effective dof: {k.min():.2f} to {k.max():.2f}"
+    table = Table()
     table.add_column("parameter")
     table.add_column("unit")
     for res in results:
@@ -36,15 +42,14 @@ def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title:
     for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
         cells = []
         for res in results:
-            cells.append(_expanded(res.value[i], res.std_uncertainty[i]))
+            cells.append(_expanded(res.value[i], res.expanded_uncertainty[i]))
         table.add_row(name, unit, *cells)
-    return table
+    return Group(Text(title), table, Text(note))
 
 
-def _expanded(value: float, u: float) -> str:
-    expanded = COVERAGE_FACTOR * u
+def _expanded(value: float, expanded: float) -> str:
     d = _digits(expanded)
-    return f"{value:.{d}f} ± {expanded:.{d}f}" if np.isfinite(u) else f"{value:.6g}"
+    return f"{value:.{d}f} ± {expanded:.{d}f}" if np.isfinite(expanded) else f"{value:.6g}"
 
 
 def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
@@ -77,7 +82,7 @@ def pose_check_table(check: pl.DataFrame, g_local: float, title: str, per_pose_m
             table.add_column(f"{name}: |a|/g - 1 (%)", justify="right")
         for k, row in enumerate(check.iter_rows(named=True)):
             label = row["label"] or str(row["pose"])
-            table.add_row(label, _expanded(row["norm_m_s2"], row["u_norm_m_s2"]),
+            table.add_row(label, _expanded(row["norm_m_s2"], COVERAGE_FACTOR * row["u_norm_m_s2"]),
                           *(f"{100 * dev[name][k]:+.3f}" if np.isfinite(dev[name][k]) else "-" for name in columns))
         return table
     table.add_column("|a| / g_local - 1")
@@ -103,7 +108,7 @@ def matrix_table(frame: pl.DataFrame, title: str) -> Table:
     for name in ("parameter", "unit", "value ± U (k = 2)"):
         table.add_column(name, justify="right" if name.startswith("value") else "left")
     for row in frame.iter_rows(named=True):
-        table.add_row(row["parameter"], row["unit"], _expanded(row["value"], row["std_uncertainty"]))
+        table.add_row(row["parameter"], row["unit"], _expanded(row["value"], COVERAGE_FACTOR * row["std_uncertainty"]))
     return table
 
 
