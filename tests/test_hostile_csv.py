@@ -103,7 +103,12 @@ def test_fifo_capture_is_refused_not_waited_on(cli, dataset, tmp_path, alarm):
     one_line_error(cli("run", dataset, "--out", tmp_path / "o"), "trap.csv", "not a regular file")
 
 
-def test_fifo_named_in_dataset_toml_is_refused(tmp_path, alarm):
+def test_fifo_given_as_the_dataset_is_refused(cli, tmp_path, alarm):
+    os.mkfifo(tmp_path / "trap.csv")
+    one_line_error(cli("run", tmp_path / "trap.csv", "--out", tmp_path / "o"), "trap.csv", "not a regular file (a FIFO)")
+
+
+def test_fifo_read_directly_is_refused(tmp_path, alarm):
     os.mkfifo(tmp_path / "trap.csv")
     with pytest.raises(InputError, match="not a regular file"):
         read_csv_capture(tmp_path / "trap.csv", CsvFormat(), None, Limits())
@@ -195,3 +200,28 @@ def test_good_dataset_still_runs(cli, dataset, tmp_path):
     assert status == 0, err
     fits = pl.read_parquet(tmp_path / "o" / "fits.parquet")
     assert (fits["status"] == "ok").all()
+
+
+def test_whitespace_file_is_converted_without_copies_of_the_whole_text(tmp_path, monkeypatch):
+    """A whitespace-delimited file of one-digit values took some 40 times its
+    size (regular expressions over the whole text: a bytes object per token);
+    block by block it takes about twice, the result and its parts, besides
+    the block's own arrays (blocks of 64 KiB here, for a small file)."""
+    import tracemalloc
+
+    from rotcal.ingest import csv_source
+
+    monkeypatch.setattr(csv_source, "_SCAN_BLOCK", 1 << 16)
+    path = tmp_path / "log.txt"
+    digits = np.random.default_rng(0).integers(0, 10, (100_000, 3))
+    path.write_text("".join(f" {i} {a} {b}  {c} \n" for i, (a, b, c) in enumerate(digits)))
+    fmt = CsvFormat(delimiter="whitespace", header=False, names=("t", "u", "v", "w"))
+    tracemalloc.start()
+    try:
+        frame = read_csv_capture(path, fmt, None, Limits())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert frame["u"].to_list() == digits[:, 0].astype(float).tolist()
+    size = path.stat().st_size
+    assert peak < 4 * size, f"{peak / size:.1f} times the file"
