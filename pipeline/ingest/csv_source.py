@@ -60,9 +60,9 @@ def _commas(lines: bytes) -> bytes:
 
 def _whitespace_to_commas(fh: BinaryIO) -> bytes:
     """A whitespace-delimited file as comma-separated text, converted a block
-    of whole lines at a time: a few times the block in memory besides the
-    result, where regular expressions over the whole text took some 20 times
-    the file."""
+    of whole lines at a time: about twice the file (the result and its parts)
+    and a few times the block, where regular expressions over the whole text
+    took up to 40 times the file (a bytes object per token)."""
     parts, tail = [], b""
     for block in _blocks(fh):
         cut = block.rfind(b"\n") + 1
@@ -76,7 +76,7 @@ def _whitespace_to_commas(fh: BinaryIO) -> bytes:
     return b"".join(parts)
 
 
-def _source_bytes(fh: BinaryIO, fmt: CsvFormat) -> bytes | BinaryIO:
+def _comma_source(fh: BinaryIO, fmt: CsvFormat) -> bytes | BinaryIO:
     return _whitespace_to_commas(fh) if fmt.delimiter == "whitespace" else fh
 
 
@@ -156,7 +156,7 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
         if os.fstat(fh.fileno()).st_size == 0:
             raise InputError("the file is empty", path=path)
         check_line_lengths(fh, path, limits.max_line_bytes)
-        return _capture(_source_bytes(fh, fmt), fmt, spec, path)
+        return _capture(_comma_source(fh, fmt), fmt, spec, path)
 
 
 def _capture(source: bytes | BinaryIO, fmt: CsvFormat, spec: CaptureSpec | None, path: Path) -> pl.DataFrame:
