@@ -143,6 +143,18 @@ def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, thet
 
 def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
                   channels: tuple[np.ndarray, ...], config: FitConfig) -> SegmentFit:
+    """The fit, or a failure row where it is not finite: ingest refuses
+    non-finite and absurd values, and this second guard keeps any value that
+    still overflows the fit from being reported "ok" with NaN coefficients."""
+    fit = _fit(segment, kind, rate_hz, angle_source, theta_deg, channels, config)
+    if fit.status == "ok" and not (np.isfinite(fit.coef).all() and np.isfinite(fit.cov).all()):
+        return SegmentFit.failed(segment, fit.n_samples, "the fit is not finite (an angle or sample value too large "
+                                 "for the sine fit): nothing to fit", rate_hz)
+    return fit
+
+
+def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
+         channels: tuple[np.ndarray, ...], config: FitConfig) -> SegmentFit:
     reason = refusal(kind, angle_source, theta_deg, config) or stuck_channel(channels)
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)

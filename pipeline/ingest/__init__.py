@@ -13,6 +13,7 @@ import polars as pl
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest.csv_source import read_csv_capture
+from rotcal.ingest.files import require_regular
 from rotcal.ingest.labels import time_ordered
 from rotcal.ingest.mcap_source import read_mcap_capture
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta, load_meta
@@ -47,19 +48,33 @@ def inside(root: Path, relative: str, source: str | None) -> Path:
 
 
 def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec | None]]:
-    """The dataset's captures with their ``[[capture]]`` entries, by file name."""
-    if path.is_file():
+    """The dataset's captures with their ``[[capture]]`` entries, by file name.
+
+    Every capture must be a regular file (a FIFO named ``trap.csv`` is
+    refused, not waited on) inside the dataset directory: a link found in
+    the directory whose target resolves outside it is refused with one line,
+    as a ``[[capture]]`` entry pointing outside is; skipping it would
+    calibrate from fewer captures than the directory shows. A capture file
+    given itself (not a directory) is read wherever its link points.
+    """
+    if not path.is_dir():
+        require_regular(path)
         specs = {c.file: c for c in meta.captures}
         return [(path, specs.get(path.name))]
     if meta.captures:
         files = [(inside(path, c.file, meta.source), c) for c in meta.captures]
         for file, _ in files:
-            if not file.is_file():
+            if not file.exists():
                 raise InputError("capture file named in dataset.toml does not exist", path=file)
+            require_regular(file)
         return files
-    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and p.is_file())
+    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir())
     if not found:
         raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
+    for file in found:
+        if not file.resolve().is_relative_to(path.resolve()):
+            raise InputError(f"{file.name!r} is a symbolic link pointing outside the dataset directory", path=file)
+        require_regular(file)
     return [(f, None) for f in found]
 
 

@@ -7,6 +7,7 @@ the same rules.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import polars as pl
@@ -18,6 +19,13 @@ from rotcal.tables import schema
 
 POSES = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
 OPTIONAL_FLOATS = ("rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
+# The largest magnitude a sample value may have: far beyond any sensor's output,
+# rate or table angle, and small enough that sums of squares of millions of
+# them stay finite in float64 (u = 1e308 overflowed to NaN parameters).
+MAX_ABS_VALUE = 1e15
+# Times in seconds become int64 nanoseconds, which end at 2^63 ns = 9.22e9 s:
+# 9e9 s keeps Unix-epoch times (1.7e9 s now) for two more centuries.
+MAX_ABS_TIME_S = 9e9
 
 
 def time_ordered(frame: pl.DataFrame) -> pl.DataFrame:
@@ -34,6 +42,35 @@ def canonical_rate(rate: pl.Expr) -> pl.Expr:
     return (rate * 1e9).round() / 1e9
 
 
+def check_values(frame: pl.DataFrame, path: Path) -> None:
+    """Refuse the first empty, non-finite or out-of-range value where values
+    enter: ``t`` (s) within ``MAX_ABS_TIME_S``, every other float within
+    ``MAX_ABS_VALUE``; ``u, v, w`` and ``t`` present in every row, optional
+    columns possibly empty."""
+    bounds = {name: MAX_ABS_VALUE for name in ("u", "v", "w")} | {"t": MAX_ABS_TIME_S}
+    bounds |= {name: MAX_ABS_VALUE for name in OPTIONAL_FLOATS}
+    checked = [name for name in bounds if name in frame.columns]
+    first_bad = frame.select(
+        (pl.col(name).cast(pl.Float64).is_nan() | (pl.col(name).cast(pl.Float64).abs() > bounds[name]))
+        .fill_null(name in ("t", "u", "v", "w"))
+        .arg_true().first().alias(name)
+        for name in checked
+    ).row(0)
+    for name, row in zip(checked, first_bad):
+        if row is not None:
+            raise InputError(f"column {name!r}, row {row + 1} {_fault(frame[name][row], bounds[name], name)}", path=path)
+
+
+def _fault(value: float | None, bound: float, name: str) -> str:
+    if value is None:
+        return "is empty"
+    if math.isnan(value):
+        return "is NaN"
+    if math.isinf(value):
+        return f"is {value}"
+    return f"is {value:.10g}, beyond ±{bound:g}{' s' if name == 't' else ''}"
+
+
 def label_columns(
     frame: pl.DataFrame, spec: CaptureSpec | None, path: Path, label_source: str = "file"
 ) -> pl.DataFrame:
@@ -43,6 +80,7 @@ def label_columns(
     of docs/inputs.md, whose labels came from ``label_source``; ``spec`` supplies
     labels the file lacks.
     """
+    check_values(frame, path)
     if "t_ns" not in frame.columns:
         frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
     back: list[int] | pl.Series = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
