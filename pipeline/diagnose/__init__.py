@@ -95,7 +95,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
     index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
-    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", *CHANNELS)[index]
+    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", "temperature_c", *CHANNELS)[index]
              .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
              .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
                            step=pl.when(pl.col("kind") == "static")
@@ -113,10 +113,20 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
         t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
         rate_hz=frame["rate_hz"].to_numpy(),
         t0_s=int(samples["t_ns"].to_numpy().min()) / 1e9,
+        temperature_c=logged_temperature(frame["temperature_c"]),
     )
     obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
                        np.array(rates), frame["segment"].to_numpy(), g_local)
     return obs, frame["step"].to_numpy(), int(count.sum())
+
+
+def logged_temperature(column: pl.Series) -> np.ndarray | None:
+    """The DUT temperature of every sample, or None unless every sample has
+    one and it varies (a constant temperature carries no evidence)."""
+    if column.null_count() or column.len() == 0:
+        return None
+    temperature = column.to_numpy().astype(float)
+    return temperature if np.ptp(temperature) > 0 else None
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
@@ -301,7 +311,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     m = obs.motion
     rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
     all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
-    cands = extensions(rotating_axes, all_axes, angles_measured)
+    logged = frozenset() if m.temperature_c is None else frozenset({"temperature_c"})
+    cands = extensions(rotating_axes, all_axes, angles_measured, logged)
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
     fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
@@ -318,6 +329,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
+        if not effect.needs <= logged:   # the dataset lacks what it needs: not listed at all
+            continue
         if isinstance(effect, LimitEffect):   # tested by its stuck samples, not by a model extension
             row, par = limit_rows(final, clip, evidence, q, alpha, dataset, output_unit, effect.name)
             if row["detected"]:

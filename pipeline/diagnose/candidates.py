@@ -20,10 +20,13 @@ from rotcal.model.effects.base import Candidate, ReportedParameter, scope_rank
 STEP = Candidate("unexplained", "step", tuple(f"step_{c}" for c in CHANNELS), ((0,), (1,), (2,)))
 
 
-def extensions(rotating_axes: tuple[str, ...], all_axes: tuple[str, ...], angles_measured: bool) -> tuple[Candidate, ...]:
-    """Every catalogue extension testable on a dataset with these segments,
-    in the order of the model's parameters (each effect's ``slot``)."""
-    cands = [(e, c) for e in catalogue() for c in e.candidates(rotating_axes, all_axes, angles_measured)]
+def extensions(rotating_axes: tuple[str, ...], all_axes: tuple[str, ...], angles_measured: bool,
+               logged: frozenset[str] = frozenset()) -> tuple[Candidate, ...]:
+    """Every catalogue extension testable on a dataset with these segments
+    and these ``logged`` per-sample observations (an effect's ``needs``), in
+    the order of the model's parameters (each effect's ``slot``)."""
+    cands = [(e, c) for e in catalogue() if e.needs <= logged
+             for c in e.candidates(rotating_axes, all_axes, angles_measured)]
     return tuple(c for _, c in sorted(cands, key=lambda ec: (ec[0].slot, scope_rank(ec[1].scope), ec[0].listed)))
 
 

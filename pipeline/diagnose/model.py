@@ -25,7 +25,7 @@ import numpy as np
 import scipy.linalg
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, catalogue, effect_named
+from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
     Effects,
@@ -33,6 +33,8 @@ from rotcal.model.physics import (
     gravity_direction_derivative,
     nonlinearity,
     offset_terms,
+    scale_terms,
+    scaled,
     specific_force,
     true_angle,
     uniform_angle,
@@ -199,8 +201,9 @@ class ChannelState:
     x1g: np.ndarray        # |R_row|: the output swing for 1 g
     y: np.ndarray          # offset-free linear output
     u: np.ndarray          # y / x1g
-    slope: np.ndarray      # d output / d y (the gain effects' chain factor)
+    slope: np.ndarray      # d output / d y (the gain effects' chain factor, times the scale effects')
     d_theta: np.ndarray    # d output / d theta, per degree
+    gained: np.ndarray     # y times the gain effects' factors (before the scale effects)
 
     @property
     def theta(self) -> np.ndarray:
@@ -242,6 +245,7 @@ def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects
     R = layout.responsivity(beta)[obs.rate_idx]
     gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
     delays = effects.delays()
+    scale = scale_terms(obs.motion, effects)
     states = []
     for r in range(3):
         geo = geometries[delays[r]]
@@ -254,7 +258,9 @@ def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects
         for effect, k in gains:
             slope = effect.chain(k[r], slope, product, u)
             product = product * effect.gain(k[r], u)
-        states.append(ChannelState(r, geo, R_row, x1g, y, u, slope, slope * np.einsum("ij,ij->i", R_row, geo.deriv)))
+        slope = scaled(slope, None if scale is None else scale[:, r])
+        states.append(ChannelState(r, geo, R_row, x1g, y, u, slope, slope * np.einsum("ij,ij->i", R_row, geo.deriv),
+                                   y * product))
     return states
 
 
@@ -268,7 +274,8 @@ def predict(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[C
 def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarray:
     y = np.column_stack([st.y for st in states])
     x1g = np.column_stack([st.x1g for st in states])
-    out = layout.offsets(beta)[obs.rate_idx] + offset_terms(obs.motion, effects) + nonlinearity(y, x1g, effects)
+    gained = scaled(nonlinearity(y, x1g, effects), scale_terms(obs.motion, effects))
+    out = layout.offsets(beta)[obs.rate_idx] + offset_terms(obs.motion, effects) + gained
     if structure.step_t_s is not None and STEP in active:
         after = (obs.motion.t_s >= structure.step_t_s)[:, None]
         out = out + after * np.array([beta[layout.index[n]] for n in STEP.names])[None, :]
@@ -303,7 +310,19 @@ class _Factors:
                 out = out * effect.gain_derivative(st.u)
             elif isinstance(other, GainEffect) and other.name in self.effects.states:
                 out = out * other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u)
-        return out
+        return self._scaled(out, st.r)
+
+    def _scaled(self, column: np.ndarray, r: int, leave: ScaleEffect | None = None) -> np.ndarray:
+        """``column`` times channel r's scale effects' factors (but ``leave``'s)."""
+        for other, state in self.effects.active(ScaleEffect):
+            if other is not leave:
+                column = column * other.scale(state, self.motion)[:, r]
+        return column
+
+    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray) -> np.ndarray:
+        """d output / d p of a scale effect's parameter p: the gained output
+        times d (its factor) / d p and the other scale effects' factors."""
+        return self._scaled(st.gained * derivative, st.r, leave=effect)
 
     def column(self, name: str, cand: Candidate, st: ChannelState) -> np.ndarray:
         """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""

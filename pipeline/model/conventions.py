@@ -109,7 +109,8 @@ class Motion:
     ``theta_cmd_deg`` is the commanded angle at the stamp. For rotation
     samples, ``theta0_deg``, ``t_start_s`` and ``rate_hz`` describe the
     commanded rotation theta0 + 360 rate (t - t_start) so that effects can
-    re-evaluate it at another instant or rate.
+    re-evaluate it at another instant or rate. ``temperature_c`` is the
+    DUT's temperature at each sample (degree C), None when not recorded.
     """
 
     t_s: np.ndarray
@@ -120,3 +121,4 @@ class Motion:
     t_start_s: np.ndarray
     rate_hz: np.ndarray
     t0_s: float = field(default=0.0)
+    temperature_c: np.ndarray | None = None

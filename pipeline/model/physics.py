@@ -8,7 +8,8 @@ sample and channel:
    sampling instant (sampling effects);
 2. gravity (Geist 2017 Eq. 5) changed by gravity effects, plus added
    force terms, gives the specific force a;
-3. y = r . a, then the gain effects act on y;
+3. y = r . a, then the gain effects act on y, then the scale effects
+   multiply it;
 4. the offset plus offset effects;
 5. white noise, rounding to the integer output, then output limits.
 
@@ -39,13 +40,13 @@ from rotcal.model.conventions import (
     rotation_matrix,
     unit_vectors_from_angles,
 )
-from rotcal.model.effects import AngleEffect, Effects, ForceEffect, GainEffect, OffsetEffect
+from rotcal.model.effects import AngleEffect, Effects, ForceEffect, GainEffect, OffsetEffect, ScaleEffect
 
 __all__ = [
     "ANGLE_PAIRS", "AXES", "CHANNELS", "COS_COMPONENT", "INTRINSIC", "JOINT_SIGN", "SIN_COMPONENT", "STANDARD_GRAVITY",
     "STANDARD_GRAVITY_UNCERTAINTY", "Dut", "Effects", "Motion", "axis_index", "channel_forces", "gravity_direction",
     "gravity_direction_derivative", "intrinsic_from_vectors", "noise_free_output", "nonlinearity", "observe",
-    "offset_terms", "rotation_matrix", "specific_force", "true_angle", "uniform_angle", "unit_vectors_from_angles",
+    "offset_terms", "rotation_matrix", "scale_terms", "scaled", "specific_force", "true_angle", "uniform_angle", "unit_vectors_from_angles",
 ]
 
 
@@ -102,6 +103,21 @@ def nonlinearity(y: np.ndarray, x1g: np.ndarray, effects: Effects) -> np.ndarray
     return out
 
 
+def scale_terms(motion: Motion, effects: Effects) -> np.ndarray | None:
+    """The scale effects' factors (n, 3), multiplied together; None when
+    there are none (the output is then left exactly as it was)."""
+    out = None
+    for effect, state in effects.active(ScaleEffect):
+        factor = effect.scale(state, motion)
+        out = factor if out is None else out * factor
+    return out
+
+
+def scaled(gained: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
+    """The gained output times the scale effects' factor (unchanged without one)."""
+    return gained if scale is None else gained * scale
+
+
 def offset_terms(motion: Motion, effects: Effects) -> np.ndarray:
     """The offset effects' terms (n, 3), added to the offsets."""
     out = np.zeros((motion.t_s.size, 3))
@@ -115,7 +131,8 @@ def noise_free_output(motion: Motion, dut: Dut, effects: Effects, g_local: float
     forces = channel_forces(motion, effects, g_local)
     y = np.column_stack([forces[r] @ dut.responsivity[r] for r in range(3)])
     x1g = np.linalg.norm(dut.responsivity, axis=1) * g_local
-    return dut.offsets[None, :] + offset_terms(motion, effects) + nonlinearity(y, x1g, effects)
+    gained = scaled(nonlinearity(y, x1g, effects), scale_terms(motion, effects))
+    return dut.offsets[None, :] + offset_terms(motion, effects) + gained
 
 
 def observe(clean: np.ndarray, dut: Dut, effects: Effects, rng: np.random.Generator) -> np.ndarray:

@@ -7,7 +7,7 @@ request is a ``SimulationSpec`` (``rotcal.simulate.spec``)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import polars as pl
@@ -28,6 +28,8 @@ from rotcal.model.physics import (
     observe,
     offset_terms,
     rotation_matrix,
+    scale_terms,
+    scaled,
     unit_vectors_from_angles,
 )
 from rotcal.simulate.spec import DutSpec, Plan, Simulation, SimulationSpec
@@ -120,18 +122,22 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         motion, labels, phases, hand = schedule_continuous(spec.plan, effects.rate_factor(), plan_rng)
     else:
         motion, labels = schedule(spec.plan, plan_rng)
+    motion = _with_temperature(motion, described)
     clean = noise_free_output(motion, dut, effects, spec.g_local)
     if phases is not None and hand.mask.any():
         # a hand move: the same output chain after r . a (docs/effects.md order) with the hand's specific force
         linear = hand.specific_force(spec.g_local) @ dut.responsivity.T
         x1g = np.linalg.norm(dut.responsivity, axis=1) * spec.g_local
-        clean[hand.mask] = dut.offsets + offset_terms(motion, effects)[hand.mask] + nonlinearity(linear, x1g, effects)
+        scale = scale_terms(motion, effects)
+        gained = scaled(nonlinearity(linear, x1g, effects), None if scale is None else scale[hand.mask])
+        clean[hand.mask] = dut.offsets + offset_terms(motion, effects)[hand.mask] + gained
     effects = _resolve(effects, described, clean)
     clean, foreign = _add_foreign(clean, motion, spec.foreign, effect_rng)
     observed = observe(clean, dut, effects, noise_rng)
+    logged = () if motion.temperature_c is None else (pl.Series("temperature_c", motion.temperature_c),)
     samples = labels.with_columns(
-        *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS))
-    ).select("t_ns", *CHANNELS, "axis", "rate_hz", "angle_deg", "plan_segment")
+        *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS)), *logged
+    ).select("t_ns", *CHANNELS, "axis", "rate_hz", "angle_deg", "plan_segment", *(s.name for s in logged))
     samples, logger = apply_defects(samples, spec.timebase, logger_rng)
     truth = {
         "rotcal_version": __version__,
@@ -150,6 +156,16 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
     if phases is not None:
         truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
     return Simulation(samples, truth, dut, effects)
+
+
+def _with_temperature(motion: Motion, described: list[dict]) -> Motion:
+    """The motion with the DUT temperature of each sample, when a requested
+    effect draws a temperature history (the last such request's)."""
+    for d in described:
+        history = effect_named(d["effect"]).temperature_history(d["parameters"], motion)
+        if history is not None:
+            motion = replace(motion, temperature_c=history)
+    return motion
 
 
 def _add_foreign(clean: np.ndarray, motion: Motion, requests: tuple, rng: np.random.Generator) -> tuple[np.ndarray, list]:

@@ -30,21 +30,29 @@ def _csv_columns(samples: pl.DataFrame, integer: bool, columns: tuple[str, ...])
     return out.select(columns)
 
 
+def _logged(samples: pl.DataFrame) -> tuple[str, ...]:
+    """The logged columns beside the outputs: the DUT temperature when simulated."""
+    return ("temperature_c",) if "temperature_c" in samples.columns else ()
+
+
 def write_csv_segments(sim: Simulation, directory: Path) -> list[Path]:
-    """The default layout: one CSV per segment with every label column."""
+    """The default layout: one CSV per segment with every label column (and
+    ``temperature_c`` when an effect drew a temperature history)."""
     files = segment_files(sim.samples)
+    columns = ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg", *_logged(sim.samples))
     written = []
     for seg, name in files.select("plan_segment", "file").iter_rows():
         part = sim.samples.filter(pl.col("plan_segment") == seg)
         path = directory / name
-        _csv_columns(part, sim.dut.integer_output, ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg")).write_csv(path)
+        _csv_columns(part, sim.dut.integer_output, columns).write_csv(path)
         written.append(path)
     return written
 
 
 def write_csv_single(sim: Simulation, path: Path, columns: tuple[str, ...] = ("t", "u", "v", "w")) -> Path:
-    """Everything in one CSV, with only ``columns`` (an unlabelled recording)."""
-    _csv_columns(sim.samples, sim.dut.integer_output, columns).write_csv(path)
+    """Everything in one CSV, with only ``columns`` (an unlabelled recording)
+    and ``temperature_c`` when an effect drew a temperature history."""
+    _csv_columns(sim.samples, sim.dut.integer_output, (*columns, *_logged(sim.samples))).write_csv(path)
     return path
 
 

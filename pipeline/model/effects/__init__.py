@@ -29,6 +29,7 @@ from rotcal.model.effects.base import (
     LimitEffect,
     OffsetEffect,
     SamplingEffect,
+    ScaleEffect,
     stage_rank,
 )
 
@@ -137,4 +138,4 @@ class Effects:
 
 
 __all__ = ["AngleEffect", "Effect", "Effects", "ForceEffect", "GainEffect", "LimitEffect", "OffsetEffect",
-           "SamplingEffect", "catalogue", "effect_named", "listed", "names", "register", "registered", "table"]
+           "SamplingEffect", "ScaleEffect", "catalogue", "effect_named", "listed", "names", "register", "registered", "table"]

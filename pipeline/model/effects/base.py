@@ -11,7 +11,9 @@ docs/effects.md, "The order of the forward model"):
 3. ``GravityEffect`` then ``ForceEffect``: the specific force a, gravity
    first, then added terms;
 4. ``GainEffect``: a per-channel factor f(u) on the offset-free output
-   y = r . a, u = y / x1g;
+   y = r . a, u = y / x1g; then ``ScaleEffect``: a per-sample, per-channel
+   factor that does not depend on y (a sensitivity that follows the
+   temperature);
 5. ``OffsetEffect``: a term added to the offsets;
 6. ``LimitEffect``: output limits, after noise and rounding.
 
@@ -19,6 +21,10 @@ Its *state* is what the forward model needs of it (an effect's own type:
 a per-channel array, a dict axis index -> values, a number, a pair of
 limits); the simulator builds it from the option ``NAME:key=value``, the
 diagnosis from its fitted internal parameters (``state_from``).
+
+An effect may act in two stages (a subclass of both, e.g. a ``ScaleEffect``
+and an ``OffsetEffect``): each stage reads its own part of the one state,
+and the effect's place in the catalogue is its first stage's.
 """
 
 from __future__ import annotations
@@ -92,6 +98,8 @@ class Channel(Protocol):
     def base(self) -> np.ndarray: ...      # the rotating samples' uniform angle (before ripple)
     @property
     def stretch(self) -> np.ndarray: ...   # d theta / d base
+    @property
+    def gained(self) -> np.ndarray: ...    # y times every gain effect's factor: what the scale effects multiply
 
 
 class ColumnContext(Protocol):
@@ -106,6 +114,8 @@ class ColumnContext(Protocol):
     def cached(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray: ...
 
     def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray: ...
+
+    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray) -> np.ndarray: ...
 
 
 def scope_rank(scope: str) -> int:
@@ -136,6 +146,10 @@ class Effect:
     # means every option but ``axis``.
     sizes_given: ClassVar[frozenset[str]] = frozenset()
     magnitudes: ClassVar[frozenset[str]] = frozenset()
+    # Per-sample observations besides t, u, v, w and the table's labels that
+    # the diagnosis needs to test it (e.g. ``temperature_c``): on a dataset
+    # without them it is neither tested nor listed.
+    needs: ClassVar[frozenset[str]] = frozenset()
 
     # --- the simulator -------------------------------------------------
     def complete(self, params: dict, rng: np.random.Generator) -> dict:
@@ -167,6 +181,11 @@ class Effect:
         """Fill in parameters that depend on the noise-free output (in place);
         True when the state must be rebuilt from them."""
         return False
+
+    def temperature_history(self, params: dict, motion: Motion) -> np.ndarray | None:
+        """The DUT temperature per sample (degree C) this effect's request
+        makes the simulator record as ``temperature_c`` (None: none)."""
+        return None
 
     def draw(self, size: float, sign: float, axis: str, channel: str, rng: np.random.Generator) -> str:
         """A request of ``size`` (drawn within ``sizes``) in the option form."""
@@ -253,6 +272,15 @@ class GainEffect(Effect):
         return ctx.gain_column(self, st)
 
 
+class ScaleEffect(Effect):
+    """Stage 4b: y -> y f(u) s per channel, s a factor per sample that
+    does not depend on y (e.g. a sensitivity following the temperature)."""
+
+    def scale(self, state: Any, motion: Motion) -> np.ndarray:
+        """The factor (n, 3)."""
+        raise NotImplementedError
+
+
 class OffsetEffect(Effect):
     """Stage 5: a term added to the offsets (n, 3)."""
 
@@ -270,8 +298,8 @@ class LimitEffect(Effect):
 
 
 # The forward model's stages in their order (a GravityEffect is also a ForceEffect: it comes first).
-STAGES: tuple[type[Effect], ...] = (AngleEffect, SamplingEffect, GravityEffect, ForceEffect, GainEffect, OffsetEffect,
-                                    LimitEffect)
+STAGES: tuple[type[Effect], ...] = (AngleEffect, SamplingEffect, GravityEffect, ForceEffect, GainEffect, ScaleEffect,
+                                    OffsetEffect, LimitEffect)
 
 
 def stage_rank(effect: Effect) -> int:
