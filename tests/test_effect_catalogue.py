@@ -21,9 +21,9 @@ from rotcal.run import run_dataset
 from rotcal.simulate import SimulationSpec, build_effects, schedule, simulate, spec_from_toml, write_dataset
 
 TABLE_ORDER = ("centripetal", "cubic_nonlinearity", "quadratic_nonlinearity", "clipping", "channel_delay",
-               "rate_error", "rate_ripple", "axis_tilt", "offset_drift")
+               "rate_error", "rate_ripple", "axis_tilt", "offset_drift", "thermal")
 FORWARD_ORDER = ("rate_error", "rate_ripple", "channel_delay", "axis_tilt", "centripetal", "cubic_nonlinearity",
-                 "quadratic_nonlinearity", "offset_drift", "clipping")
+                 "quadratic_nonlinearity", "thermal", "offset_drift", "clipping")
 
 
 class OffsetWobble(OffsetEffect):
@@ -38,7 +38,7 @@ class OffsetWobble(OffsetEffect):
     sizes = (2.0, 10.0)
     size_of = "abs(b) on one channel"
     where = "channel {s}, whole recording"
-    listed = 9
+    listed = 10
 
     def state(self, previous, params):
         return np.asarray([params.get(f"wobble_{c}", 0.0) for c in CHANNELS], float)
