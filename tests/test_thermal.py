@@ -137,3 +137,12 @@ def test_offset_drift_without_a_varying_temperature_is_not_thermal(tmp_path, tem
     findings, _, _ = _diagnose(tmp_path, sim, spec)
     assert set(findings.filter(pl.col("detected"))["effect"]) == {"offset_drift"}
     assert "thermal" not in findings["effect"].to_list()
+
+
+def test_offset_drift_during_a_logged_warm_up_is_not_thermal(tmp_path):
+    """A linear drift while the logged temperature warms up exponentially
+    (the DUT itself insensitive to it): the shapes differ, drift wins."""
+    spec = SimulationSpec().with_effects("offset_drift:drift_w=0.02", "thermal:tco_w=0,warmup_k=6,tau_frac=0.25")
+    findings, _, _ = _diagnose(tmp_path, simulate(spec, 4), spec)
+    assert set(findings.filter(pl.col("detected"))["effect"]) == {"offset_drift"}
+    assert not findings.filter(pl.col("effect") == "thermal")["detected"].item()

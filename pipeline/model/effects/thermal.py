@@ -63,7 +63,7 @@ class Thermal(ScaleEffect, OffsetEffect):
     sizes_given = frozenset(COEFFICIENTS)
     magnitudes = frozenset({"tau_frac", "step_frac"})
     sizes = (0.3, 2.0)
-    size_of = "abs(tco) on one channel, bit per K, with a warm-up of 3 to 8 K"
+    size_of = "abs(tco) on one channel, bit per K (with abs(tcs) 20 to 100 ppm per K, a warm-up of 3 to 8 K)"
     where = "channel {s}, against temperature_c"
     needs = frozenset({"temperature_c"})
     listed = 9
