@@ -81,7 +81,7 @@ def main() -> None:
         exact = sum(set(r[2]) == truth for r in rows)
         other = sorted({e for r in rows for e in r[2]} - truth)
         zs = np.array([r[3] for r in rows if r[3] is not None])
-        within = f"{int((np.abs(zs) <= 3).sum())}/{len(rows)}" if truth else "-"
+        within = f"{int((np.abs(zs) <= 3).sum())}/{len(rows)}" if "thermal" in truth else "-"
         largest = f"{np.abs(zs).max():.2f}" if zs.size else "-"
         print(f"| {label} | {len(rows)} | {exact}/{len(rows)} | {', '.join(other) or 'none'} | {within} | {largest} |")
 
