@@ -44,6 +44,7 @@ class _State:
     where: McapFile
     topics: set[str]
     counts: dict[int, int]
+    chunk_bytes: int
     schemas: dict[int, Schema] = field(default_factory=dict)
     found: dict[str, DecodedTopic] = field(default_factory=dict)
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
@@ -138,7 +139,7 @@ def _chunk(state: _State, raw: np.ndarray, offset: int, indexes: list[bytes]) ->
             continue  # the per-message path skips messages of channels it has not kept (yet)
         if offsets[0] < defined_at.get(channel_id, -1):
             raise Unsupported("messages before their channel record")
-        decode_messages(topic, raw, offsets, channel_id)
+        decode_messages(topic, raw, offsets, channel_id, state.chunk_bytes)
 
 
 def _message_index(body: bytes) -> tuple[int, int]:
@@ -151,15 +152,19 @@ def _message_index(body: bytes) -> tuple[int, int]:
     return channel_id, size // 16
 
 
-def _message_counts(fh, where: McapFile) -> dict[int, int]:
-    """Messages per channel id, from the message index records alone."""
+def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
+    """Messages per channel id, from the message index records alone, and
+    the bytes the chunks declare they expand to."""
     counts: dict[int, int] = {}
+    chunk_bytes = 0
     for opcode, _, length in top_records(fh, where):
         if opcode == Opcode.MESSAGE_INDEX:
             channel_id, entries = _message_index(fh.read(length))
             counts[channel_id] = counts.get(channel_id, 0) + entries
+        elif opcode == Opcode.CHUNK and length >= 24:
+            chunk_bytes += struct.unpack("<QQQ", fh.read(24))[2]
     fh.seek(0)
-    return counts
+    return counts, chunk_bytes
 
 
 def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) -> dict[str, DecodedTopic]:
@@ -178,7 +183,7 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
         threads = cores(workers)
         with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
             mapper = map if pool is None else pool.map
-            state = _State(where, topics, _message_counts(fh, where))
+            state = _State(where, topics, *_message_counts(fh, where))
             for opcode, offset, length in top_records(fh, where):
                 if opcode == Opcode.MESSAGE_INDEX and batch.chunks:
                     batch.chunks[-1][2].append(fh.read(length))

@@ -89,7 +89,8 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     try:
         return _capture(mcap_fast.read_topics(path, topics, limits, workers), path, meta, spec, fast=True)
     except Unsupported:
-        return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
+        pass  # read again below, not in this handler: the exception's traceback holds the fast path's chunks
+    return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
 
 
 def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
