@@ -23,7 +23,7 @@ import pytest
 import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.reader import StreamReader
-from mcap.records import Chunk, Header, MessageIndex
+from mcap.records import Chunk, DataEnd, Header
 from mcap.writer import CompressionType, Writer
 from polars.testing import assert_frame_equal
 
@@ -61,13 +61,17 @@ def _record(record) -> bytes:
     return builder.end()
 
 
-def rewrite(src: Path, dst: Path, patch=None, keep_crc: bool = False, after_first_chunk: bytes = b"") -> Path:
+def rewrite(src: Path, dst: Path, patch=None, keep_crc: bool = False, insert: tuple = (None, 0, b"")) -> Path:
     """``src`` record by record, each chunk's records through ``patch(k,
-    raw)`` and recompressed; the summary's offsets go stale (neither reader
-    uses them)."""
-    out, k = [MAGIC], 0
+    raw)`` and recompressed, and ``insert`` = (record type, n, bytes): the
+    bytes before the n-th record of that type (counted from 0). The summary's
+    offsets go stale (neither reader uses them)."""
+    out, k, seen = [MAGIC], 0, 0
     with src.open("rb") as fh:
         for record in StreamReader(fh, emit_chunks=True).records:
+            if insert[0] is not None and isinstance(record, insert[0]):
+                out.append(insert[2] if seen == insert[1] else b"")
+                seen += 1
             if isinstance(record, Chunk):
                 raw = bytearray(zstandard.ZstdDecompressor().decompress(record.data, record.uncompressed_size))
                 if patch is not None:
@@ -78,9 +82,6 @@ def rewrite(src: Path, dst: Path, patch=None, keep_crc: bool = False, after_firs
                                message_end_time=record.message_end_time)
                 k += 1
             out.append(_record(record))
-            if isinstance(record, MessageIndex) and k == 1 and after_first_chunk:
-                out.append(after_first_chunk)
-                after_first_chunk = b""
     dst.write_bytes(b"".join(out) + MAGIC)
     return dst
 
@@ -206,11 +207,12 @@ def test_zeroed_chunks_are_refused_at_once(tmp_path):
     assert time.perf_counter() - start < 2
 
 
-def test_message_indexes_that_declare_more_than_they_hold_are_not_believed(capture, tmp_path):
+@pytest.mark.parametrize("before", [(Chunk, 1), (DataEnd, 0)], ids=["after the first chunk", "after the last"])
+def test_message_indexes_that_declare_more_than_they_hold_are_not_believed(capture, tmp_path, before):
     """64 of them asked for 128 GiB of columns; the per-message path, which
     reads no index, gives the samples."""
     bogus = (b"\x07" + struct.pack("<QHI", 6, IMU, 0xFFFFFFF0)) * 64
-    path = rewrite(capture, tmp_path / "indexes.mcap", after_first_chunk=bogus)
+    path = rewrite(capture, tmp_path / "indexes.mcap", insert=(*before, bogus))
     assert_frame_equal(read(path), read(capture))
 
 
