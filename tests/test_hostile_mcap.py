@@ -162,14 +162,16 @@ def test_a_non_imu_schema_on_the_dut_topic_is_refused_before_decoding(tmp_path):
 
 def _peak_kib(path: Path, limit: int, workers: int) -> tuple[int, str]:
     """Peak resident memory of reading ``path`` in a fresh interpreter, over
-    its peak after the imports; and the error it gave."""
+    its peak after the imports (VmHWM: ru_maxrss would start from this
+    process's peak); and the error it gave."""
     script = (
-        "import resource, sys\nfrom rotcal.config import Limits\nfrom rotcal.errors import InputError\n"
+        "import sys\nfrom pathlib import Path\nfrom rotcal.config import Limits\nfrom rotcal.errors import InputError\n"
         "from rotcal.ingest.meta import load_meta\nfrom rotcal.ingest.mcap_source import read_mcap_capture\n"
-        "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\ntry:\n"
-        f"    read_mcap_capture(__import__('pathlib').Path(sys.argv[1]), load_meta(None), None, Limits(max_mcap_record_bytes={limit}), {workers})\n"
+        "def peak():\n    return int(next(x for x in open('/proc/self/status') if x.startswith('VmHWM')).split()[1])\n"
+        "base = peak()\ntry:\n"
+        f"    read_mcap_capture(Path(sys.argv[1]), load_meta(None), None, Limits(max_mcap_record_bytes={limit}), {workers})\n"
         "except InputError as exc:\n    print(exc)\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base)\n"
+        "print(peak() - base)\n"
     )
     run = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120, check=True)
     *message, growth = run.stdout.strip().splitlines()
