@@ -7,10 +7,12 @@ tile the chunk exactly; the few other records in a chunk (schemas, channels)
 are read one by one in the gaps. The messages of the kept channels become
 columns in ``mcap_columns``.
 
-Anything else (no message index, messages outside chunks, other layouts,
-damaged files) raises ``Unsupported``: the caller then reads the file with
-the per-message path, which is also the one that words every error, so both
-paths give the same samples and the same messages.
+Records are read by ``mcap_records``, as the per-message path reads them
+(declared sizes checked, CRCs checked). Anything else (no message index or
+one that declares more than it holds, messages outside chunks, other
+layouts, damaged files) raises ``Unsupported``: the caller then reads the
+file with the per-message path, which is also the one that words every
+error, so both paths give the same samples and the same messages.
 """
 
 from __future__ import annotations
@@ -87,7 +89,8 @@ class _Batch:
 
 
 def _footprint(body: bytes) -> int:
-    """A chunk record's bytes and the bytes it declares it expands to."""
+    """A chunk record's bytes and the bytes it declares it expands to (its
+    ``uncompressed_size``, checked against the limit when it is decompressed)."""
     return len(body) + (struct.unpack_from("<Q", body, 16)[0] if len(body) >= 24 else 0)
 
 

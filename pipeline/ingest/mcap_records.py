@@ -29,18 +29,19 @@ from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
 
 MAGIC = b"\x89MCAP0\r\n"
-# Schema and channel records (and other non-message records in chunks) one
-# file may hold: each costs a Python call, and a chunk of a few kilobytes can
-# expand to millions of tiny records. A capture has one per topic (two, if a
-# writer repeats them in every chunk, per topic and chunk).
+# Schema and channel records (and other non-message records) the chunks of
+# one file may hold: each costs a Python call, and a chunk of a few kilobytes
+# can expand to millions of tiny records. A capture has a schema and a
+# channel per topic (per topic and chunk, if a writer repeats them).
 MAX_DEFINITIONS = 100_000
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message start and end time, uncompressed size and CRC
+MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time: then the data
 
 
 @dataclass
 class McapFile:
-    """The file being read: its path and limits for messages, and the count
-    of definition records read so far."""
+    """The file being read: its path (for messages), its limits and the
+    count of non-message records read from its chunks so far."""
 
     path: Path
     limits: Limits
@@ -188,6 +189,3 @@ def parse_channel(body: bytes | memoryview, where: McapFile) -> Channel:
         key = pairs.text()
         metadata[key] = pairs.text()
     return Channel(id=channel_id, schema_id=schema_id, topic=topic, message_encoding=encoding, metadata=metadata)
-
-
-MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time

@@ -69,7 +69,10 @@ def _number(value, name: str, k: int, topic: str, path: Path) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise InputError(f"topic {topic!r}: {name!r} of message {k + 1} is not a number ({value!r:.40})", path=path)
-    number = float(value) if isinstance(value, float) or abs(value) < 2**1023 else np.inf
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float
+        number = np.inf
     if not np.isfinite(number):
         raise InputError(f"topic {topic!r}: {name!r} of message {k + 1} is not a finite number ({value!r:.40})", path=path)
     return number
