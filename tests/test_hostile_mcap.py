@@ -29,7 +29,7 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast, mcap_source, ros2_cdr
+from rotcal.ingest import mcap_fast, mcap_source, ros2_cdr, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap
 
@@ -158,6 +158,22 @@ def test_a_non_imu_schema_on_the_dut_topic_is_refused_before_decoding(tmp_path):
         start = time.perf_counter()
         refused(path, f"topic '/imu' has schema '{name}'; rotcal reads sensor_msgs/msg/Imu")
         assert time.perf_counter() - start < 2
+
+
+def test_a_table_topic_of_another_schema_is_refused(tmp_path):
+    path = tmp_path / "table.mcap"
+    imu = ros2_cdr.imu_template("dut")
+    with path.open("wb") as fh:
+        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer.start("ros2", "hostile")
+        dut = writer.register_channel("/imu", "cdr", writer.register_schema("sensor_msgs/msg/Imu", "ros2msg", ros2_msgdefs.IMU.encode()))
+        table = writer.register_channel("/table/joint_states", "cdr",
+                                        writer.register_schema("std_msgs/msg/String", "ros2msg", b"string data"))
+        writer.add_message(table, 1, b"\x00\x01\x00\x00" + struct.pack("<I", 2) + b"x\x00", 1)
+        for k in range(20):
+            writer.add_message(dut, k + 1, imu.tobytes(), k + 1)
+        writer.finish()
+    refused(path, "topic '/table/joint_states' has schema 'std_msgs/msg/String'; rotcal reads sensor_msgs/msg/JointState")
 
 
 def _peak_kib(path: Path, limit: int, workers: int) -> tuple[int, str]:
