@@ -140,6 +140,16 @@ def test_a_zero_crc_is_not_checked(capture, tmp_path):
     assert changed.height == 3960 and not changed.equals(read(capture))
 
 
+def test_a_chunk_whose_records_run_past_it_is_refused(capture, tmp_path):
+    data = bytearray(capture.read_bytes())
+    name_len = struct.unpack_from("<I", data, 70 + 9 + 28)[0]
+    at = 70 + 9 + 32 + name_len  # the first chunk's records length
+    data[at : at + 8] = struct.pack("<Q", struct.unpack_from("<Q", data, at)[0] + 1)
+    path = tmp_path / "records.mcap"
+    path.write_bytes(bytes(data))
+    refused(path, "corrupt MCAP: the chunk at byte 70 declares", "bytes of records where it holds")
+
+
 def test_a_non_imu_schema_on_the_dut_topic_is_refused_before_decoding(tmp_path):
     """A 1.3 kB file whose one 16 MB String message was decoded (2 GB, 20 s),
     then a traceback."""

@@ -102,11 +102,11 @@ def chunk_data(body: bytes, offset: int, where: McapFile) -> bytes:
         raise where.corrupt(f"the chunk at byte {offset} is shorter than its header")
     compression = body[_CHUNK_HEAD.size + 4 : start - 8].decode(errors="replace")
     (data_len,) = struct.unpack_from("<Q", body, start - 8)
-    if data_len != len(body) - start:
+    if data_len > len(body) - start:  # fewer is allowed: records may gain fields at their end
         raise where.corrupt(f"the chunk at byte {offset} declares {data_len} bytes of records where it holds "
                             f"{len(body) - start}")
     try:
-        data = decompress(compression, memoryview(body)[start:], size)
+        data = decompress(compression, memoryview(body)[start : start + data_len], size)
     except (zstandard.ZstdError, RuntimeError) as exc:
         raise where.corrupt(f"the chunk at byte {offset} does not decompress ({exc})") from None
     except ValueError as exc:
