@@ -197,10 +197,13 @@ def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
     return frame
 
 
-def decode_messages(topic: DecodedTopic, raw: np.ndarray, offsets: np.ndarray, channel_id: int) -> None:
+def decode_messages(topic: DecodedTopic, raw: np.ndarray, offsets: np.ndarray, channel_id: int, chunk_bytes: int) -> None:
     """Add the messages of one channel at ``offsets`` in a decompressed
-    chunk ``raw`` (each a complete record, by ``mcap_fast``) to ``topic``."""
+    chunk ``raw`` (each a complete record, by ``mcap_fast``) to ``topic``;
+    the chunks of the file expand to ``chunk_bytes``."""
     sizes = gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) + 9
+    # message indexes can claim any number of messages; the chunks hold no more than this many of this size
+    topic.capacity = min(topic.capacity, chunk_bytes // int(sizes[0]))
     if topic.kind == "json":
         head = gather(raw, offsets, MESSAGE_HEADER)
     elif np.all(sizes == sizes[0]):  # fixed layout: each record copied once, fields are its columns

@@ -1,26 +1,26 @@
-"""MCAP read message by message (the ``mcap`` library's reader): the path
-for files ``mcap_fast`` declines, and the one that words every error.
-A chunk is never decompressed beyond the configured limit."""
+"""MCAP read message by message: the path for files ``mcap_fast`` declines,
+and the one that words every error. Records are read by ``mcap_records``
+(every declared size checked, chunks decompressed within the limit and
+checked against their CRC); CDR messages are decoded by ``mcap_ros2`` with
+rotcal's own definitions of the two message types it reads, as the fast path
+decodes them by their fixed layouts."""
 
 from __future__ import annotations
 
 import json
-import struct
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import zstandard
-from mcap.exceptions import McapError
-from mcap.reader import StreamReader
-from mcap.records import Channel, Chunk, Message, Schema
-from mcap.stream_reader import breakup_chunk
+from mcap.opcode import Opcode
+from mcap.records import Channel, Schema
 from mcap_ros2.decoder import DecoderFactory
 
 from rotcal.config import Limits
-from rotcal.errors import InputError, LimitError
-from rotcal.ingest.mcap_columns import Unsupported
-from rotcal.ingest.mcap_fast import decompress_chunk
-from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.errors import InputError
+from rotcal.ingest.mcap_records import MESSAGE_FIELDS, McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
+from rotcal.ingest.ros2_msgdefs import IMU, IMU_SCHEMA, JOINT_SCHEMA, JOINT_STATE
+
+_DEFINITIONS = {IMU_SCHEMA: IMU, JOINT_SCHEMA: JOINT_STATE}
 
 
 @dataclass
@@ -37,61 +37,66 @@ class MessageTopic:
         return len(self.rows)
 
 
-def _chunk_records(chunk: Chunk, limit: int, path: Path) -> list:
-    """A chunk's records, never decompressing more than ``limit`` bytes: a
-    chunk of a few kilobytes can expand a million-fold, and the mcap library
-    would allocate whatever its header claims."""
-    if chunk.uncompressed_size > limit:
-        raise LimitError(f"an MCAP chunk expands to {chunk.uncompressed_size} bytes, above the limit of {limit} bytes", path=path)
-    try:
-        data = decompress_chunk(chunk.compression, chunk.data, chunk.uncompressed_size)
-    except Unsupported as exc:
-        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
-    return breakup_chunk(replace(chunk, compression="", data=data))
-
-
 def read_records(path: Path, topics: set[str], limits: Limits) -> dict[str, MessageTopic]:
     """Every channel by topic, with the raw messages of ``topics`` and of any
     Imu or JointState channel; refuses damaged files with the reason."""
-    found: dict[str, MessageTopic] = {}
-    schemas: dict[int, Schema] = {}
-    keep: dict[int, MessageTopic] = {}
-    try:
-        with path.open("rb") as fh:
-            limit = limits.max_mcap_record_bytes
-            for record in (r for outer in StreamReader(fh, record_size_limit=limit, emit_chunks=True).records
-                           for r in (_chunk_records(outer, limit, path) if isinstance(outer, Chunk) else [outer])):
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel) and record.topic not in found:
-                    topic = MessageTopic(schemas.get(record.schema_id), record, [], [])
-                    found[record.topic] = topic
-                    kind = topic.schema.name if topic.schema is not None else ""
-                    if record.topic in topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
-                        keep[record.id] = topic
-                elif isinstance(record, Message) and record.channel_id in keep:
-                    topic = keep[record.channel_id]
-                    topic.stamps.append(record.log_time)
-                    topic.rows.append(record.data)
-    except McapError as exc:
-        if type(exc).__name__ == "RecordLengthLimitExceeded":
-            raise LimitError(
-                f"an MCAP record is larger than the limit of {limits.max_mcap_record_bytes} bytes", path=path
-            ) from None
-        if type(exc).__name__ == "EndOfFile":
-            raise InputError("truncated MCAP: the file ends inside a record", path=path) from None
-        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
-    except (struct.error, ValueError, EOFError, OSError, zstandard.ZstdError, RuntimeError) as exc:
-        raise InputError(f"corrupt MCAP: {exc}", path=path) from None
-    return found
+    where = McapFile(path, limits)
+    reader = _Reader(topics, where)
+    with path.open("rb") as fh:
+        for opcode, offset, length in top_records(fh, where):
+            if opcode == Opcode.CHUNK:
+                data = chunk_data(fh.read(length), offset, where)
+                for inner, _, body in chunk_records(data, offset, where):
+                    reader.record(inner, body)
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                reader.record(opcode, fh.read(length))
+    return reader.found
 
 
-def decoder(topic: MessageTopic, path: Path):
-    encoding = topic.channel.message_encoding
-    if encoding == "json":
-        return lambda data: json.loads(data)
-    if encoding == "cdr" and topic.schema is not None:
-        return DecoderFactory().decoder_for(encoding, topic.schema)
-    raise InputError(
-        f"topic {topic.channel.topic!r} has message encoding {encoding!r}; rotcal reads cdr and json", path=path
-    )
+@dataclass
+class _Reader:
+    topics: set[str]
+    where: McapFile
+    found: dict[str, MessageTopic] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    keep: dict[int, MessageTopic] = field(default_factory=dict)
+
+    def record(self, opcode: int, body: bytes | memoryview) -> None:
+        if opcode == Opcode.MESSAGE:
+            if len(body) < MESSAGE_FIELDS.size:
+                raise self.where.corrupt("a message record is shorter than its fields")
+            channel_id, _, log_time, _ = MESSAGE_FIELDS.unpack_from(body)
+            if (topic := self.keep.get(channel_id)) is not None:
+                topic.stamps.append(log_time)
+                topic.rows.append(bytes(body[MESSAGE_FIELDS.size :]))
+        elif opcode == Opcode.SCHEMA:
+            schema = parse_schema(body, self.where)
+            self.schemas[schema.id] = schema
+        elif opcode == Opcode.CHANNEL:
+            channel = parse_channel(body, self.where)
+            if channel.topic in self.found:
+                return
+            topic = MessageTopic(self.schemas.get(channel.schema_id), channel, [], [])
+            self.found[channel.topic] = topic
+            kind = topic.schema.name if topic.schema is not None else ""
+            if channel.topic in self.topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
+                self.keep[channel.id] = topic
+
+
+def require(schema: Schema | None, channel: Channel, expected: str, path: Path) -> None:
+    """A DUT or table topic rotcal reads: JSON, or CDR of the ``expected``
+    schema; any other is refused before a message is decoded."""
+    encoding = channel.message_encoding
+    if encoding not in ("cdr", "json"):
+        raise InputError(f"topic {channel.topic!r} has message encoding {encoding!r}; rotcal reads cdr and json", path=path)
+    name = schema.name if schema is not None else None
+    if encoding == "cdr" and name != expected:
+        raise InputError(f"topic {channel.topic!r} has schema {name!r}; rotcal reads {expected} (or JSON) there", path=path)
+
+
+def decoder(topic: MessageTopic):
+    """A message decoder for a topic ``require`` accepted."""
+    if topic.channel.message_encoding == "json":
+        return json.loads
+    name = topic.schema.name if topic.schema is not None else ""
+    return DecoderFactory().decoder_for("cdr", Schema(id=0, name=name, encoding="ros2msg", data=_DEFINITIONS[name].encode()))

@@ -19,8 +19,8 @@ from rotcal.errors import InputError
 from rotcal.ingest import mcap_fast
 from rotcal.ingest.labels import label_columns, time_ordered
 from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
-from rotcal.ingest.mcap_messages import MessageTopic, decoder, read_records
-from rotcal.ingest.mcap_table import fast_table_track, table_labels, table_track
+from rotcal.ingest.mcap_messages import MessageTopic, decoder, read_records, require
+from rotcal.ingest.mcap_table import fast_table_track, finite_numbers, json_columns, json_time_ns, table_labels, table_track
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 
@@ -40,15 +40,14 @@ def _choose_topic(found: dict[str, MessageTopic], wanted: str, given: bool, sche
 
 
 def _imu_frame(topic: MessageTopic, path: Path) -> pl.DataFrame:
-    decode = decoder(topic, path)
+    decode = decoder(topic)
     try:
         msgs = [decode(data) for data in topic.rows]
     except Exception as exc:  # a decoder failure is a corrupt message, whatever the library raises
         raise InputError(f"topic {topic.channel.topic!r}: message cannot be decoded ({exc})", path=path) from None
     log_ns = np.asarray(topic.stamps, np.int64)
     if topic.channel.message_encoding == "json":
-        cols = {f: [m.get(f) for m in msgs] for f in JSON_FIELDS if any(f in m for m in msgs)}
-        return _json_frame(pl.DataFrame(cols, strict=False), log_ns, topic.channel.topic, path)
+        return _json_frame(json_columns(msgs, JSON_FIELDS, topic.channel.topic, path), log_ns, topic.channel.topic, path)
     stamp = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64)
     return pl.DataFrame(
         {
@@ -65,15 +64,14 @@ def _json_frame(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path)
     missing = [f for f in ("u", "v", "w") if f not in frame.columns]
     if missing:
         raise InputError(f"topic {topic!r}: JSON messages lack {', '.join(missing)}", path=path)
-    t_s = pl.col("t").cast(pl.Float64) if "t" in frame.columns else pl.lit(None, pl.Float64)
-    stamp = (t_s * 1e9).round().cast(pl.Int64).fill_null(pl.Series(log_ns))
-    return frame.with_columns(t_ns=stamp).drop("t", strict=False)
+    t_s = frame["t"].cast(pl.Float64).fill_null(np.nan).to_numpy() if "t" in frame.columns else np.full(frame.height, np.nan)
+    return frame.with_columns(t_ns=pl.Series(json_time_ns(t_s, log_ns, topic, path))).drop("t", strict=False)
 
 
 def _fast_imu_frame(topic: DecodedTopic, path: Path) -> pl.DataFrame:
     if topic.kind == "json":
         fields = [f for f in JSON_FIELDS if f in topic.frame.columns]
-        return _json_frame(topic.frame.select(fields), topic.columns["log_ns"], topic.channel.topic, path)
+        return _json_frame(finite_numbers(topic.frame.select(fields)), topic.columns["log_ns"], topic.channel.topic, path)
     if topic.kind != "imu":
         raise Unsupported(f"DUT topic of schema {topic.schema.name if topic.schema else None}")
     c = topic.take()
@@ -91,7 +89,8 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     try:
         return _capture(mcap_fast.read_topics(path, topics, limits, workers), path, meta, spec, fast=True)
     except Unsupported:
-        return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
+        pass  # read again below, not in this handler: the exception's traceback holds the fast path's chunks
+    return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
 
 
 def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
@@ -106,6 +105,7 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
         for key, meta_topic, kind in ((imu_key, meta.imu_topic, "Imu"), (table_key, meta.table_topic, "JointState"))
         if key is not None and key != meta_topic
     )
+    require(found[imu_key].schema, found[imu_key].channel, IMU_SCHEMA, path)
     frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
     if frame.height == 0:
         raise InputError(f"topic {found[imu_key].channel.topic!r} has no messages", path=path)
@@ -113,12 +113,18 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
     source = "file"
     if table_key is not None and found[table_key].count and "axis" not in frame.columns:
         # the track is a temporary, gone before label_columns builds the final columns
+        require(found[table_key].schema, found[table_key].channel, JOINT_SCHEMA, path)
         make_track = fast_table_track if fast else table_track
         frame = frame.hstack(table_labels(frame["t_ns"].to_numpy(), make_track(found[table_key], path)).get_columns())
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)
-        bad = (values.is_null() | values.is_nan()).arg_true()
+        bad = (values.is_null() | ~values.is_finite()).arg_true()
         if len(bad):
-            raise InputError(f"{name!r} of message {int(bad[0]) + 1} is not a number", path=path)
-    return label_columns(frame, spec, path, label_source=source), notes
+            raise InputError(f"{name!r} of message {int(bad[0]) + 1} is not a finite number ({values[int(bad[0])]})", path=path)
+    samples = label_columns(frame, spec, path, label_source=source)
+    for name, values in samples.select(pl.selectors.float()).to_dict().items():
+        bad = (~values.is_finite()).arg_true()  # nulls (no label) are not selected
+        if len(bad):
+            raise InputError(f"{name!r} of sample {int(bad[0]) + 1} is not a finite number ({values[int(bad[0])]})", path=path)
+    return samples, notes

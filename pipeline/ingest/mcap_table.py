@@ -58,43 +58,122 @@ def _joint_axis(names: list[str], position: list[float], velocity: list[float], 
     return 0
 
 
+NUMBER_FIELDS = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
+TEXT_FIELDS = ("axis",)
+_T_MAX_S = 9.2e9  # int64 nanoseconds end at 9.22e9 s (the year 2262)
+
+
+def _number(value, name: str, k: int, topic: str, path: Path) -> float | None:
+    """One JSON number field (None where absent); NaN, infinity, numbers
+    beyond float and anything else refused."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InputError(f"topic {topic!r}: {name!r} of message {k + 1} is not a number ({value!r:.40})", path=path)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float
+        number = np.inf
+    if not np.isfinite(number):
+        raise InputError(f"topic {topic!r}: {name!r} of message {k + 1} is not a finite number ({value!r:.40})", path=path)
+    return number
+
+
+def json_columns(msgs: list, fields: tuple[str, ...], topic: str, path: Path) -> pl.DataFrame:
+    """The ``fields`` present in JSON messages (each an object) as columns:
+    numbers as Float64 and text as String, null where absent."""
+    for k, m in enumerate(msgs):
+        if not isinstance(m, dict):
+            raise InputError(f"topic {topic!r}: message {k + 1} is not a JSON object", path=path)
+    columns = {}
+    for name in (f for f in fields if any(f in m for m in msgs)):
+        values = [m.get(name) for m in msgs]
+        if name in NUMBER_FIELDS:
+            columns[name] = pl.Series(name, [_number(v, name, k, topic, path) for k, v in enumerate(values)], pl.Float64)
+            continue
+        wrong = [k for k, v in enumerate(values) if v is not None and not isinstance(v, str)]
+        if wrong:
+            raise InputError(f"topic {topic!r}: {name!r} of message {wrong[0] + 1} is not text", path=path)
+        columns[name] = pl.Series(name, values, pl.String)
+    return pl.DataFrame(columns, height=len(msgs))
+
+
+def finite_numbers(frame: pl.DataFrame) -> pl.DataFrame:
+    """``frame`` (JSON messages parsed by polars) if every field is of its
+    kind and every number finite; else ``Unsupported``: the per-message path
+    words what is wrong."""
+    for name, dtype in frame.schema.items():
+        if name in NUMBER_FIELDS and not (dtype.is_numeric() or dtype == pl.Null):
+            raise Unsupported(f"JSON field {name!r} holds other than numbers")
+        if name in TEXT_FIELDS and dtype not in (pl.String, pl.Null):
+            raise Unsupported(f"JSON field {name!r} holds other than text")
+        if dtype.is_float() and not frame[name].is_finite().all():
+            raise Unsupported(f"JSON field {name!r} holds a number that is not finite")
+    return frame
+
+
+def json_time_ns(t_s: np.ndarray, log_ns: np.ndarray, topic: str, path: Path) -> np.ndarray:
+    """JSON ``t`` (s; NaN where absent: the log time) as int64 nanoseconds."""
+    present = ~np.isnan(t_s)
+    bad = present & ~(np.abs(t_s) < _T_MAX_S)
+    if bad.any():
+        k = int(bad.argmax())
+        raise InputError(f"topic {topic!r}: 't' of message {k + 1} is not a time in seconds ({t_s[k]:g})", path=path)
+    return np.where(present, np.round(np.where(present, t_s, 0.0) * 1e9).astype(np.int64), log_ns)
+
+
+def _json_track(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path) -> TableTrack:
+    """The table's JSON messages (checked fields, either path) as a track."""
+    def column(name: str) -> np.ndarray:
+        values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
+        return values.fill_null(np.nan).to_numpy()
+    axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
+    code = _axis_code(axis, AXES)
+    if np.any(code < 0):
+        label = axis[int(np.argmax(code < 0))]
+        raise InputError(f"table topic {topic!r}: unknown axis label {label!r} (expected x, y or z)", path=path)
+    return _track(json_time_ns(column("t"), log_ns, topic, path), code, column("rate_hz"), column("angle_deg"), topic, path)
+
+
 def table_track(topic: MessageTopic, path: Path) -> TableTrack:
-    decode = decoder(topic, path)
+    decode = decoder(topic)
     log_ns = np.asarray(topic.stamps, np.int64)
+    name = topic.channel.topic
+    try:
+        msgs = [decode(data) for data in topic.rows]
+    except Exception as exc:  # a decoder failure is a corrupt message, whatever the library raises
+        raise InputError(f"table topic {name!r}: message cannot be decoded ({exc})", path=path) from None
+    if topic.channel.message_encoding == "json":
+        return _json_track(json_columns(msgs, ("t", "axis", "rate_hz", "angle_deg"), name, path), log_ns, name, path)
     t_ns, axis, rate, angle = [], [], [], []
     previous = None
-    for data, log_t in zip(topic.rows, log_ns):
-        try:
-            m = decode(data)
-        except Exception as exc:  # a decoder failure is a corrupt message, whatever the library raises
-            raise InputError(f"table topic {topic.channel.topic!r}: message cannot be decoded ({exc})", path=path) from None
-        if topic.channel.message_encoding == "json":
-            t_ns.append(int(round(m["t"] * 1e9)) if "t" in m else int(log_t))
-            axis.append(m.get("axis"))
-            rate.append(float(m.get("rate_hz", np.nan)))
-            angle.append(float(m.get("angle_deg", np.nan)))
-            continue
+    for m, log_t in zip(msgs, log_ns):
         stamp = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
         names, pos, vel = list(m.name), list(m.position), list(m.velocity)
+        if not names or len(pos) != len(names):
+            raise InputError(f"table topic {name!r}: a JointState message without one position per joint", path=path)
         i = _joint_axis(names, pos, vel, previous)
         previous = (names, pos, i)
-        name = names[i]
-        if name not in AXES:
-            raise InputError(f"table topic joint {name!r} is not x, y or z", path=path)
-        sign = JOINT_SIGN[name]
+        if names[i] not in AXES:
+            raise InputError(f"table topic joint {names[i]!r} is not x, y or z", path=path)
+        sign = JOINT_SIGN[names[i]]
         t_ns.append(stamp or int(log_t))
-        axis.append(name)
+        axis.append(names[i])
         rate.append(sign * (vel[i] if i < len(vel) else 0.0) / (2 * np.pi))
         angle.append(sign * np.degrees(pos[i]))
-    bad = [a for a in axis if a not in AXES]
-    if bad:
-        raise InputError(f"table topic: unknown axis label {bad[0]!r} (expected x, y or z)", path=path)
     codes = np.array([AXES.index(a) for a in axis], np.int8)
-    return _track(np.asarray(t_ns, np.int64), codes, np.asarray(rate, float), np.asarray(angle, float))
+    return _track(np.asarray(t_ns, np.int64), codes, np.asarray(rate, float), np.asarray(angle, float), name, path, cdr=True)
 
 
-def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray) -> TableTrack:
-    """Table messages in time order (stable), rates to the nearest nanohertz."""
+def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: np.ndarray, topic: str, path: Path,
+           cdr: bool = False) -> TableTrack:
+    """Table messages in time order (stable), rates to the nearest nanohertz;
+    rates and angles must be finite (in JSON, NaN marks one not given)."""
+    for label, values in (("rate", rate_hz), ("angle", angle_deg)):
+        bad = ~np.isfinite(values) if cdr else np.isinf(values)
+        if bad.any():
+            k = int(bad.argmax())
+            raise InputError(f"table topic {topic!r}: the {label} of message {k + 1} is not a finite number ({values[k]})", path=path)
     if np.any(t_ns[1:] < t_ns[:-1]):
         order = np.argsort(t_ns, kind="stable")
         t_ns, axis, rate_hz, angle_deg = t_ns[order], axis[order], rate_hz[order], angle_deg[order]
@@ -131,17 +210,7 @@ def _axis_code(labels: np.ndarray, axes: list) -> np.ndarray:
 
 def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
     if topic.kind == "json":
-        frame, log_ns = topic.frame, topic.columns["log_ns"]
-        def column(name: str) -> np.ndarray:
-            values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
-            return values.fill_null(np.nan).to_numpy()
-        t_s = column("t")
-        t_ns = np.where(np.isnan(t_s), log_ns, np.round(np.nan_to_num(t_s) * 1e9).astype(np.int64))
-        axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
-        code = _axis_code(axis, AXES)
-        if np.any(code < 0):
-            raise Unsupported("table axis other than x, y or z")
-        rate, angle = column("rate_hz"), column("angle_deg")
+        return _json_track(finite_numbers(topic.frame), topic.columns["log_ns"], topic.channel.topic, path)
     elif topic.kind == "joint":
         c = topic.take()
         if c["position"].shape[1] == 1:
@@ -163,7 +232,7 @@ def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
         angle *= sign
     else:
         raise Unsupported(f"table topic of schema {topic.schema.name if topic.schema else None}")
-    return _track(t_ns, code, rate, angle)
+    return _track(t_ns, code, rate, angle, topic.channel.topic, path, cdr=True)
 
 
 def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
