@@ -9,12 +9,12 @@ import sqlite3
 
 import polars as pl
 import pytest
+from test_bad_input import assert_one_line_error
 
 from rotcal.batch.manifest import Manifest
 from rotcal.batch.runner import run_batch
 
 from batch_support import REPO, SERIAL, SMALL, config_file, make_root, manifest_rows
-from test_bad_input import assert_one_line_error
 
 DEEP = "x = " + "{a = " * 400 + "1" + "}" * 400 + "\n"  # 2.4 KB: RecursionError in tomllib
 
@@ -82,7 +82,7 @@ def test_one_broken_dataset_toml_of_each_kind_stops_nothing(tmp_path, monkeypatc
     assert (summary.ok, summary.quarantined, summary.errors, summary.exit_status) == (2, 5, 0, 4)
     reasons = {p["dataset_path"]: p["reason"] for p in summary.problems}
     assert set(reasons) == set(hostile) | {"bug"}
-    for name, reason in reasons.items():
+    for reason in reasons.values():
         assert "\n" not in reason and "Traceback" not in reason, reason
     assert reasons["bug"] == f"{root / 'bug'}: unexpected KeyError while planning (a bug: please report it): 'a bug'"
     assert "nested more than" in reasons["deep"] and "not a finite number" in reasons["nan"]
