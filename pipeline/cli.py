@@ -126,7 +126,7 @@ def simulate_cmd(
         spec = spec.with_timebase(timebase)
     from rotcal.simulate import simulate, write_dataset
 
-    path = write_dataset(simulate(spec, seed), spec, directory, fmt)
+    path = write_dataset(simulate(spec, seed), spec, writable_out(directory), fmt)
     out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False, markup=False)
 
 
@@ -158,7 +158,7 @@ def intrinsic(
     from rotcal.metrology import matrix_intrinsic
     from rotcal.report import matrix_table
 
-    frame, path = matrix_intrinsic(matrix, out_dir, unit)
+    frame, path = matrix_intrinsic(matrix, writable_out(out_dir), unit)
     out.print(matrix_table(frame, f"{escape(matrix.name)}: intrinsic parameters, expanded uncertainty (k = 2)"))
     out.print(f"written to {path}", highlight=False, markup=False)
 

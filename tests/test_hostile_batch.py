@@ -89,6 +89,24 @@ def test_one_broken_dataset_toml_of_each_kind_stops_nothing(tmp_path, monkeypatc
     assert run_batch(root, out, SERIAL).processed == 0  # the quarantines hold until the dataset changes
 
 
+def test_a_folder_that_cannot_be_listed_is_quarantined_and_the_rest_published(tmp_path, monkeypatch):
+    root, out = tmp_path / "root", tmp_path / "out"
+    make_root(root, [1])
+    (root / "closed" / "deeper").mkdir(parents=True)
+    real = os.scandir
+
+    def scandir(path):  # what a directory without read permission gives a user other than root
+        if os.fspath(path) == str(root / "closed"):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real(path)
+
+    monkeypatch.setattr("rotcal.batch.plan.os.scandir", scandir)
+    summary = run_batch(root, out, SERIAL)
+    assert (summary.ok, summary.quarantined, summary.exit_status) == (1, 1, 4)
+    problem = summary.problems[0]
+    assert problem["dataset_path"] == "closed" and "closed" in problem["reason"] and "cannot be read" in problem["reason"]
+
+
 # -- output directories -----------------------------------------------------------------
 
 def _not_computed(monkeypatch):

@@ -72,13 +72,20 @@ def discover(root: Path, out: Path) -> list[Found]:
     further); elsewhere each capture file is a dataset of its own, and
     subdirectories are searched. Hidden entries and ``out`` are skipped;
     directory links are not followed (each is reported as a dataset, which
-    ``dataset_inputs`` refuses).
+    ``dataset_inputs`` refuses), nor is a subdirectory that cannot be listed
+    (reported as a dataset, which the planner refuses with the reason).
     """
     found, stack = [], [root]
     while stack:
         directory = stack.pop()
-        with os.scandir(directory) as it:
-            entries = [e for e in it if not e.name.startswith(".")]
+        try:
+            with os.scandir(directory) as it:
+                entries = [e for e in it if not e.name.startswith(".")]
+        except OSError as exc:
+            if directory == root:
+                raise InputError(f"ROOT cannot be listed: {exc.strerror}", path=root) from None
+            found.append(Found(decoded(directory.relative_to(root).as_posix()), directory))
+            continue
         for entry in entries:
             path = Path(entry.path)
             rel = decoded(path.relative_to(root).as_posix())
