@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from rotcal.config import load_config, with_options
-from rotcal.errors import RotcalError
+from rotcal.errors import InputError, RotcalError
 
 if TYPE_CHECKING:
     from rotcal.simulate import SimulationSpec
@@ -28,9 +28,10 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="Rotation-table calibration of three-axis accelerometers.")
 # Piped or logged output has no terminal width to honour: tables are printed
 # whole (rich would cut them to 80 columns: "paramet…"); a user's COLUMNS wins.
+# Emoji off: rich would show a ":x:" in a message or a file name as an emoji.
 _UNBOUNDED = 1000
-out = Console(width=None if sys.stdout.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
-err = Console(stderr=True, width=None if sys.stderr.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
+out = Console(emoji=False, width=None if sys.stdout.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
+err = Console(stderr=True, emoji=False, width=None if sys.stderr.isatty() or "COLUMNS" in os.environ else _UNBOUNDED)
 
 
 def _version(value: bool) -> None:
@@ -48,6 +49,23 @@ def _options(
     """Rotation-table calibration of three-axis accelerometers."""
 
 FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
+
+
+def writable_out(path: Path) -> Path:
+    """``path`` if results can be written there: a directory, or one that can
+    be made (its nearest existing ancestor a directory this user may write
+    into); checked before any work, so that a run never ends in an error
+    after its computation. Raises ``InputError``."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        problem = "is not a directory" if existing == path else f"cannot be made: {existing} is not a directory"
+        raise InputError(f"output directory {problem}", path=path)
+    if not os.access(existing, os.W_OK | os.X_OK):
+        where = "" if existing == path else f" ({existing} cannot be written)"
+        raise InputError(f"output directory cannot be written{where}", path=path)
+    return path
 
 
 def _print_diagnosis(diagnosis, output_unit: str) -> None:
@@ -70,14 +88,14 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
     for warning in outcome.warnings:
         err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
-        out.print(summary_table(outcome.results, outcome.output_unit,
-                                f"{outcome.dataset}: intrinsic parameters, value ± U (95 %)"))
+        unit = escape(outcome.output_unit)  # dataset.toml's text, printed inside the table's rich markup
+        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, value ± U (95 %)"))
         if outcome.diagnosis is not None:
-            _print_diagnosis(outcome.diagnosis, outcome.output_unit)
+            _print_diagnosis(outcome.diagnosis, unit)
         if outcome.static is not None:
-            out.print(static_fit_summary(outcome.static, outcome.output_unit), highlight=False)
+            out.print(static_fit_summary(outcome.static, unit), highlight=False)
             out.print(pose_check_table(outcome.static.check, outcome.static.result.g_local,
-                                       f"{outcome.dataset}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
+                                       f"{escape(outcome.dataset)}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
     folder = outcome.written[0].parent if outcome.written else None
     out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False, markup=False)
 
@@ -97,7 +115,7 @@ def run(
     cfg = load_config(config)
     if workers is not None:
         cfg = with_options(cfg, run={"workers": workers})
-    _print_outcome(run_dataset(dataset, out_dir, meta, cfg), quiet)
+    _print_outcome(run_dataset(dataset, writable_out(out_dir), meta, cfg), quiet)
 
 
 def _spec(config: Path | None, effect: list[str] | None) -> SimulationSpec:
@@ -126,7 +144,7 @@ def simulate_cmd(
         spec = spec.with_timebase(timebase)
     from rotcal.simulate import simulate, write_dataset
 
-    path = write_dataset(simulate(spec, seed), spec, directory, fmt)
+    path = write_dataset(simulate(spec, seed), spec, writable_out(directory), fmt)
     out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False, markup=False)
 
 
@@ -140,7 +158,7 @@ def demo(
     spec = _spec(None, effect)
     from rotcal.simulate import simulate, write_dataset
 
-    data = write_dataset(simulate(spec, seed), spec, directory / "data", "csv")
+    data = write_dataset(simulate(spec, seed), spec, writable_out(directory) / "data", "csv")
     out.print(f"simulated dataset in {data}", highlight=False, markup=False)
     from rotcal.run import run_dataset
 
@@ -158,8 +176,8 @@ def intrinsic(
     from rotcal.metrology import matrix_intrinsic
     from rotcal.report import matrix_table
 
-    frame, path = matrix_intrinsic(matrix, out_dir, unit)
-    out.print(matrix_table(frame, f"{matrix.name}: intrinsic parameters, expanded uncertainty (k = 2)"))
+    frame, path = matrix_intrinsic(matrix, writable_out(out_dir), unit)
+    out.print(matrix_table(frame, f"{escape(matrix.name)}: intrinsic parameters, expanded uncertainty (k = 2)"))
     out.print(f"written to {path}", highlight=False, markup=False)
 
 
@@ -168,8 +186,10 @@ def main() -> None:
     try:
         app()
     except RotcalError as exc:
+        from rotcal.batch.plan import printable  # control characters in a path must not reach the terminal
+
         # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
-        err.print(f"rotcal: error: {exc}", highlight=False, markup=False, soft_wrap=True)
+        err.print(f"rotcal: error: {printable(str(exc))}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(exc.exit_code)  # errors.ExitCode, the one table of exit statuses
 
 
@@ -191,7 +211,7 @@ def batch(
     options = {"workers": workers, "executor": executor}
     cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})
     with Reporter(err) as reporter:
-        summary = run_batch(root, out_dir, cfg, reporter)
+        summary = run_batch(root, writable_out(out_dir), cfg, reporter)
     if json_summary:
         print(json.dumps(summary.as_dict(), indent=2))
     else:

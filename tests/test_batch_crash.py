@@ -46,7 +46,7 @@ def pool_workers(pid: int) -> set[int]:
             try:
                 if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
                     found.add(int(child))
-            except FileNotFoundError:
+            except (FileNotFoundError, ProcessLookupError):  # the child ended between the listing and the read
                 pass
     return found
 

@@ -73,12 +73,12 @@ def run_job(job: Job) -> JobResult:
         for path in tables:
             _write_part(path, work / "parts" / path.name, job.dataset_path)
         return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
-    except RotcalError as exc:
+    except RotcalError as exc:  # one line, but for control characters in its path, escaped when printed
         status, reason = "quarantined", str(exc)
     except Exception as exc:  # a bug or the machine, not the data: retried on the next run
-        status, reason = "error", f"unexpected {type(exc).__name__} (a bug: please report it): {exc}"
+        status, reason = "error", " ".join(f"unexpected {type(exc).__name__} (a bug: please report it): {exc}".split())
     shutil.rmtree(work, ignore_errors=True)
-    return JobResult(status, " ".join(reason.split()), (), started, time.perf_counter() - clock)
+    return JobResult(status, reason, (), started, time.perf_counter() - clock)
 
 
 # -- executors --------------------------------------------------------------------

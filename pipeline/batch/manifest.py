@@ -27,6 +27,7 @@ import os
 import shutil
 import socket
 import sqlite3
+import stat
 import time
 import uuid
 from collections.abc import Iterator
@@ -35,7 +36,7 @@ from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
 
-from rotcal.errors import ExitCode, RotcalError
+from rotcal.errors import ExitCode, InputError, RotcalError
 from rotcal.tables import schema_text
 
 MANIFEST_VERSION = 1
@@ -76,10 +77,16 @@ class DatasetRecord:
     duration_s: float
 
 
-def _create_table(name: str) -> str:
+def _create_table(db: sqlite3.Connection, name: str) -> None:
+    """The table of contract ``name``, with the columns a later version of
+    the contract added appended to a table an earlier rotcal made."""
     doc = schema_text(name)
     columns = ", ".join(f"{c['name']} {_SQL_TYPES[c['type']]}" for c in doc["columns"])
-    return f"CREATE TABLE IF NOT EXISTS {name} ({columns}, PRIMARY KEY ({doc['primary_key']}))"
+    db.execute(f"CREATE TABLE IF NOT EXISTS {name} ({columns}, PRIMARY KEY ({doc['primary_key']}))")
+    have = {row[1] for row in db.execute(f"PRAGMA table_info({name})")}
+    for column in doc["columns"]:
+        if column["name"] not in have:
+            db.execute(f"ALTER TABLE {name} ADD COLUMN {column['name']} {_SQL_TYPES[column['type']]}")
 
 
 class Manifest:
@@ -98,7 +105,7 @@ class Manifest:
                 raise RotcalError(f"manifest format {version} is not {MANIFEST_VERSION}: written by another rotcal", path=path)
             with self.transaction():
                 for name in ("batch_datasets", "batch_runs", "batch_file_hashes"):
-                    self.db.execute(_create_table(name))
+                    _create_table(self.db, name)
                 self.db.execute(f"PRAGMA user_version = {MANIFEST_VERSION}")
         except sqlite3.DatabaseError as exc:
             self.db.close()
@@ -131,16 +138,25 @@ class Manifest:
                 [getattr(record, n) for n in names],
             )
 
-    def start_run(self, run_id: str, started_at: str, root: str, executor: str, workers: int, version: str) -> None:
+    def start_run(self, run_id: str, started_at: str, root: str, executor: str, workers: int, version: str) -> list[str]:
+        """Record a run as running; the runs that never finished (killed:
+        this run holds the lock, so none is live) are marked interrupted and
+        returned."""
         with self.transaction():
+            dead = [row[0] for row in self.db.execute(
+                "SELECT run_id FROM batch_runs WHERE finished_at IS NULL AND (status IS NULL OR status = 'running') "
+                "ORDER BY run_id")]
+            self.db.execute("UPDATE batch_runs SET status = 'interrupted' WHERE finished_at IS NULL")
             self.db.execute(
-                "INSERT INTO batch_runs (run_id, started_at, root, executor, workers, rotcal_version) VALUES (?, ?, ?, ?, ?, ?)",
+                "INSERT INTO batch_runs (run_id, started_at, root, executor, workers, rotcal_version, status) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'running')",
                 (run_id, started_at, root, executor, workers, version),
             )
+        return dead
 
     def finish_run(self, run_id: str, finished_at: str, summary_json: str) -> None:
         with self.transaction():
-            self.db.execute("UPDATE batch_runs SET finished_at = ?, summary = ? WHERE run_id = ?",
+            self.db.execute("UPDATE batch_runs SET finished_at = ?, summary = ?, status = 'finished' WHERE run_id = ?",
                             (finished_at, summary_json, run_id))
 
     def digest(self, path: Path) -> str:
@@ -155,7 +171,11 @@ class Manifest:
                 and st.st_ctime_ns < row[6] - RACY_NS:
             return row[5]
         hashed_at = time.time_ns()
-        with path.open("rb") as fh:
+        # non-blocking, then checked: a FIFO would block the run for ever, holding the lock
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise InputError("not a regular file", path=path)
             sha = hashlib.file_digest(fh, "sha256").hexdigest()
         self.db.execute(
             "INSERT OR REPLACE INTO batch_file_hashes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",

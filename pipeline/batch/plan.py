@@ -33,8 +33,19 @@ class Found:
     source: Path
 
 
-def printable(text: str) -> str:
+def decoded(text: str) -> str:
+    """``text`` (a file name) with the bytes that are not UTF-8 shown as ``\\xNN``."""
     return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def printable(text: str) -> str:
+    """``text`` as it may be printed: bytes that are not UTF-8 and control
+    characters escaped (``\\n``, ``\\x1b``), so that a file name cannot
+    forge log lines or colour a terminal."""
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], decoded(text))
 
 
 def dataset_id(dataset_path: str) -> str:
@@ -61,16 +72,23 @@ def discover(root: Path, out: Path) -> list[Found]:
     further); elsewhere each capture file is a dataset of its own, and
     subdirectories are searched. Hidden entries and ``out`` are skipped;
     directory links are not followed (each is reported as a dataset, which
-    ``dataset_inputs`` refuses).
+    ``dataset_inputs`` refuses), nor is a subdirectory that cannot be listed
+    (reported as a dataset, which the planner refuses with the reason).
     """
     found, stack = [], [root]
     while stack:
         directory = stack.pop()
-        with os.scandir(directory) as it:
-            entries = [e for e in it if not e.name.startswith(".")]
+        try:
+            with os.scandir(directory) as it:
+                entries = [e for e in it if not e.name.startswith(".")]
+        except OSError as exc:
+            if directory == root:
+                raise InputError(f"ROOT cannot be listed: {exc.strerror}", path=root) from None
+            found.append(Found(decoded(directory.relative_to(root).as_posix()), directory))
+            continue
         for entry in entries:
             path = Path(entry.path)
-            rel = printable(path.relative_to(root).as_posix())
+            rel = decoded(path.relative_to(root).as_posix())
             if entry.is_dir(follow_symlinks=False):
                 if path == out:
                     continue
@@ -150,17 +168,28 @@ class Plan:
     refusal: str | None
 
 
+def _refusal(exc: Exception, found: Found) -> str:
+    """Why a dataset is refused, in one line."""
+    if isinstance(exc, RotcalError):
+        return str(exc)
+    if isinstance(exc, OSError):  # unreadable, or gone since it was found
+        return str(InputError(f"cannot be read: {exc.strerror or exc}", path=decoded(str(exc.filename or found.source))))
+    # Anything else is a bug met by this dataset's inputs: the dataset is
+    # quarantined (retried when it changes) and the others go on.
+    return str(InputError(f"unexpected {type(exc).__name__} while planning (a bug: please report it): {exc}",
+                          path=decoded(str(found.source))))
+
+
 def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest) -> Plan:
     """Hash the dataset's inputs (``manifest.digest``), or say why it is refused."""
     try:
         if found.dataset_path != found.source.relative_to(root).as_posix():
             raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
         files = dataset_inputs(found.source, config.limits)
-        inputs = [[printable(f.relative_to(root).as_posix()), manifest.digest(f)] for f in files]
+        inputs = [[decoded(f.relative_to(root).as_posix()), manifest.digest(f)] for f in files]
         refusal = None
-    except (RotcalError, OSError) as exc:  # OSError: unreadable, or gone since it was found
-        refusal = str(exc) if isinstance(exc, RotcalError) else \
-            str(InputError(f"cannot be read: {exc.strerror or exc}", path=printable(str(exc.filename or found.source))))
+    except Exception as exc:  # the one guard around a dataset's planning: nothing in it stops the others
+        refusal = _refusal(exc, found)
         try:
             inputs = [["listing", _listing(found.source)]]
         except OSError:

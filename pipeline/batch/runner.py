@@ -61,13 +61,15 @@ class Reporter:
         self.total = total
         self.note(f"{discovered} datasets found: {unchanged} unchanged, {total} to process")
         if self.console is not None and self.console.is_terminal and total:
-            self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+            # markup off: the description holds a dataset's name, which may hold [brackets]
+            self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(),
                                      TimeElapsedColumn(), TimeRemainingColumn(), console=self.console)
             self.progress.start()
             self.task = self.progress.add_task("rotcal batch", total=total)
 
     def dataset(self, dataset_path: str, result: JobResult) -> None:
         self.done += 1
+        dataset_path = printable(dataset_path)
         text = f"[{self.done}/{self.total}] {result.status} {dataset_path} ({result.duration_s:.2f} s)"
         self._print(text + (f": {result.reason}" if result.reason else ""),
                     {"ok": "green", "quarantined": "yellow"}.get(result.status, "red"))
@@ -115,7 +117,7 @@ class BatchSummary:
         lines = [f"{self.discovered} datasets: {self.processed} processed ({self.ok} ok, {self.quarantined} quarantined, "
                  f"{self.errors} errors), {self.unchanged} unchanged ({self.still_quarantined} still quarantined); "
                  f"{self.wall_s:.1f} s"]
-        lines += [f"{p['status']}: {p['dataset_path']}: {p['reason']}" for p in self.problems]
+        lines += [f"{p['status']}: {printable(p['dataset_path'])}: {p['reason']}" for p in self.problems]
         lines.append(f"combined dataset: {self.combined}")
         return "\n".join(lines)
 
@@ -129,7 +131,10 @@ def _checked_dirs(root: Path, out: Path) -> tuple[Path, Path]:
                          hint="give the folder that holds the datasets, or use rotcal run")
     if root == out or root.is_relative_to(out):
         raise InputError("ROOT must not be the output directory or inside it", path=root)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file, or not writable (the CLI checks first: this is for library callers)
+        raise InputError(f"the output directory cannot be made: {exc.strerror}", path=out) from None
     return root, out
 
 
@@ -171,7 +176,11 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             prev.status == "quarantined" or (prev.status == "ok" and layout.published(plan.dataset_id) == prev.output))
         (unchanged if current else refused if plan.refusal else todo).append(plan)
     local, workers = config.batch.executor == "local", 0
-    manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
+    dead = manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
+    if dead:
+        were = "runs were" if len(dead) > 1 else "run was"
+        notes += (f"{len(dead)} earlier {were} interrupted ({', '.join(dead[:5])}{', ...' if len(dead) > 5 else ''})",)
+        reporter.note(notes[-1])
     reporter.start(len(plans), len(unchanged), len(todo) + len(refused))
     outcomes: list[tuple[Plan, JobResult]] = []
 

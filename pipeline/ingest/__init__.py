@@ -13,6 +13,7 @@ import polars as pl
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest.csv_source import read_csv_capture
+from rotcal.ingest.duplicates import distinct_captures
 from rotcal.ingest.files import require_regular
 from rotcal.ingest.labels import time_ordered
 from rotcal.ingest.mcap_source import read_mcap_capture
@@ -101,8 +102,9 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         meta_path = path / "dataset.toml"
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
-    frames, notes = [], list(meta.notes)
-    for file, spec in capture_files(path, meta):
+    captures, duplicates = distinct_captures(capture_files(path, meta), root)
+    frames, notes = [], [*meta.notes, *duplicates]
+    for file, spec in captures:
         frame, capture_notes = read_capture(file, spec, meta, limits, workers)
         notes += capture_notes
         name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()

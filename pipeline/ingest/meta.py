@@ -3,6 +3,8 @@ and resolve defaults once into a frozen record (docs/inputs.md)."""
 
 from __future__ import annotations
 
+import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,6 +14,11 @@ import jsonschema
 from rotcal.errors import InputError
 from rotcal.model.physics import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
 from rotcal.tables import schema_text
+
+# The deepest valid value is three levels down ([[capture]] -> table -> key);
+# far deeper nesting is hostile (400 levels overflow tomllib's recursion).
+MAX_NESTING = 8
+INT64 = 2**63  # TOML integers are 64-bit (TOML 1.0, "Integer")
 
 DELIMITERS = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "whitespace": "whitespace"}
 
@@ -62,6 +69,42 @@ class DatasetMeta:
     notes: tuple[str, ...] = ()
 
 
+def _parse(text: str, path: Path) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"dataset.toml is not valid TOML: {exc}", path=path) from None
+    except RecursionError:
+        raise InputError(f"dataset.toml has tables or arrays nested more than {MAX_NESTING} deep", path=path) from None
+    except ValueError:  # int() refuses more than sys.get_int_max_str_digits() digits
+        long = re.search(r"[0-9_]{4000,}", text)
+        line = text.count("\n", 0, long.start()) + 1 if long else "?"
+        raise InputError(f"dataset.toml line {line}: an integer beyond the 64-bit range of TOML integers",
+                         path=path) from None
+
+
+def _check_values(doc: dict, path: Path) -> None:
+    """Refuse what the schema's bounds let through: NaN and infinity (every
+    comparison with NaN is false), integers beyond 64 bits, NUL characters
+    (no file or column name holds one) and absurd nesting; in document order."""
+    stack: list[tuple[tuple, object]] = [((), doc)]
+    while stack:
+        where, value = stack.pop()
+        key = ".".join(map(str, where))
+        if len(where) > MAX_NESTING:
+            raise InputError(f"dataset.toml has tables or arrays nested more than {MAX_NESTING} deep (at {key})", path=path)
+        if isinstance(value, dict | list):
+            items = value.items() if isinstance(value, dict) else enumerate(value)
+            stack.extend(reversed([((*where, k), v) for k, v in items]))
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise InputError(f"invalid dataset.toml value: {key} = {value} is not a finite number", path=path)
+        elif isinstance(value, int) and not isinstance(value, bool) and not -INT64 <= value < INT64:
+            raise InputError(f"invalid dataset.toml value: {key} is an integer beyond the 64-bit range of TOML integers",
+                             path=path)
+        elif isinstance(value, str) and "\0" in value:
+            raise InputError(f"invalid dataset.toml value: {key} holds a NUL character", path=path)
+
+
 def _validate(doc: dict, path: Path) -> None:
     validator = jsonschema.Draft202012Validator(schema_text("dataset_toml"))
     errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
@@ -87,11 +130,13 @@ def load_meta(path: Path | None) -> DatasetMeta:
         doc: dict = {}
     else:
         try:
-            doc = tomllib.loads(path.read_text(encoding="utf-8"))
+            text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
             raise InputError("dataset.toml not found", path=path) from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError as exc:
             raise InputError(f"dataset.toml is not valid TOML: {exc}", path=path) from None
+        doc = _parse(text, path)
+        _check_values(doc, path)
         _validate(doc, path)
     device, site, fmt = doc.get("device", {}), doc.get("site", {}), doc.get("format", {})
     mcap, plan = doc.get("mcap", {}), doc.get("plan", {})

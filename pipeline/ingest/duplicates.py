@@ -1,0 +1,41 @@
+"""Copied captures: the same bytes under two names in one dataset. Read
+twice, every sample would be a duplicate of itself: thousands of one-sample
+segments and as many warnings, where one copy gives the right result."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import TypeVar
+
+Spec = TypeVar("Spec")
+
+
+def _sha256(path: Path) -> str:
+    with path.open("rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[str, ...]]:
+    """``files`` without the copies of an earlier one, and one note per copy
+    skipped. Only files of equal size are hashed (SHA-256, in blocks), so a
+    dataset without copies costs a ``stat`` per file."""
+    by_size: defaultdict[int, list[int]] = defaultdict(list)
+    for i, (file, _) in enumerate(files):
+        by_size[file.stat().st_size].append(i)
+    original: dict[int, int] = {}  # copy -> the file it copies
+    for group in (g for g in by_size.values() if len(g) > 1):
+        first: dict[str, int] = {}
+        for i in group:
+            original[i] = first.setdefault(_sha256(files[i][0]), i)
+    copies = sorted(i for i, j in original.items() if i != j)
+
+    def name(i: int) -> str:
+        return Path(os.path.relpath(files[i][0].resolve(), root.resolve())).as_posix()
+
+    skipped = set(copies)
+    notes = tuple(f"duplicate capture: {name(i)!r} holds the same bytes as {name(original[i])!r}: "
+                  f"read once, {name(i)!r} skipped" for i in copies)
+    return [f for i, f in enumerate(files) if i not in skipped], notes
