@@ -15,6 +15,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.errors import InputError
+from rotcal.ingest.labels import MAX_ABS_TIME_S
 from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import MessageTopic, decoder
 from rotcal.model.physics import AXES, JOINT_SIGN
@@ -60,7 +61,6 @@ def _joint_axis(names: list[str], position: list[float], velocity: list[float], 
 
 NUMBER_FIELDS = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
 TEXT_FIELDS = ("axis",)
-_T_MAX_S = 9.2e9  # int64 nanoseconds end at 9.22e9 s (the year 2262)
 
 
 def _number(value, name: str, k: int, topic: str, path: Path) -> float | None:
@@ -115,7 +115,7 @@ def finite_numbers(frame: pl.DataFrame) -> pl.DataFrame:
 def json_time_ns(t_s: np.ndarray, log_ns: np.ndarray, topic: str, path: Path) -> np.ndarray:
     """JSON ``t`` (s; NaN where absent: the log time) as int64 nanoseconds."""
     present = ~np.isnan(t_s)
-    bad = present & ~(np.abs(t_s) < _T_MAX_S)
+    bad = present & ~(np.abs(t_s) < MAX_ABS_TIME_S)
     if bad.any():
         k = int(bad.argmax())
         raise InputError(f"topic {topic!r}: 't' of message {k + 1} is not a time in seconds ({t_s[k]:g})", path=path)
