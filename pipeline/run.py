@@ -28,6 +28,7 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
 from rotcal.ingest import Dataset, load_dataset
+from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.metrology import (
     budget_frame,
     consistency_frame,
@@ -192,7 +193,8 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     referenced = segments.filter(pl.col("angle_source") != "none")
     fits = fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers)
                       + (list(inferred.fits) if table else []), segments, ds.name)
-    findings = pl.concat([timebase.findings, findings_frame(list(inferred.findings) if table else [])])
+    findings = pl.concat([findings_frame(duplicate_findings(ds.name, ds.copies)), timebase.findings,
+                          findings_frame(list(inferred.findings) if table else [])])
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + (inferred.warnings if table else ()),

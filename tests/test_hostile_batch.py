@@ -206,6 +206,11 @@ def test_a_copied_capture_is_read_once_with_one_note(cli, dataset, tmp_path):
     assert len(err.strip().splitlines()) < 10, err
     for table in ("intrinsic", "fits", "segments"):
         assert pl.read_parquet(tmp_path / "one" / f"{table}.parquet").equals(pl.read_parquet(tmp_path / "two" / f"{table}.parquet"))
+    # and a finding in the time-base table, which a batch publishes (it keeps no notes)
+    found = pl.read_parquet(tmp_path / "two" / "timebase.parquet").filter(pl.col("check") == "duplicate_capture")
+    assert found.select("capture", "detected").rows() == [("zz_copy.csv", True)]
+    assert original.name in found["evidence"][0]
+    assert pl.read_parquet(tmp_path / "one" / "timebase.parquet").filter(pl.col("check") == "duplicate_capture").is_empty()
 
 
 def test_a_fifo_under_root_does_not_hang_the_batch(tmp_path):

@@ -32,6 +32,7 @@ class Dataset:
     meta: DatasetMeta
     samples: pl.DataFrame
     notes: tuple[str, ...] = ()
+    copies: tuple[tuple[str, str], ...] = ()  # captures skipped as copies: (copy, the file it copies)
 
 
 def dataset_name(path: Path) -> str:
@@ -102,8 +103,9 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         meta_path = path / "dataset.toml"
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
-    captures, duplicates = distinct_captures(capture_files(path, meta), root)
-    frames, notes = [], [*meta.notes, *duplicates]
+    captures, copies = distinct_captures(capture_files(path, meta), root)
+    frames, notes = [], [*meta.notes, *(f"duplicate capture: {c!r} holds the same bytes as {o!r}: read once, {c!r} skipped"
+                                        for c, o in copies)]
     for file, spec in captures:
         frame, capture_notes = read_capture(file, spec, meta, limits, workers)
         notes += capture_notes
@@ -111,4 +113,4 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
     joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
     samples = conform(time_ordered(joined), "samples")
-    return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes))
+    return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes), copies=copies)

@@ -18,10 +18,11 @@ def _sha256(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
-def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[str, ...]]:
-    """``files`` without the copies of an earlier one, and one note per copy
-    skipped. Only files of equal size are hashed (SHA-256, in blocks), so a
-    dataset without copies costs a ``stat`` per file."""
+def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[tuple[str, str], ...]]:
+    """``files`` without the copies of an earlier one, and each copy skipped
+    as (its name, the name of the file it copies), relative to ``root``.
+    Only files of equal size are hashed (SHA-256, in blocks), so a dataset
+    without copies costs a ``stat`` per file."""
     by_size: defaultdict[int, list[int]] = defaultdict(list)
     for i, (file, _) in enumerate(files):
         by_size[file.stat().st_size].append(i)
@@ -36,6 +37,11 @@ def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[
         return Path(os.path.relpath(files[i][0].resolve(), root.resolve())).as_posix()
 
     skipped = set(copies)
-    notes = tuple(f"duplicate capture: {name(i)!r} holds the same bytes as {name(original[i])!r}: "
-                  f"read once, {name(i)!r} skipped" for i in copies)
-    return [f for i, f in enumerate(files) if i not in skipped], notes
+    return [f for i, f in enumerate(files) if i not in skipped], tuple((name(i), name(original[i])) for i in copies)
+
+
+def duplicate_findings(dataset: str, copies: tuple[tuple[str, str], ...]) -> list[dict]:
+    """One ``duplicate_capture`` row of the time-base table per copy skipped."""
+    return [{"dataset": dataset, "capture": copy, "check": "duplicate_capture", "detected": True, "value": 1.0,
+             "std_uncertainty": None, "unit": "1", "action": "dropped: the copy is not read",
+             "evidence": f"{copy!r} holds the same bytes as {original!r} (SHA-256): read once"} for copy, original in copies]

@@ -53,7 +53,7 @@ class ClockDrift:
         """The ``clock_drift`` row of the time-base table."""
         row = {"dataset": dataset, "capture": "", "check": "clock_drift", "unit": "ppm", "detected": self.detected}
         if self.n == 0:
-            return {**row, "value": float("nan"), "std_uncertainty": None, "action": "none",
+            return {**row, "value": None, "std_uncertainty": None, "action": "none",
                     "evidence": "no nominal rates (segment labels or [plan] rates_hz): the logger clock cannot be "
                                 "compared with the table"}
         evidence = (f"{self.n} rotation segments measure rates {self.drift * 1e6:.4g} ppm slow against the nominal "
