@@ -96,6 +96,14 @@ def parquet_metadata(name: str) -> dict[bytes, bytes]:
     }
 
 
+def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
+    """Every NaN or infinite float published as null (missing): nothing
+    non-finite is ever published. Where a column means something by it
+    (infinite degrees of freedom), its schema description says so."""
+    floats = [c for c, dtype in frame.schema.items() if dtype in (pl.Float64, pl.Float32)]
+    return frame.with_columns(pl.when(pl.col(c).is_finite()).then(pl.col(c)).otherwise(None).alias(c) for c in floats)
+
+
 def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
     """Write ``frame`` as contract ``name`` to ``path``, atomically.
 
@@ -104,7 +112,7 @@ def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
     """
     import pyarrow.parquet as pq  # loaded at the first write: not held through the stages before (memory)
 
-    table = conform(frame, name).to_arrow()
+    table = finite_or_null(conform(frame, name)).to_arrow()
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

@@ -185,7 +185,7 @@ def test_corrections_from_simulated_table_steps(make_dataset, tmp_path):
     assert table.columns == list(schema("correction").columns)
     assert dict(zip(table.columns, table.dtypes)) == schema("correction").polars_schema
     assert sorted(set(table["parameters"])) == [6, 12, 15] and table.height == 9
-    assert set(table["input_unit"]) == {"bit"} and table["temperature_c"].is_nan().all()
+    assert set(table["input_unit"]) == {"bit"} and table["temperature_c"].is_null().all()
     truth = truth_of(ds)
     w = _truth_correction(np.array(truth["dut"]["responsivity"]), np.array(truth["dut"]["offsets"]))
     unc = pl.read_parquet(tmp_path / "correction_uncertainty.parquet").filter(pl.col("parameters") == 12)

@@ -29,3 +29,21 @@ def test_help_names_the_simulation_tables(cli):
     code, out, _ = cli("simulate", "--help")
     assert code == 0
     assert "[plan], [dut], [site], [timebase], [[effect]]" in out
+
+
+def test_nothing_non_finite_is_published(tmp_path):
+    """NaN and infinities are written as null, whatever the stage handed over."""
+    import numpy as np
+
+    from rotcal.tables import schema as table_schema
+    from rotcal.tables import write_parquet
+
+    frame = pl.DataFrame({"dataset": ["d"] * 3, "model": ["baseline"] * 3, "rate_hz": [0.0] * 3, "parameter": ["s_u", "s_v", "s_w"],
+                          "value": [1.0, np.nan, np.inf], "std_uncertainty": [0.1, 0.2, -np.inf], "dof": [np.inf, 5.0, 6.0],
+                          "coverage_factor": [1.96, 2.57, 2.45], "expanded_uncertainty": [0.2, 0.5, np.nan], "unit": ["1"] * 3},
+                         schema=table_schema("intrinsic").polars_schema)
+    back = pl.read_parquet(write_parquet(frame, tmp_path / "intrinsic.parquet", "intrinsic"))
+    assert back["value"].to_list() == [1.0, None, None]
+    assert back["std_uncertainty"].to_list() == [0.1, 0.2, None]
+    assert back["dof"].to_list() == [None, 5.0, 6.0]
+    assert back["expanded_uncertainty"].to_list() == [0.2, 0.5, None]
