@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects.base import Candidate, Channel, ColumnContext, OffsetEffect, Parameter
+from rotcal.model.effects.base import Candidate, Channel, ColumnContext, OffsetEffect, Parameter, PerChannelEffect
 
 
-class OffsetDrift(OffsetEffect):
+class OffsetDrift(PerChannelEffect, OffsetEffect):
     name = "offset_drift"
     physics = "offsets drift during the recording: O_r -> O_r + rho_r (t - t0)"
     parameters = tuple(Parameter(f"drift_{c}", "output unit per s", f"drift rho of {c}") for c in CHANNELS)
@@ -19,22 +19,14 @@ class OffsetDrift(OffsetEffect):
     where = "channel {s}, whole recording"
     listed = 8
     slot = 1
+    prefix = "drift"
 
     def state(self, previous, params):
+        # a later request replaces the drifts (the catalogue's other per-channel effects fill in)
         return np.asarray([params.get(f"drift_{c}", 0.0) for c in CHANNELS], float)
 
     def offset(self, state, motion):
         return np.asarray(state)[None, :] * (motion.t_s - motion.t0_s)[:, None]
-
-    def draw(self, size, sign, axis, channel, rng) -> str:
-        return f"offset_drift:drift_{channel}={sign * size:.6g}"
-
-    def candidates(self, rotating_axes, all_axes, angles_measured):
-        return tuple(Candidate(self.name, c, (f"drift_{c}",), ((r,),)) for r, c in enumerate(CHANNELS))
-
-    def state_from(self, values):
-        names = [f"drift_{c}" for c in CHANNELS]
-        return np.array([float(values.get(n, 0.0)) for n in names]) if any(n in values for n in names) else None
 
     def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
         return ctx.cached("drift", lambda: ctx.motion.t_s - ctx.motion.t0_s)
