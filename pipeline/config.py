@@ -143,13 +143,18 @@ def load_config(path: Path | None = None) -> RunConfig:
     """The defaults, overridden by the keys of the TOML file ``path``."""
     if path is None:
         return RunConfig()
+    return _validated(read_toml(path, "configuration file"), path)
+
+
+def read_toml(path: Path, what: str) -> dict[str, Any]:
+    """A TOML file of options (the run configuration, a simulation request);
+    a missing or malformed file is a one-line ``ConfigError`` naming ``what``."""
     try:
-        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ConfigError("configuration file not found", path=path) from None
+        raise ConfigError(f"{what} not found", path=path) from None
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"configuration is not valid TOML: {exc}", path=path) from None
-    return _validated(doc, path)
+        raise ConfigError(f"{what} is not valid TOML: {exc}", path=path) from None
 
 
 def with_options(config: RunConfig, **tables: dict[str, Any]) -> RunConfig:

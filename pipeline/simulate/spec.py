@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from rotcal.config import read_toml
 from rotcal.errors import ConfigError
 from rotcal.model.conventions import AXES, Dut
 from rotcal.model.effects import Effects, names
@@ -156,14 +157,7 @@ def spec_from_toml(path: Path) -> SimulationSpec:
     """A simulation request file: ``[plan]``, ``[dut]``, ``[site]``,
     ``[timebase]`` tables and ``[[effect]]`` entries (``name`` plus the
     effect's parameters)."""
-    import tomllib
-
-    try:
-        doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError("simulation file not found", path=path) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"simulation file is not valid TOML: {exc}", path=path) from None
+    doc = read_toml(path, "simulation file")
     unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit", "timebase"})
     if unknown:
         raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit, timebase)", path=path)
