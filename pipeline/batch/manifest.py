@@ -27,7 +27,6 @@ import os
 import shutil
 import socket
 import sqlite3
-import stat
 import time
 import uuid
 from collections.abc import Iterator
@@ -36,7 +35,8 @@ from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
 
-from rotcal.errors import ExitCode, InputError, RotcalError
+from rotcal.errors import ExitCode, RotcalError
+from rotcal.ingest.files import open_capture
 from rotcal.tables import schema_text
 
 MANIFEST_VERSION = 1
@@ -171,11 +171,8 @@ class Manifest:
                 and st.st_ctime_ns < row[6] - RACY_NS:
             return row[5]
         hashed_at = time.time_ns()
-        # non-blocking, then checked: a FIFO would block the run for ever, holding the lock
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-        with os.fdopen(fd, "rb") as fh:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                raise InputError("not a regular file", path=path)
+        # open_capture: a FIFO would block the run for ever, holding the lock
+        with open_capture(path) as fh:
             sha = hashlib.file_digest(fh, "sha256").hexdigest()
         self.db.execute(
             "INSERT OR REPLACE INTO batch_file_hashes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",

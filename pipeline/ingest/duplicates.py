@@ -10,11 +10,13 @@ from collections import defaultdict
 from pathlib import Path
 from typing import TypeVar
 
+from rotcal.ingest.files import open_capture
+
 Spec = TypeVar("Spec")
 
 
 def _sha256(path: Path) -> str:
-    with path.open("rb") as fh:
+    with open_capture(path) as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
