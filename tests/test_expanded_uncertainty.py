@@ -41,7 +41,7 @@ def test_dof_is_welch_satterthwaite_of_the_budget():
     inputs = (BudgetInput("a", "fit", 1, "x", 4.0), BudgetInput("b", "fit", 2, "y", 12.0),
               BudgetInput("g_local", "g_local", None, "", float("inf")))
     budget = {"a": np.full(9, 1.0), "b": np.full(9, 3.0), "g_local": np.zeros(9)}
-    res = IntrinsicResult(0.0, np.zeros(9), np.eye(9) * 4.0, np.zeros(12), np.eye(12), budget, 9.8, 0.0, inputs)
+    res = IntrinsicResult(0.0, np.zeros(9), np.eye(9) * 4.0, np.zeros(12), np.eye(12), budget, 9.8, 0.0, inputs, ())
     np.testing.assert_allclose(res.dof, 16.0)
     # the budget table's combined rows and the intrinsic table carry the same dof
     from rotcal.combine import intrinsic_frame

@@ -91,7 +91,8 @@ class IntrinsicResult:
     ``state`` is (g r_u, g r_v, g r_w, O) in output units with covariance
     ``state_cov``; ``budget`` maps each input group (``inputs``, in the
     same order, ``g_local`` last) to its variance contribution to each
-    parameter. Build it with ``from_state``: every field is derived there.
+    parameter, and ``state_parts`` holds each noise group's contribution
+    to ``state_cov`` (for the dof of other functions of the state). Build it with ``from_state``: every field is derived there.
     """
 
     rate_hz: float
@@ -103,6 +104,7 @@ class IntrinsicResult:
     g_local: float
     g_uncertainty: float
     inputs: tuple[BudgetInput, ...]
+    state_parts: tuple[np.ndarray, ...]
 
     @classmethod
     def from_state(cls, rate_hz: float, state: np.ndarray, state_cov: np.ndarray, g_local: float, g_uncertainty: float,
@@ -117,7 +119,8 @@ class IntrinsicResult:
         budget[G_INPUT.label] = (jac_g * g_uncertainty) ** 2
         cov = jac @ state_cov @ jac.T + np.outer(jac_g, jac_g) * g_uncertainty**2
         inputs = tuple(inp for inp, _ in noise_parts) + (G_INPUT,)
-        return cls(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs)
+        return cls(rate_hz, value, cov, state, state_cov, budget, g_local, g_uncertainty, inputs,
+                   tuple(part for _, part in noise_parts))
 
     @property
     def std_uncertainty(self) -> np.ndarray:
@@ -138,11 +141,16 @@ class IntrinsicResult:
         """Each parameter's effective degrees of freedom from its budget
         (Welch-Satterthwaite, GUM G.4.1); inf where only inputs of infinite
         degrees of freedom (g_local, a Type B input) contribute."""
-        total = np.diag(self.cov)
-        terms = np.zeros(9)
-        for inp in self.inputs:
-            terms += np.where(np.isfinite(inp.dof), self.budget[inp.label] ** 2 / inp.dof, 0.0)
-        return np.divide(total**2, terms, out=np.full(9, np.inf), where=terms > 0)
+        return _welch_satterthwaite(np.diag(self.cov), [self.budget[inp.label] for inp in self.inputs],
+                                    [inp.dof for inp in self.inputs])
+
+    def welch_satterthwaite(self, jac: np.ndarray, jac_g: np.ndarray) -> np.ndarray:
+        """The effective degrees of freedom of the quantities y = f(state, g)
+        with Jacobians ``jac`` (rows: quantities) and ``jac_g`` (GUM G.4.1):
+        each noise group's variance J part J^T, g_local's (J_g u_g)^2."""
+        parts = [np.einsum("ij,jk,ik->i", jac, part, jac) for part in self.state_parts] + [(jac_g * self.g_uncertainty) ** 2]
+        total = np.diag(jac @ self.state_cov @ jac.T + np.outer(jac_g, jac_g) * self.g_uncertainty**2)
+        return _welch_satterthwaite(total, parts, [inp.dof for inp in self.inputs])
 
     @property
     def coverage_factor(self) -> np.ndarray:
@@ -157,6 +165,14 @@ class IntrinsicResult:
         """The covariance without the g_local part (the fits' noise only)."""
         jac = intrinsic_jacobian(self.state, self.g_local)[1]
         return jac @ self.state_cov @ jac.T
+
+
+def _welch_satterthwaite(total: np.ndarray, parts: Sequence[np.ndarray], dofs: Sequence[float]) -> np.ndarray:
+    """nu_eff = u^4 / sum(u_i^4 / nu_i) (GUM Eq. G.2b), inputs of infinite dof left out of the sum."""
+    terms = np.zeros(len(total))
+    for part, dof in zip(parts, dofs):
+        terms += np.where(np.isfinite(dof), part**2 / dof, 0.0)
+    return np.divide(total**2, terms, out=np.full(len(total), np.inf), where=terms > 0)
 
 
 @dataclass(frozen=True)
