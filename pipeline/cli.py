@@ -203,7 +203,7 @@ def apply_cmd(
 @app.command(name="export")
 def export_cmd(
     calibration: Annotated[Path, typer.Argument(help="calibration.json, or a run's output directory holding one")],
-    fmt: Annotated[str, typer.Option("--format", help="ardupilot, px4, yaml (imu_tk's T, K, b) or json")],
+    fmt: Annotated[str, typer.Option("--format", help="ardupilot, px4, yaml (imu_tk's T, K, B) or json")],
     rate: Annotated[float | None, typer.Option(help="the calibration's rate (Hz) to export; default DC")] = None,
     out_file: Annotated[Path | None, typer.Option("--out", help="file to write; default standard output")] = None,
     nominal_scale: Annotated[float | None, typer.Option(help="ardupilot, px4: the driver's m/s^2 per output unit (needed unless the unit is m/s^2)")] = None,
