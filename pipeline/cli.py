@@ -181,6 +181,47 @@ def intrinsic(
     out.print(f"written to {path}", highlight=False, markup=False)
 
 
+@app.command(name="apply")
+def apply_cmd(
+    calibration: Annotated[Path, typer.Argument(help="calibration.json, or a run's output directory holding one")],
+    recording: Annotated[Path, typer.Argument(help="dataset directory or single capture file to calibrate")],
+    out_file: Annotated[Path, typer.Option("--out", help="output file: .parquet, .csv or .mcap (sensor_msgs/msg/Imu)")],
+    rate: Annotated[float | None, typer.Option(help="the calibration's rate (Hz) to apply; default DC")] = None,
+    uncertainty: Annotated[bool, typer.Option("--uncertainty", help="each sample's standard uncertainty from the calibration's covariance")] = False,
+    meta: Annotated[Path | None, typer.Option(help="the recording's dataset.toml kept outside it")] = None,
+) -> None:
+    """Calibrate a recording: a = P (R - O) in m/s^2 in the calibration's frame (docs/apply.md)."""
+    from rotcal.apply import apply_calibration
+
+    done = apply_calibration(calibration, recording, out_file, rate, uncertainty, meta)
+    for note in done.notes:
+        err.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
+    out.print(f"{done.samples:,} samples calibrated ({done.rate_hz:g} Hz, frame {done.frame}) to {done.path}",
+              highlight=False, markup=False)
+
+
+@app.command(name="export")
+def export_cmd(
+    calibration: Annotated[Path, typer.Argument(help="calibration.json, or a run's output directory holding one")],
+    fmt: Annotated[str, typer.Option("--format", help="ardupilot, px4, yaml (imu_tk's T, K, B) or json")],
+    rate: Annotated[float | None, typer.Option(help="the calibration's rate (Hz) to export; default DC")] = None,
+    out_file: Annotated[Path | None, typer.Option("--out", help="file to write; default standard output")] = None,
+    nominal_scale: Annotated[float | None, typer.Option(help="ardupilot, px4: the driver's m/s^2 per output unit (needed unless the unit is m/s^2)")] = None,
+) -> None:
+    """Write the calibration in a flight stack's or IMU tool's form (docs/apply.md)."""
+    from rotcal.apply import export_calibration, writable_file
+    from rotcal.model.calibration import Calibration
+
+    target = None if out_file is None else writable_file(out_file)
+    result = export_calibration(Calibration.read(calibration), fmt, rate, nominal_scale)
+    for warning in result.warnings:
+        err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
+    if target is None:
+        sys.stdout.write(result.text)
+    else:
+        out.print(f"{result.format} export written to {result.write(target)}", highlight=False, markup=False)
+
+
 def main() -> None:
     """Console entry point: a user's error exits with a one-line message."""
     try:

@@ -14,6 +14,7 @@ import json
 import os
 import struct
 import zlib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -184,11 +185,32 @@ class ChunkedWriter:
         self._fh.write(MAGIC)
 
 
+def register_imu_schema(writer: ChunkedWriter) -> int:
+    """The ``sensor_msgs/msg/Imu`` schema (ROS 2 message definition)."""
+    return writer.register_schema("sensor_msgs/msg/Imu", "ros2msg", ros2_msgdefs.IMU.encode())
+
+
+def add_imu_messages(writer: ChunkedWriter, schema_id: int, topic: str, frame_id: str, t_ns: np.ndarray,
+                     acceleration: Sequence[np.ndarray], covariance: Sequence[np.ndarray] = ()) -> None:
+    """A channel of Imu messages stamped (and logged) at ``t_ns``: the three
+    ``linear_acceleration`` columns (x, y, z) and, when given, the nine
+    row-major elements of ``linear_acceleration_covariance`` (all zeros
+    otherwise: "covariance unknown"); orientation and angular velocity marked
+    not provided (``ros2_cdr.imu_template``)."""
+    template = ros2_cdr.imu_template(frame_id)
+    lay = ros2_cdr.imu_layout(len(frame_id.encode()) + 1)
+    channel = writer.register_channel(topic, "cdr", schema_id)
+    acc_cov = lay.linear_acceleration + 24  # the covariance follows the vector's three float64s
+    fields = [(lay.linear_acceleration + 8 * k, np.asarray(a, "<f8")) for k, a in enumerate(acceleration)]
+    fields += [(acc_cov + 8 * k, np.asarray(c, "<f8")) for k, c in enumerate(covariance)]
+    writer.add_messages(channel, t_ns, template, [*_stamp_fields(lay.stamp, t_ns), *fields])
+
+
 def _write_cdr(fh: BinaryIO, samples: pl.DataFrame, table: pl.DataFrame, imu_topic: str, table_topic: str) -> None:
     """Imu and JointState messages in the order ``mcap_ros2`` would be given
     them: the table's, then the DUT's (the reader sorts by time)."""
     writer = ChunkedWriter(fh, "ros2", ROS2_LIBRARY)
-    imu_schema = writer.register_schema("sensor_msgs/msg/Imu", "ros2msg", ros2_msgdefs.IMU.encode())
+    imu_schema = register_imu_schema(writer)
     joint_schema = writer.register_schema("sensor_msgs/msg/JointState", "ros2msg", ros2_msgdefs.JOINT_STATE.encode())
     if table.height:
         t_ns = table["t_ns"].to_numpy()
@@ -203,12 +225,8 @@ def _write_cdr(fh: BinaryIO, samples: pl.DataFrame, table: pl.DataFrame, imu_top
             (lay.velocity, sign * 2 * np.pi * table["rate_hz"].to_numpy()),
         ])
     if samples.height:
-        t_ns = samples["t_ns"].to_numpy()
-        template = ros2_cdr.imu_template("dut")
-        lay = ros2_cdr.imu_layout(len(b"dut\x00"))
-        channel = writer.register_channel(imu_topic, "cdr", imu_schema)
-        acc = [(lay.linear_acceleration + 8 * k, samples[c].cast(pl.Float64).to_numpy()) for k, c in enumerate("uvw")]
-        writer.add_messages(channel, t_ns, template, [*_stamp_fields(lay.stamp, t_ns), *acc])
+        add_imu_messages(writer, imu_schema, imu_topic, "dut", samples["t_ns"].to_numpy(),
+                         [samples[c].cast(pl.Float64).to_numpy() for c in "uvw"])
     writer.finish()
 
 
