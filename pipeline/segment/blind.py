@@ -24,7 +24,10 @@ recording that carries nothing but ``t, u, v, w``.
 5. Step sequences: consecutive dwells joined by moves that stay in the plane
    through the offset of the two dwells' outputs, about one common axis,
    form a static step sequence (its axis from the plane of its dwell means);
-   other dwells are single poses of unknown orientation.
+   a move faster than one sample (the output jumps between two consecutive
+   samples, no time gap between them) has no samples to stray from that
+   plane and joins its dwells on their means alone. Other dwells are single
+   poses of unknown orientation.
 """
 
 from __future__ import annotations
@@ -211,10 +214,11 @@ def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.n
 
 
 def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
-               config: BlindConfig) -> tuple[StepSequence, ...]:
+               jump: np.ndarray, config: BlindConfig) -> tuple[StepSequence, ...]:
     """Step sequences: chains of dwells linked by in-plane moves about one
     axis (``move`` marks the samples that may belong to a move: not those of
-    a constant rotation)."""
+    a constant rotation; ``jump`` the consecutive dwells that one sample
+    interval separates, a move faster than a sample)."""
     k = len(dwells)
     if k < config.min_steps:
         return ()
@@ -228,7 +232,7 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
         between = slice(dwells[j, 1], dwells[j + 1, 0])
         path = y[between] - offset
         if not path.size or not move[between].all():
-            linked[j] = False
+            linked[j] = jump[j] and not path.size
             continue
         linked[j] = bool((np.abs(path @ normal[j]) / np.linalg.norm(path, axis=1)).max() < sin_tol)
     same_axis = np.abs(np.einsum("ij,ij->i", normal[:-1], normal[1:])) > np.cos(np.deg2rad(config.axis_tolerance_deg))
@@ -329,7 +333,9 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     moving = np.ones(n, bool)
     for r in rotations:
         moving[r.start : r.stop] = False
-    sequences = _sequences(y, dwells, means, offset, moving, config)
+    # the next dwell begins at the sample after this one's last, one sample interval later
+    jump = (dwells[1:, 0] == dwells[:-1, 1]) & (t_ns[dwells[1:, 0]] - t_ns[dwells[:-1, 1] - 1] <= 1.5 * dt_ns)
+    sequences = _sequences(y, dwells, means, offset, moving, jump, config)
     return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset)
 
 
