@@ -6,8 +6,11 @@ segments, found from ``t, u, v, w`` alone.
 
 Scenarios (``tests/steps_checks.py``, one recording per seed): the default
 plan with step moves of zero time and the logger paused 5 s between
-segments (the acceptance case), the same at 20 Hz and at 5 Hz output, and a
-continuous recording (the logger never paused) with instantaneous steps.
+segments (the acceptance case); the default plan, whose logger also pauses
+during the 1 s step moves; the continuous recording of issue 5 (slow moves,
+the logger never paused); the acceptance case at 20, 5 and 2 Hz output (at
+2 Hz six samples a step); and a continuous recording with instantaneous
+steps.
 Prints a Markdown table: seeds with every rate found (0 Hz included),
 values beyond 3u of the truth, the normalised errors' RMS and largest,
 static sequences and their steps, missing-sample warnings, pauses reported.

@@ -24,6 +24,7 @@ SCENARIOS = {
     "continuous recording, 1 s step moves (slow moves, issue 5)": "continuous=true",
     "the same at 20 Hz (each pause a whole number of samples)": "step_move_s=0,dt_s=0.05",
     "the same at 5 Hz": "step_move_s=0,dt_s=0.2",
+    "the same at 2 Hz, 6 samples a step": "step_move_s=0,dt_s=0.5,step_samples=6,rotation_samples=1000",
     "continuous recording, instantaneous steps": "continuous=true,step_move_s=0",
 }
 ACCEPTANCE = "instantaneous steps, 5 s pauses between segments"
