@@ -14,6 +14,9 @@ steps.
 Prints a Markdown table: seeds with every rate found (0 Hz included),
 values beyond 3u of the truth, the normalised errors' RMS and largest,
 static sequences and their steps, missing-sample warnings, pauses reported.
+Then the same recordings with packets lost at random (three runs of 2 s
+each): the lost runs inside a segment must stay gaps (missing samples), and
+those between segments become pauses.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from steps_checks import SCENARIOS, StepsChecked, check_steps  # noqa: E402
+from steps_checks import LOST_PACKETS, SCENARIOS, StepsChecked, check_lost_packets, check_steps  # noqa: E402
 
 RATES = (0.0, 0.01, 0.05, 0.1, 0.5)
 
@@ -37,6 +40,12 @@ def _one(args: tuple[str, int]) -> StepsChecked:
     scenario, seed = args
     with tempfile.TemporaryDirectory() as work:
         return check_steps(scenario, seed, Path(work))
+
+
+def _lost(args: tuple[str, int]) -> tuple[str, tuple[int, int, int, int]]:
+    scenario, seed = args
+    with tempfile.TemporaryDirectory() as work:
+        return scenario, check_lost_packets(scenario, seed, Path(work))
 
 
 def main() -> None:
@@ -62,6 +71,15 @@ def main() -> None:
         print(f"| {scenario} (`{plan}`) | {every}/{len(rows)} | {beyond}/{z.size} ({100 * beyond / max(z.size, 1):.2g} %) "
               f"| {np.sqrt(np.mean(z**2)):.2f} | {np.abs(z).max():.2f} | {', '.join(sequences)} "
               f"| {sum(len(r.missing_warnings) for r in rows)} | {', '.join(pauses)} |")
+    lossy = [s for s, plan in SCENARIOS.items() if "dt_s=0.5" not in plan]
+    with ProcessPoolExecutor(args.workers) as pool:
+        lost = list(pool.map(_lost, [(scenario, args.first + s) for scenario in lossy for s in range(args.seeds)]))
+    print(f"\n| scenario, `--timebase {LOST_PACKETS}` | lost runs inside segments: reported as gaps "
+          "| lost runs between segments: reported as pauses |")
+    print("|---|---|---|")
+    for scenario in lossy:
+        inside, between, gaps, pauses = np.sum([r for s, r in lost if s == scenario], axis=0)
+        print(f"| {scenario} | {gaps} of {inside} | {pauses} of {between} |")
 
 
 if __name__ == "__main__":

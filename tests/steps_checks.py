@@ -20,12 +20,12 @@ from rotcal.simulate import SimulationSpec, simulate, write_dataset
 # scenario -> the plan numbers (the CLI form of ``rotcal simulate --plan``)
 SCENARIOS = {
     "instantaneous steps, 5 s pauses between segments": "step_move_s=0",
+    "instantaneous steps, 5 s pauses, 20 Hz (each pause a whole number of samples)": "step_move_s=0,dt_s=0.05",
+    "instantaneous steps, 5 s pauses, 5 Hz": "step_move_s=0,dt_s=0.2",
+    "instantaneous steps, 5 s pauses, 2 Hz, 6 samples a step": "step_move_s=0,dt_s=0.5,step_samples=6,rotation_samples=1000",
+    "continuous recording (no pauses), instantaneous steps": "continuous=true,step_move_s=0",
     "the default plan: the logger also paused during the 1 s step moves": "",
     "continuous recording, 1 s step moves (slow moves, issue 5)": "continuous=true",
-    "the same at 20 Hz (each pause a whole number of samples)": "step_move_s=0,dt_s=0.05",
-    "the same at 5 Hz": "step_move_s=0,dt_s=0.2",
-    "the same at 2 Hz, 6 samples a step": "step_move_s=0,dt_s=0.5,step_samples=6,rotation_samples=1000",
-    "continuous recording, instantaneous steps": "continuous=true,step_move_s=0",
 }
 ACCEPTANCE = "instantaneous steps, 5 s pauses between segments"
 
@@ -73,3 +73,28 @@ def check_steps(scenario: str, seed: int, work: Path) -> StepsChecked:
         tuple(w for w in outcome.warnings if "missing" in w),
         float(timebase.filter(pl.col("check") == "logging_pauses")["value"].sum()),
     )
+
+
+LOST_PACKETS = "gap_count=3,gap_s=2"
+
+
+def check_lost_packets(scenario: str, seed: int, work: Path) -> tuple[int, int, int, int]:
+    """The scenario's recording with packets lost at random (``LOST_PACKETS``):
+    the lost runs inside a plan segment (on one step of a static sequence)
+    and between segments by the simulator's labels, the gaps rotcal reports
+    as missing samples, and the pauses it reports beyond the plan's own."""
+    spec = SimulationSpec().with_plan(SCENARIOS[scenario]).with_timebase(LOST_PACKETS)
+    sim = simulate(spec, seed)
+    s = sim.samples
+    interval = np.diff(s["t_ns"].to_numpy())
+    longer = interval > spec.timebase.gap_s * 1e9 + 2 * spec.plan.dt_s * 1e9  # the plan's pauses (a lost run beside one joins it)
+    lost = np.flatnonzero((interval > 5.5 * spec.plan.dt_s * 1e9) & ~longer)
+    segment = s["plan_segment"].fill_null(-1).to_numpy()
+    step = s["angle_deg"].fill_null(np.nan).to_numpy()
+    static = s["rate_hz"].fill_null(0.0).to_numpy() == 0
+    inside = (segment[lost] == segment[lost + 1]) & (segment[lost] >= 0) & (~static[lost] | (step[lost] == step[lost + 1]))
+    data = write_dataset(sim, spec, work / f"lost{seed}", "csv-unlabelled")
+    run_dataset(data, work / f"lost{seed}_out", config=RunConfig(run=RunSection(workers=1)))
+    found = {r["check"]: r for r in pl.read_parquet(work / f"lost{seed}_out" / "timebase.parquet").iter_rows(named=True)}
+    n_gaps = int(found["gaps"]["evidence"].split(" runs")[0])
+    return int(inside.sum()), int((~inside).sum()), n_gaps, int(found["logging_pauses"]["value"]) - int(longer.sum())
