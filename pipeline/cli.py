@@ -135,6 +135,7 @@ def simulate_cmd(
     config: Annotated[Path | None, typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
     timebase: Annotated[str | None, typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
+    plan: Annotated[str | None, typer.Option(help="plan numbers key=value,..., e.g. step_move_s=0,dt_s=0.05 (steps faster than a sample)")] = None,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
     spec = _spec(config, effect)
@@ -142,6 +143,8 @@ def simulate_cmd(
         spec = replace(spec, plan=replace(spec.plan, continuous=True))
     if timebase:
         spec = spec.with_timebase(timebase)
+    if plan:
+        spec = spec.with_plan(plan)
     from rotcal.simulate import simulate, write_dataset
 
     path = write_dataset(simulate(spec, seed), spec, writable_out(directory), fmt)

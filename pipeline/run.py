@@ -49,7 +49,7 @@ from rotcal.metrology import (
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.tables import write_parquet
-from rotcal.timebase import findings_frame, repair_timebase
+from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
@@ -186,6 +186,7 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
+    timebase = classify_gaps(timebase, inferred.samples, inferred.segments)  # gaps between segments: pauses
     # a table recording (labelled or found in the signals); otherwise a static one (``reduce``)
     table = not inferred.segments.filter(pl.col("kind").is_in(["static", "rotation"])).is_empty()
     if table:

@@ -24,7 +24,11 @@ recording that carries nothing but ``t, u, v, w``.
 5. Step sequences: consecutive dwells joined by moves that stay in the plane
    through the offset of the two dwells' outputs, about one common axis,
    form a static step sequence (its axis from the plane of its dwell means);
-   other dwells are single poses of unknown orientation.
+   a move faster than one sample (the output jumps between two consecutive
+   samples) has no samples to stray from that plane and joins its dwells on
+   their means alone. A time gap between two dwells (the logger paused; the
+   move, perhaps a hand's, unseen) joins nothing. Other dwells are single
+   poses of unknown orientation.
 """
 
 from __future__ import annotations
@@ -211,10 +215,11 @@ def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.n
 
 
 def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
-               config: BlindConfig) -> tuple[StepSequence, ...]:
+               recorded: np.ndarray, config: BlindConfig) -> tuple[StepSequence, ...]:
     """Step sequences: chains of dwells linked by in-plane moves about one
     axis (``move`` marks the samples that may belong to a move: not those of
-    a constant rotation)."""
+    a constant rotation; ``recorded`` the consecutive dwells with no time gap
+    between them: the move, if any, is in the samples)."""
     k = len(dwells)
     if k < config.min_steps:
         return ()
@@ -227,8 +232,9 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
     for j in np.flatnonzero(linked):
         between = slice(dwells[j, 1], dwells[j + 1, 0])
         path = y[between] - offset
-        if not path.size or not move[between].all():
-            linked[j] = False
+        if not recorded[j] or not path.size or not move[between].all():
+            # no sample between two dwells with no time gap: a move faster than a sample
+            linked[j] = recorded[j] and not path.size
             continue
         linked[j] = bool((np.abs(path @ normal[j]) / np.linalg.norm(path, axis=1)).max() < sin_tol)
     same_axis = np.abs(np.einsum("ij,ij->i", normal[:-1], normal[1:])) > np.cos(np.deg2rad(config.axis_tolerance_deg))
@@ -329,7 +335,10 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     moving = np.ones(n, bool)
     for r in rotations:
         moving[r.start : r.stop] = False
-    sequences = _sequences(y, dwells, means, offset, moving, config)
+    # a time gap (as the stillness detector has it) between one dwell's last sample and the next one's first
+    gaps_before = np.r_[0, np.cumsum(np.diff(t_ns) > config.stillness.gap_factor * dt_ns)]
+    recorded = gaps_before[dwells[1:, 0]] == gaps_before[dwells[:-1, 1] - 1]
+    sequences = _sequences(y, dwells, means, offset, moving, recorded, config)
     return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset)
 
 

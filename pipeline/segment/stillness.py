@@ -10,6 +10,13 @@ percentile, so the floor is also capped by the white-noise variance that
 second differences show (var(y[k+1] - 2 y[k] + y[k-1]) = 6 sigma^2, robustly
 from their median absolute deviation; slow motion barely adds to it). Nothing
 beyond the samples and their time stamps is needed.
+
+A still interval is a chain of overlapping quiet windows: it ends where no
+quiet window holds both of two neighbouring samples. That is where the
+output jumped between them: a move faster than one sample (a table indexing
+within a sample period), whose windows on either side are both quiet while
+every window across it is not. A time gap of ``gap_factor`` periods ends an
+interval too.
 """
 
 from __future__ import annotations
@@ -41,13 +48,13 @@ def moving_variance(y: np.ndarray, window: int) -> np.ndarray:
     return np.maximum((s2[window:] - s2[:-window]) / window - mean**2, 0.0)
 
 
-def still_mask(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> np.ndarray:
-    """True for every sample inside a still window."""
+def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
+    """Which windows (by first sample, ``n - window + 1`` of them) are quiet, and the window length."""
     n = t_ns.size
     dt_s = float(np.median(np.diff(t_ns))) / 1e9 if n > 1 else 1.0
     window = max(3, int(round(config.window_s / dt_s)))
     if n < window:
-        return np.zeros(n, bool)
+        return np.zeros(0, bool), window
     var = moving_variance(y, window)
     integer = np.all(y == np.round(y))
     second = np.diff(y, 2, axis=0)
@@ -58,6 +65,11 @@ def still_mask(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = Stilln
     gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
     gap_before = np.concatenate([[0], np.cumsum(gap)])
     quiet &= gap_before[window - 1 :] == gap_before[: n - window + 1]  # no gap inside the window
+    return quiet, window
+
+
+def _covered(quiet: np.ndarray, window: int, n: int) -> np.ndarray:
+    """True for every sample inside a quiet window."""
     cover = np.zeros(n + 1, int)
     starts = np.flatnonzero(quiet)
     np.add.at(cover, starts, 1)
@@ -68,10 +80,16 @@ def still_mask(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = Stilln
 def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
     """Still intervals at least ``min_dwell_s`` long: sample range, times,
     per-channel mean and standard deviation."""
-    mask = still_mask(t_ns, y, config)
+    quiet, window = quiet_windows(t_ns, y, config)
+    mask = _covered(quiet, window, t_ns.size)
     dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
     gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
-    # runs of still samples, split at time gaps
+    # a jump between samples i-1 and i: no quiet window (first sample in i-window+1 .. i-1) holds both
+    starts_before = np.r_[0, np.cumsum(quiet)]
+    i = np.arange(t_ns.size)
+    spanning = (starts_before[np.clip(i, 0, quiet.size)] - starts_before[np.clip(i - window + 1, 0, quiet.size)])
+    gap |= np.r_[False, mask[:-1] & mask[1:]] & (spanning == 0)
+    # runs of still samples, split at time gaps and jumps
     starts = np.flatnonzero(mask & (np.r_[True, ~mask[:-1]] | gap))
     ends = np.flatnonzero(mask & (np.r_[~mask[1:], True] | np.r_[gap[1:], True])) + 1
     long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s

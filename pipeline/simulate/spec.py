@@ -6,7 +6,7 @@ it, and the logger's time-base defects; from the CLI form
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +108,12 @@ class SimulationSpec:
 
     def with_timebase(self, text: str) -> SimulationSpec:
         """Time-base defects from ``key=value,...`` (the CLI form)."""
-        return replace(self, timebase=TimebaseDefects.parse(text, self.timebase))
+        return replace(self, timebase=key_values(self.timebase, text, "timebase"))
+
+    def with_plan(self, text: str) -> SimulationSpec:
+        """The plan's numbers from ``key=value,...`` (the CLI form), e.g.
+        ``step_move_s=0,dt_s=0.05``: steps faster than a sample at 20 Hz."""
+        return replace(self, plan=key_values(self.plan, text, "plan"))
 
     def with_effects(self, *specs: str) -> SimulationSpec:
         return replace(self, effects=self.effects + tuple(parse_effect(s) for s in specs))
@@ -125,6 +130,29 @@ class Simulation:
     truth: dict
     dut: Dut
     effects: Effects
+
+
+def key_values(base, text: str, table: str):
+    """``base`` (a plan or time-base dataclass) with the numbers of
+    ``key=value,key=value`` (the CLI form), checked; lists and names are
+    given in a simulation file."""
+    kinds = {f.name: f.type for f in fields(base) if f.type in ("int", "float", "bool")}
+    values: dict[str, object] = {}
+    for item in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = item.partition("=")
+        key, value = key.strip(), value.strip()
+        if not eq or key not in kinds:
+            raise ConfigError(f"{table}: {item!r} is not key=value with a key of {', '.join(kinds)}")
+        if kinds[key] == "bool":
+            if value not in ("true", "false"):
+                raise ConfigError(f"{table}: {key} = {value!r} is not true or false")
+            values[key] = value == "true"
+            continue
+        try:
+            values[key] = int(value) if kinds[key] == "int" else float(value)
+        except ValueError:
+            raise ConfigError(f"{table}: {key} = {value!r} is not a number") from None
+    return replace(base, **values).checked()
 
 
 def parse_effect(text: str, known: tuple[str, ...] | None = None) -> tuple[str, tuple[tuple[str, object], ...]]:

@@ -11,7 +11,7 @@ regular), Gaussian with ``jitter_s`` standard deviation.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import polars as pl
@@ -34,22 +34,6 @@ class TimebaseDefects:
     @property
     def clock_factor(self) -> float:
         return 1.0 + self.clock_drift_ppm * 1e-6
-
-    @classmethod
-    def parse(cls, text: str, base: TimebaseDefects | None = None) -> TimebaseDefects:
-        """``key=value,key=value`` (the CLI form) on top of ``base``."""
-        known = {f.name: f.type for f in fields(cls)}
-        values = asdict(base or cls())
-        for item in filter(None, (p.strip() for p in text.split(","))):
-            key, eq, value = item.partition("=")
-            key = key.strip()
-            if not eq or key not in known:
-                raise ConfigError(f"timebase: {item!r} is not key=value with a key of {', '.join(known)}")
-            try:
-                values[key] = int(value) if key == "gap_count" else float(value)
-            except ValueError:
-                raise ConfigError(f"timebase: {key} = {value.strip()!r} is not a number") from None
-        return cls(**values).checked()
 
     def checked(self) -> TimebaseDefects:
         for name in ("drop_fraction", "duplicate_fraction", "repeat_stamp_fraction"):

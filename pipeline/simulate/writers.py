@@ -100,9 +100,11 @@ def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: s
     else:
         raise ConfigError(f"unknown format {fmt!r} (csv, csv-unlabelled, mcap-cdr, mcap-json)")
     full_scale = f"full_scale = {spec.dut.full_scale:g}\n" if spec.dut.full_scale else ""
-    # a continuous recording comes with the plan's nominal rates, as a lab would write them down
-    # (a plan of static steps only has none to write: dataset.toml's rates_hz is never empty)
-    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if spec.plan.continuous and spec.plan.rates_hz else ""
+    # a recording without labels (continuous, or the segments in one file) comes with the plan's nominal
+    # rates, as a lab would write them down (a plan of static steps only has none to write: dataset.toml's
+    # rates_hz is never empty)
+    unlabelled = spec.plan.continuous or fmt == "csv-unlabelled"
+    plan = f"\n[plan]\nrates_hz = {list(spec.plan.rates_hz)!r}\n" if unlabelled and spec.plan.rates_hz else ""
     (directory / "dataset.toml").write_text(
         f'[device]\nid = "{device_id or directory.name}"\noutput_unit = "{spec.output_unit}"\n{full_scale}'
         f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n{plan}"

@@ -16,7 +16,10 @@ What it finds, per capture:
 - missing samples (empty slots) and gaps (runs of ``gap_min_slots`` or more):
   reported; the fits use each sample's own time, so nothing needs repair;
 - logging pauses: a gap after which the grid's phase changes (the logger
-  stopped and restarted); each run keeps its own offset;
+  stopped and restarted); each run keeps its own offset. Once the segments
+  are known (``classify_gaps``), a gap that falls between segments is a
+  pause too, whatever its phase: the logger rested while the table moved,
+  and no sample a fit uses is missing;
 - stamp jitter: the white part of the stamps' residuals from the grid. When
   it is detectable and the residuals are white and bounded (every sample
   within half a period of its slot), the sampling is regular and only the
@@ -31,7 +34,7 @@ capture is marked, and rotation segments in it are refused downstream.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
@@ -64,6 +67,51 @@ class Finding:
 
 
 @dataclass(frozen=True, eq=False)
+class Gaps:
+    """A capture's empty grid slots: ``missing`` in all (lone samples and
+    gaps) of ``slots``; each gap (``min_slots`` or more in a row) by the
+    time of its middle and its length in slots; and the pauses after which
+    the grid's phase changes."""
+
+    capture: str
+    missing: int
+    slots: int
+    period_s: float
+    middle_ns: np.ndarray
+    length: np.ndarray
+    phase_pauses: int
+    min_slots: int
+
+    def findings(self, between: np.ndarray | None = None) -> tuple[tuple[Finding, ...], str | None]:
+        """The ``missing_samples``, ``gaps`` and ``logging_pauses`` findings
+        and the warning, the gaps marked ``between`` segments counted as
+        pauses (not as missing samples)."""
+        between = np.zeros(self.length.size, bool) if between is None else between
+        inside = self.length[~between]
+        paused = int(self.length[between].sum())
+        missing, total = self.missing - paused, self.slots - paused
+        share = f"{100 * missing / max(total, 1):.3g} %"
+        longest = float(inside.max()) * self.period_s if inside.size else 0.0
+        n_pauses = self.phase_pauses + int(between.sum())
+        restarted = (f"{self.phase_pauses} gaps after which the sampling grid's phase changes (the logger "
+                     f"stopped and restarted: not a defect)")
+        found = (
+            Finding("missing_samples", missing > 0, float(missing), None, "1", "none: each sample keeps its own time",
+                    f"{missing} of {total} grid slots have no sample ({share})"),
+            Finding("gaps", inside.size > 0, longest, None, "s", "none: each sample keeps its own time",
+                    f"{inside.size} runs of {self.min_slots} or more missing samples, "
+                    f"longest {longest:.3g} s, {float(inside.sum()) * self.period_s:.3g} s in all"),
+            Finding("logging_pauses", False, float(n_pauses), None, "1", "none: each run keeps its own phase",
+                    restarted if not between.any() else
+                    f"{restarted}; {int(between.sum())} gaps between segments, {paused * self.period_s:.3g} s "
+                    f"in all (the logger rested while the table moved: not a defect)"),
+        )
+        warning = (f"{self.capture}: {missing} samples missing ({share}), {inside.size} gaps, longest {longest:.3g} s"
+                   if missing else None)
+        return found, warning
+
+
+@dataclass(frozen=True, eq=False)
 class CaptureTimebase:
     """The outcome for one capture: which rows stay, their (repaired) stamps,
     the fitted period, and the findings. ``unrepairable`` says why the time
@@ -75,6 +123,7 @@ class CaptureTimebase:
     findings: tuple[Finding, ...]
     unrepairable: str | None = None
     warnings: tuple[str, ...] = field(default=())
+    gaps: Gaps | None = None
 
 
 # Captures run to millions of samples: the sample-length arrays are built in
@@ -161,28 +210,22 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         counted = (r[1:] == r[:-1]) & (step != 0)
         # samples that could not be placed fill some holes
         n_missing = int(np.sum(step, where=counted)) - int(counted.sum()) - int(unplaceable.sum())
-        gap_lengths = step[counted & (step > config.gap_min_slots)] - 1
+        at_gap = counted & (step > config.gap_min_slots)
+        gap_lengths = step[at_gap] - 1
+        gap_middle = offset[r[1:][at_gap]] + period * (p[1:][at_gap] + p[:-1][at_gap]) / 2
         del p, r, step, counted
     else:
         d = intervals(s)
         holes = np.where(within & (d > 0), np.maximum(np.rint(d / period), 1.0) - 1, 0.0)
         n_missing = int(holes.sum())
-        gap_lengths = holes[holes >= config.gap_min_slots]
-    total = n_missing + int(good.sum())
-    findings.append(Finding("missing_samples", n_missing > 0, float(n_missing), None, "1",
-                            "none: each sample keeps its own time",
-                            f"{n_missing} of {total} grid slots have no sample ({100 * n_missing / max(total, 1):.3g} %)"))
-    longest = float(gap_lengths.max()) * unit_period if gap_lengths.size else 0.0
-    findings.append(Finding("gaps", gap_lengths.size > 0, longest, None, "s", "none: each sample keeps its own time",
-                            f"{gap_lengths.size} runs of {config.gap_min_slots} or more missing samples, "
-                            f"longest {longest:.3g} s, {float(gap_lengths.sum()) * unit_period:.3g} s in all"))
-    if n_missing:
-        warnings.append(f"{capture}: {n_missing} samples missing ({100 * n_missing / max(total, 1):.3g} %), "
-                        f"{gap_lengths.size} gaps, longest {longest:.3g} s")
-    n_pauses = int(run.max())
-    findings.append(Finding("logging_pauses", False, float(n_pauses), None, "1", "none: each run keeps its own phase",
-                            f"{n_pauses} gaps after which the sampling grid's phase changes (the logger "
-                            f"stopped and restarted: not a defect)"))
+        at_gap = holes >= config.gap_min_slots
+        gap_lengths = holes[at_gap]
+        gap_middle = (s[1:][at_gap] + s[:-1][at_gap]) / 2
+    gaps = Gaps(capture, n_missing, n_missing + int(good.sum()), unit_period, gap_middle, gap_lengths, int(run.max()),
+                config.gap_min_slots)
+    gap_findings, gap_warning = gaps.findings()
+    findings += gap_findings
+    warnings += [gap_warning] if gap_warning else []
 
     unrepairable = None
     refit = jittery and regular
@@ -216,7 +259,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
             t_out = s.copy()
             t_out[moved] = np.rint(offset[run[moved]] + period * placed[moved]).astype(np.int64)
     keep[np.flatnonzero(keep)[unplaceable]] = False
-    return CaptureTimebase(keep, kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings))
+    return CaptureTimebase(keep, kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings), gaps)
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,6 +271,7 @@ class TimebaseResult:
     findings: pl.DataFrame
     warnings: tuple[str, ...]
     unrepairable: dict[str, str]
+    gaps: tuple[Gaps, ...] = ()
 
 
 def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig = TimebaseConfig()) -> TimebaseResult:
@@ -239,7 +283,7 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     warnings: list[str] = []
     bad: dict[str, str] = {}
     captures = samples["capture"].unique(maintain_order=True).to_list()
-    keep, stamps = np.ones(samples.height, bool), None
+    keep, stamps, gaps = np.ones(samples.height, bool), None, []
     for capture in captures:
         mine = None if len(captures) == 1 else (samples["capture"] == capture).to_numpy()
         part = samples.select("t_ns", *CHANNELS)
@@ -253,11 +297,50 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
             stamps[np.flatnonzero(keep) if where is None else where[tb.keep]] = tb.t_ns
         rows += [{"dataset": dataset, "capture": capture, **f.__dict__} for f in tb.findings]
         warnings += tb.warnings
+        gaps += [tb.gaps] if tb.gaps else []
         if tb.unrepairable:
             bad[capture] = tb.unrepairable
     repaired = samples if stamps is None else samples.with_columns(t_ns=pl.Series(stamps, dtype=pl.Int64))
     repaired = repaired if keep.all() else repaired.filter(pl.Series(keep))
-    return TimebaseResult(_time_ordered(repaired, captures), findings_frame(rows), tuple(warnings), bad)
+    return TimebaseResult(_time_ordered(repaired, captures), findings_frame(rows), tuple(warnings), bad, tuple(gaps))
+
+
+def classify_gaps(result: TimebaseResult, samples: pl.DataFrame, segments: pl.DataFrame) -> TimebaseResult:
+    """The time base once the segments are known: a gap is missing samples
+    only inside a segment (the samples on both sides in one segment, and in
+    a static sequence on one step: the same ``angle_deg``); a gap between
+    segments, or between the steps of a sequence, is a logging pause (the
+    logger rested while the table moved), whatever the grid's phase. Lone
+    missing samples stay missing wherever they are. ``samples`` carry the
+    ``segment`` column; the result is ``result`` itself when no gap moves."""
+    static = segments.filter(pl.col("kind") == "static")["segment"].to_numpy()
+    rows, warnings = result.findings.to_dicts(), list(result.warnings)
+    changed = False
+    for gaps in result.gaps:
+        if not gaps.length.size:
+            continue
+        mine = samples.filter(pl.col("capture") == gaps.capture)
+        t = mine["t_ns"].to_numpy()
+        segment = mine["segment"].fill_null(-1).to_numpy()
+        step = mine["angle_deg"].fill_null(np.nan).to_numpy()
+        on_step = np.isin(segment, static)
+        after = np.clip(np.searchsorted(t, gaps.middle_ns), 1, max(t.size - 1, 1))
+        before = after - 1
+        same_step = ~on_step[before] | (step[before] == step[after]) | (np.isnan(step[before]) & np.isnan(step[after]))
+        between = ~((segment[before] == segment[after]) & (segment[before] >= 0) & same_step)
+        if not between.any():
+            continue
+        changed = True
+        old_warning = gaps.findings()[1]
+        new_findings, new_warning = gaps.findings(between)
+        renewed = {f.check: f for f in new_findings}
+        rows = [{**r, **renewed[r["check"]].__dict__} if r["capture"] == gaps.capture and r["check"] in renewed else r
+                for r in rows]
+        warnings = [w for w in warnings if w != old_warning] if new_warning is None else \
+            [new_warning if w == old_warning else w for w in warnings]
+    if not changed:
+        return result
+    return replace(result, findings=findings_frame(rows), warnings=tuple(warnings))
 
 
 def _time_ordered(samples: pl.DataFrame, captures: list[str]) -> pl.DataFrame:
