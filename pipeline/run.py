@@ -173,7 +173,8 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
                        tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
                        baseline_reason(diagnosis, reductions, config, diagnosis_notes))
     # the model-dependent tables of the recommended model
-    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen, ds, config)
+    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
+                                                 recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
@@ -297,12 +298,7 @@ def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> 
 def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> Figure:
     """``calibration.json``: the recommended result per rate, g_local and
     its source, the inputs' hashes and every configuration key."""
-    meta = ds.meta
-    device = {k: v for k, v in (("id", meta.device_id), ("output_unit", meta.output_unit),
-                                ("full_scale", meta.full_scale)) if v is not None}
-    calibration = recommended_calibration(chosen, ds.name, device, meta.output_unit, meta.g_local,
-                                          meta.g_local_uncertainty, meta.g_local_source,
-                                          content_hashes(ds.inputs, ds.root), asdict(config))
+    calibration = recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
     return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
 
 
@@ -337,23 +333,37 @@ def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset
     return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else []), tuple(warnings)
 
 
-def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommended, ds: Dataset,
-                    config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
+def recommended_fits(seg: Segmented, diagnosis: Diagnosis | None, chosen: Recommended, ds: Dataset,
+                     config: RunConfig) -> pl.DataFrame:
+    """The segment fits under the recommended model: under the refined one,
+    those of the samples less its modelled effects (``diagnose.corrected``)."""
+    if chosen.model == BASELINE or diagnosis is None:
+        return seg.labelled_fits
+    from rotcal.diagnose.corrected import without_effects
+
+    samples = without_effects(seg.samples, seg.segments, seg.fits, diagnosis)
+    referenced = seg.segments.filter(pl.col("angle_source") != "none")
+    return fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers), seg.segments, ds.name)
+
+
+def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommended, chosen_fits: pl.DataFrame,
+                    ds: Dataset, config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
     """Issue 3's tables of a table (step or rotation) dataset: uncertainty
     budget, Geist's simultaneous solution and consistency checks, Gaitan's
     estimators, the frequency response with its plot, and the optional Monte
     Carlo; with the notes they give. They exist only for the rates of the
     segments whose phases are the table's (the labelled reduction). The
     consistency checks and the frequency response are those of the
-    recommended model; the budget, the simultaneous solution and the Monte
-    Carlo those of the baseline reduction they decompose or repeat."""
+    recommended model (its results; ``chosen_fits``, the segment fits under
+    it); the budget, the simultaneous solution, Gaitan's estimators and the
+    Monte Carlo those of the baseline reduction they decompose or repeat."""
     if labelled is None or not labelled.results:
         return [], ()
     samples, fits, results = seg.samples, seg.labelled_fits, list(labelled.results)
     dataset, unit, g, u_g = ds.name, ds.meta.output_unit, ds.meta.g_local, ds.meta.g_local_uncertainty
-    consistency = consistency_frame(fits, g, dataset, unit, chosen.model)
-    response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], fits, dataset, unit,
-                                        chosen.model)
+    consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model)
+    response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], chosen_fits,
+                                        dataset, unit, chosen.model)
     both = [r for r in simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if isinstance(r, IntrinsicResult)]
     outputs: list[Table | Figure] = [
         Table("uncertainty_budget", budget_frame(results, dataset, unit)),

@@ -19,7 +19,7 @@ import os
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jsonschema
 import numpy as np
@@ -29,6 +29,9 @@ from rotcal.errors import InputError
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal.tables import schema_text
+
+if TYPE_CHECKING:
+    from rotcal.ingest.meta import DatasetMeta
 
 CALIBRATION_SCHEMA = "calibration"
 CALIBRATION_VERSION = "1.0"
@@ -276,13 +279,17 @@ class Calibration:
                    tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
 
 
-def recommended_calibration(chosen: Recommended, dataset: str, device: dict[str, Any], unit: str, g_local: float,
-                            g_uncertainty: float, g_source: str, inputs: tuple[dict[str, Any], ...],
+def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],
                             configuration: dict[str, Any]) -> Calibration:
-    """The run's document: ``chosen``'s result per rate, with rotcal's
-    version and the time of the run (``created_utc``)."""
+    """The run's document: ``chosen``'s result per rate, the dataset's
+    metadata (device, g_local and its source), rotcal's version and the time
+    of the run (``created_utc``)."""
     from rotcal import __version__
 
-    return Calibration(dataset, device, unit, g_local, g_uncertainty, g_source, inputs, configuration, __version__,
-                       created_utc(), tuple(rate_calibration(r, f, chosen.model, chosen.reason, unit)
-                                            for r, f in zip(chosen.results, chosen.frames)))
+    unit = meta.output_unit
+    device = {k: v for k, v in (("id", meta.device_id), ("output_unit", unit), ("full_scale", meta.full_scale))
+              if v is not None}
+    return Calibration(dataset, device, unit, meta.g_local, meta.g_local_uncertainty, meta.g_local_source, inputs,
+                       configuration, __version__, created_utc(),
+                       tuple(rate_calibration(r, f, chosen.model, chosen.reason, unit)
+                             for r, f in zip(chosen.results, chosen.frames)))
