@@ -59,7 +59,7 @@ if TYPE_CHECKING:
 @dataclass(frozen=True, eq=False)
 class RunOutcome:
     """What a run produced: results per rate, warnings (failed segments or
-    rates), notes (defaults applied) and the files written."""
+    rates), notes (defaults applied), the files written and the recommended model."""
 
     dataset: str
     output_unit: str
@@ -67,9 +67,9 @@ class RunOutcome:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     written: tuple[Path, ...]
+    recommended: Recommended
     diagnosis: Diagnosis | None = None
     static: StaticReduction | None = None
-    recommended: Recommended | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,8 +180,8 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
                calibration_output(chosen, ds, config)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), diagnosis, reductions.static,
-                      chosen)
+                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), chosen, diagnosis,
+                      reductions.static)
 
 
 def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
