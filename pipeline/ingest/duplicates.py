@@ -22,10 +22,14 @@ def sha256_hex(path: Path) -> str:
 
 
 def content_hashes(files: tuple[Path, ...], root: Path) -> tuple[dict, ...]:
-    """Each file's path relative to ``root``, size in bytes and SHA-256:
-    what identifies a run's inputs (calibration.json's ``inputs``)."""
-    return tuple({"path": Path(os.path.relpath(f.resolve(), root.resolve())).as_posix(), "bytes": f.stat().st_size,
-                  "sha256": sha256_hex(f)} for f in files)
+    """Each file's path (relative to ``root``; absolute when outside it, as
+    a ``--meta`` file may be), size in bytes and SHA-256: what identifies a
+    run's inputs (calibration.json's ``inputs``)."""
+    def name(f: Path) -> str:
+        resolved = f.resolve()
+        return (resolved.relative_to(root.resolve()) if resolved.is_relative_to(root.resolve()) else resolved).as_posix()
+
+    return tuple({"path": name(f), "bytes": f.stat().st_size, "sha256": sha256_hex(f)} for f in files)
 
 
 def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[tuple[str, str], ...]]:
