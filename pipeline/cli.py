@@ -81,7 +81,7 @@ def _print_diagnosis(diagnosis, output_unit: str) -> None:
 
 def _print_outcome(outcome, quiet: bool = False) -> None:
     # the stages and their tables load when a command needs them: rotcal batch's start-up stays short
-    from rotcal.report import pose_check_table, static_fit_summary, summary_table
+    from rotcal.report import pose_check_table, recommendation_line, static_fit_summary, summary_table
 
     for note in outcome.notes:
         err.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
@@ -89,13 +89,14 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
         unit = escape(outcome.output_unit)  # dataset.toml's text, printed inside the table's rich markup
-        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, value ± U (95 %)"))
+        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, baseline model, value ± U (95 %)"))
         if outcome.diagnosis is not None:
             _print_diagnosis(outcome.diagnosis, unit)
         if outcome.static is not None:
             out.print(static_fit_summary(outcome.static, unit), highlight=False)
             out.print(pose_check_table(outcome.static.check, outcome.static.result.g_local,
                                        f"{escape(outcome.dataset)}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
+        out.print(recommendation_line(outcome.recommended), highlight=False, markup=False)
     folder = outcome.written[0].parent if outcome.written else None
     out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False, markup=False)
 
@@ -108,6 +109,7 @@ def run(
     config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml")] = None,
     workers: Annotated[int | None, typer.Option(min=0, help="cores the run uses ([run] workers); 0 = every core it may run on")] = None,
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
+    json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary (the recommended result per rate, warnings, files written) as JSON on stdout")] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
     from rotcal.run import run_dataset
@@ -115,7 +117,25 @@ def run(
     cfg = load_config(config)
     if workers is not None:
         cfg = with_options(cfg, run={"workers": workers})
-    _print_outcome(run_dataset(dataset, writable_out(out_dir), meta, cfg), quiet)
+    if not json_summary:
+        _print_outcome(run_dataset(dataset, writable_out(out_dir), meta, cfg), quiet)
+        return
+    from rotcal.report import run_summary
+
+    try:
+        outcome = run_dataset(dataset, writable_out(out_dir), meta, cfg)
+    except RotcalError as exc:  # the document says why; the one-line message follows on stderr
+        _print_json({"dataset": str(dataset), "exit_status": int(exc.exit_code), "error": str(exc)})
+        raise
+    _print_json(run_summary(outcome.dataset, outcome.output_unit, outcome.recommended, outcome.warnings,
+                            outcome.notes, outcome.written))
+
+
+def _print_json(document: dict) -> None:
+    """A command's ``--json`` document on stdout (``run``, ``batch``)."""
+    import json
+
+    print(json.dumps(document, indent=2))
 
 
 def _spec(config: Path | None, effect: list[str] | None) -> SimulationSpec:
@@ -248,8 +268,6 @@ def batch(
     figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
-    import json
-
     from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}
@@ -257,7 +275,7 @@ def batch(
     with Reporter(err) as reporter:
         summary = run_batch(root, writable_out(out_dir), cfg, reporter)
     if json_summary:
-        print(json.dumps(summary.as_dict(), indent=2))
+        _print_json(summary.as_dict())
     else:
         out.print(summary.text(), highlight=False, markup=False, soft_wrap=True)
     raise typer.Exit(summary.exit_status)

@@ -8,7 +8,7 @@ logic."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,7 +28,7 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
 from rotcal.ingest import Dataset, load_dataset
-from rotcal.ingest.duplicates import duplicate_findings
+from rotcal.ingest.duplicates import content_hashes, duplicate_findings
 from rotcal.metrology import (
     budget_frame,
     consistency_frame,
@@ -47,6 +47,7 @@ from rotcal.metrology import (
     temperature_frame,
 )
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
+from rotcal.model.calibration import BASELINE, Recommended, mark_recommended, recommend, recommended_calibration
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.tables import write_parquet
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
@@ -58,7 +59,7 @@ if TYPE_CHECKING:
 @dataclass(frozen=True, eq=False)
 class RunOutcome:
     """What a run produced: results per rate, warnings (failed segments or
-    rates), notes (defaults applied) and the files written."""
+    rates), notes (defaults applied), the files written and the recommended model."""
 
     dataset: str
     output_unit: str
@@ -66,6 +67,7 @@ class RunOutcome:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     written: tuple[Path, ...]
+    recommended: Recommended
     diagnosis: Diagnosis | None = None
     static: StaticReduction | None = None
 
@@ -73,7 +75,7 @@ class RunOutcome:
 @dataclass(frozen=True, eq=False)
 class Figure:
     """A file drawn into the output directory (a plot, the diagnosis
-    report): ``draw`` returns its path, or None when there is nothing to draw."""
+    report, calibration.json): ``draw`` returns its path, or None when there is nothing to draw."""
 
     name: str
     draw: Callable[[Path], Path | None]
@@ -81,7 +83,7 @@ class Figure:
 
 # the run's files in the order they are published (and listed in RunOutcome.written)
 PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
-                 "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
+                 "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
                  "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
                  "frequency_response", "frequency_response_png", "monte_carlo", "poses")
 # the tables that describe the input rather than a result: published even when no rate can be determined
@@ -165,14 +167,21 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         publish([t for t in _tables(seg, reductions) if t.name in INPUT_TABLES], out)
         raise
     assert isinstance(reductions, Reductions)  # determined() raises for a Failure
-    # issue 3's tables before the diagnosis, whose imports and figures then stay in memory
-    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, ds, config)
     diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
+    intrinsic = intrinsic_table(results, diagnosis, ds)
+    chosen = recommend(intrinsic, results, frames, diagnosis.refined if diagnosis else (),
+                       tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
+                       baseline_reason(diagnosis, reductions, config, diagnosis_notes))
+    # the model-dependent tables of the recommended model
+    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
+                                                 recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    outputs = [*_tables(seg, reductions), *result_tables(results, frames, diagnosis, ds),
-               *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology]
+    outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
+               *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
+               calibration_output(chosen, ds, config)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), diagnosis, reductions.static)
+                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), chosen, diagnosis,
+                      reductions.static)
 
 
 def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
@@ -258,17 +267,40 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
     return diagnosis, ()
 
 
-def result_tables(results: tuple[IntrinsicResult, ...], frames: tuple[str, ...], diagnosis: Diagnosis | None,
-                  ds: Dataset) -> list[Table]:
-    """The ``intrinsic`` table (baseline, and refined by the diagnosis) and
-    the cross-sensitivities in each result's frame."""
+def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | None, ds: Dataset) -> pl.DataFrame:
+    """The ``intrinsic`` rows: baseline, and refined by the diagnosis."""
     unit = ds.meta.output_unit
-    intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
+    intrinsic = intrinsic_frame(list(results), ds.name, BASELINE, unit)
     if diagnosis is not None:
         intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
+    return intrinsic
+
+
+def baseline_reason(diagnosis: Diagnosis | None, reductions: Reductions, config: RunConfig,
+                    diagnosis_notes: tuple[str, ...]) -> str:
+    """Why the baseline model is the result when it is: what the diagnosis found, or why it did not run."""
+    if diagnosis is not None:
+        return "the diagnosis found no effect to model"
+    why = (diagnosis_notes[0] if diagnosis_notes else "static poses (the diagnosis models table rotations)"
+           if reductions.static is not None else "switched off ([diagnosis] enabled = false)"
+           if not config.diagnosis.enabled else "no fitted table segments")
+    return f"diagnosis not run: {why.removeprefix('diagnosis skipped: ')}"
+
+
+def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> list[Table]:
+    """The ``intrinsic`` table and the cross-sensitivities of the
+    recommended model in each result's frame."""
     return [Table("intrinsic", intrinsic),
-            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit,
+            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(chosen.results, chosen.frames)), ds.name,
+                                                               chosen.model, ds.meta.output_unit,
                                                                ds.meta.g_local_uncertainty))]
+
+
+def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> Figure:
+    """``calibration.json``: the recommended result per rate, g_local and
+    its source, the inputs' hashes and every configuration key."""
+    calibration = recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
+    return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
 
 
 def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
@@ -302,19 +334,37 @@ def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset
     return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else []), tuple(warnings)
 
 
-def metrology_stage(seg: Segmented, labelled: Reduction | None, ds: Dataset,
-                    config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
+def recommended_fits(seg: Segmented, diagnosis: Diagnosis | None, chosen: Recommended, ds: Dataset,
+                     config: RunConfig) -> pl.DataFrame:
+    """The segment fits under the recommended model: under the refined one,
+    those of the samples less its modelled effects (``diagnose.corrected``)."""
+    if chosen.model == BASELINE or diagnosis is None:
+        return seg.labelled_fits
+    from rotcal.diagnose.corrected import without_effects
+
+    samples = without_effects(seg.samples, seg.segments, seg.fits, diagnosis)
+    referenced = seg.segments.filter(pl.col("angle_source") != "none")
+    return fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers), seg.segments, ds.name)
+
+
+def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommended, chosen_fits: pl.DataFrame,
+                    ds: Dataset, config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
     """Issue 3's tables of a table (step or rotation) dataset: uncertainty
     budget, Geist's simultaneous solution and consistency checks, Gaitan's
     estimators, the frequency response with its plot, and the optional Monte
     Carlo; with the notes they give. They exist only for the rates of the
-    segments whose phases are the table's (the labelled reduction)."""
+    segments whose phases are the table's (the labelled reduction). The
+    consistency checks and the frequency response are those of the
+    recommended model (its results; ``chosen_fits``, the segment fits under
+    it); the budget, the simultaneous solution, Gaitan's estimators and the
+    Monte Carlo those of the baseline reduction they decompose or repeat."""
     if labelled is None or not labelled.results:
         return [], ()
     samples, fits, results = seg.samples, seg.labelled_fits, list(labelled.results)
     dataset, unit, g, u_g = ds.name, ds.meta.output_unit, ds.meta.g_local, ds.meta.g_local_uncertainty
-    consistency = consistency_frame(fits, g, dataset, unit)
-    response = frequency_response_frame(results, fits, dataset, unit)
+    consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model)
+    response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], chosen_fits,
+                                        dataset, unit, chosen.model)
     both = [r for r in simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if isinstance(r, IntrinsicResult)]
     outputs: list[Table | Figure] = [
         Table("uncertainty_budget", budget_frame(results, dataset, unit)),

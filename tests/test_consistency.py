@@ -11,7 +11,7 @@ from rotcal.metrology.coverage import reduce_dataset
 
 def test_clean_dataset_is_consistent_and_statistics_add_up(make_dataset):
     red = reduce_dataset(make_dataset(41))
-    frame = consistency_frame(red.fits, 9.80101, "ds", "bit")
+    frame = consistency_frame(red.fits, 9.80101, "ds", "bit", "baseline")
     assert frame.height == 5 * 12
     assert frame["consistent"].all() and consistency_note(frame) is None
     assert frame["alpha"][0] == FAMILY_ALPHA / 60
@@ -38,7 +38,7 @@ def test_centripetal_offsets_disagree_and_components_do_not(make_dataset):
     """A sensing point 0.1 m off the x axis shifts the offsets of the x
     rotations by -w^2 r.d: at 0.5 Hz about 1000 output units on v."""
     red = reduce_dataset(make_dataset(42, effects=("centripetal:axis=x,radius_m=0.1",)))
-    frame = consistency_frame(red.fits, 9.80101, "ds", "bit")
+    frame = consistency_frame(red.fits, 9.80101, "ds", "bit", "baseline")
     fast = frame.filter((pl.col("rate_hz") >= 0.1) & (pl.col("component") == ""))
     assert not fast.filter(pl.col("channel") != "u")["consistent"].any()
     assert frame.filter(pl.col("component") != "")["consistent"].all()

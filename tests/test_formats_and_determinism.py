@@ -33,7 +33,8 @@ def _digest(directory):
             for p in sorted(directory.rglob("*")) if p.is_file()}
 
 
-def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
+def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path, monkeypatch):
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")  # calibration.json's created_utc: the time of the run otherwise
     for k in ("a", "b"):
         assert cli("simulate", tmp_path / k / "data", "--seed", "9", "--effect", "rate_ripple:axis=y,ripple_deg=0.1")[0] == 0
         assert cli("run", tmp_path / k / "data", "--out", tmp_path / k / "out", "--quiet")[0] == 0
@@ -45,12 +46,19 @@ def test_simulation_and_run_are_bit_for_bit_deterministic(cli, tmp_path):
     assert any(name.startswith("figures/") for name in produced)
 
 
-def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path):
+def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path, monkeypatch):
+    import json
+
     from rotcal.config import RunConfig, RunSection
 
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
     run_dataset(make_dataset(22), tmp_path / "one", config=RunConfig(run=RunSection(workers=1)))
     run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(run=RunSection(workers=4)))
-    assert _digest(tmp_path / "one") == _digest(tmp_path / "four")
+    one, four = _digest(tmp_path / "one"), _digest(tmp_path / "four")
+    assert one.pop("calibration.json") != four.pop("calibration.json") and one == four
+    # calibration.json records every configuration key, the worker count too: nothing else differs
+    docs = [json.loads((tmp_path / k / "calibration.json").read_text()) for k in ("one", "four")]
+    assert [d["configuration"].pop("run") for d in docs] == [{"workers": 1}, {"workers": 4}] and docs[0] == docs[1]
 
 
 def test_parquet_files_record_their_schema(make_dataset, tmp_path):

@@ -38,7 +38,7 @@ def test_nothing_non_finite_is_published(tmp_path):
     from rotcal.tables import schema as table_schema
     from rotcal.tables import write_parquet
 
-    frame = pl.DataFrame({"dataset": ["d"] * 3, "model": ["baseline"] * 3, "rate_hz": [0.0] * 3, "parameter": ["s_u", "s_v", "s_w"],
+    frame = pl.DataFrame({"dataset": ["d"] * 3, "model": ["baseline"] * 3, "recommended": [True] * 3, "rate_hz": [0.0] * 3, "parameter": ["s_u", "s_v", "s_w"],
                           "value": [1.0, np.nan, np.inf], "std_uncertainty": [0.1, 0.2, -np.inf], "dof": [np.inf, 5.0, 6.0],
                           "coverage_factor": [1.96, 2.57, 2.45], "expanded_uncertainty": [0.2, 0.5, np.nan], "unit": ["1"] * 3},
                          schema=table_schema("intrinsic").polars_schema)

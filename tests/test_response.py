@@ -16,7 +16,7 @@ from testdata import truth_of
 
 def test_clean_dataset_shows_no_frequency_dependence(make_dataset):
     red = reduce_dataset(make_dataset(61))
-    frame = frequency_response_frame(red.results, red.fits, "ds", "bit")
+    frame = frequency_response_frame(red.results, red.fits, "ds", "bit", "baseline")
     per_rate = frame.filter(pl.col("rate_hz").is_not_null())
     assert per_rate.height == 4 * 12
     assert np.abs(per_rate["z"].to_numpy()).max() < 4.5
@@ -27,9 +27,9 @@ def test_clean_dataset_shows_no_frequency_dependence(make_dataset):
 
 def test_sensitivity_ratio_is_free_of_g_local_and_uses_the_noise_only(make_dataset):
     red = reduce_dataset(make_dataset(61))
-    precise = frequency_response_frame(red.results, red.fits, "ds", "bit")
+    precise = frequency_response_frame(red.results, red.fits, "ds", "bit", "baseline")
     vague_g = combine(red.fits, 9.80101, 3e-3)  # 100 times the uncertainty of g_local
-    vague = frequency_response_frame(vague_g, red.fits, "ds", "bit")
+    vague = frequency_response_frame(vague_g, red.fits, "ds", "bit", "baseline")
     ratio = pl.col("quantity") == "sensitivity_ratio"
     np.testing.assert_allclose(vague.filter(ratio)["std_uncertainty"], precise.filter(ratio)["std_uncertainty"], rtol=1e-6)
     # while the sensitivities themselves become 20 times less certain
@@ -49,7 +49,7 @@ def test_centripetal_slope_per_axis_is_minus_r_dot_d(make_dataset):
     d = np.array([truth["effects"][0]["parameters"].get(f"d_{s}_m", 0.0) for s in "xyz"])
     resp = np.array(truth["dut"]["responsivity"])
     red = reduce_dataset(path)
-    frame = frequency_response_frame(red.results, red.fits, "ds", "bit")
+    frame = frequency_response_frame(red.results, red.fits, "ds", "bit", "baseline")
     slopes = frame.filter(pl.col("quantity") == "offset_omega2_slope")
     x = slopes.filter(pl.col("axis") == "x").sort("parameter")
     expected = -resp @ d  # output change -w^2 r.d (docs/effects.md)
@@ -66,7 +66,7 @@ def test_centripetal_slope_per_axis_is_minus_r_dot_d(make_dataset):
 
 def test_png_is_written_deterministically(make_dataset, tmp_path):
     red = reduce_dataset(make_dataset(61))
-    frame = frequency_response_frame(red.results, red.fits, "ds", "bit")
+    frame = frequency_response_frame(red.results, red.fits, "ds", "bit", "baseline")
     first = frequency_response_png(frame, tmp_path / "a.png", "ds")
     second = frequency_response_png(frame, tmp_path / "b.png", "ds")
     data = first.read_bytes()

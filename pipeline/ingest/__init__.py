@@ -33,6 +33,7 @@ class Dataset:
     samples: pl.DataFrame
     notes: tuple[str, ...] = ()
     copies: tuple[tuple[str, str], ...] = ()  # captures skipped as copies: (copy, the file it copies)
+    inputs: tuple[Path, ...] = ()  # every file the dataset is (captures, copies included, and its dataset.toml)
 
 
 def dataset_name(path: Path) -> str:
@@ -103,7 +104,8 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         meta_path = path / "dataset.toml"
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
-    captures, copies = distinct_captures(capture_files(path, meta), root)
+    files = capture_files(path, meta)
+    captures, copies = distinct_captures(files, root)
     frames, notes = [], [*meta.notes, *(f"duplicate capture: {c!r} holds the same bytes as {o!r}: read once, {c!r} skipped"
                                         for c, o in copies)]
     for file, spec in captures:
@@ -113,4 +115,6 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
         frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
     joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
     samples = conform(time_ordered(joined), "samples")
-    return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes), copies=copies)
+    inputs = tuple(f for f, _ in files) + (() if meta_path is None else (Path(meta_path),))
+    return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes), copies=copies,
+                   inputs=inputs)

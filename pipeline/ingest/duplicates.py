@@ -15,9 +15,21 @@ from rotcal.ingest.files import open_capture
 Spec = TypeVar("Spec")
 
 
-def _sha256(path: Path) -> str:
+def sha256_hex(path: Path) -> str:
+    """The SHA-256 of a file's bytes (hex), read in blocks."""
     with open_capture(path) as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def content_hashes(files: tuple[Path, ...], root: Path) -> tuple[dict, ...]:
+    """Each file's path (relative to ``root``; absolute when outside it, as
+    a ``--meta`` file may be), size in bytes and SHA-256: what identifies a
+    run's inputs (calibration.json's ``inputs``)."""
+    def name(f: Path) -> str:
+        resolved = f.resolve()
+        return (resolved.relative_to(root.resolve()) if resolved.is_relative_to(root.resolve()) else resolved).as_posix()
+
+    return tuple({"path": name(f), "bytes": f.stat().st_size, "sha256": sha256_hex(f)} for f in files)
 
 
 def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[tuple[str, str], ...]]:
@@ -32,7 +44,7 @@ def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[
     for group in (g for g in by_size.values() if len(g) > 1):
         first: dict[str, int] = {}
         for i in group:
-            original[i] = first.setdefault(_sha256(files[i][0]), i)
+            original[i] = first.setdefault(sha256_hex(files[i][0]), i)
     copies = sorted(i for i, j in original.items() if i != j)
 
     def name(i: int) -> str:

@@ -57,6 +57,7 @@ class DatasetMeta:
     full_scale: float | None = None
     g_local: float = STANDARD_GRAVITY
     g_local_uncertainty: float = STANDARD_GRAVITY_UNCERTAINTY
+    g_local_source: str = "standard gravity (default)"
     angle_source: str = "commanded"
     csv_format: CsvFormat = field(default_factory=CsvFormat)
     imu_topic: str = "/imu"
@@ -172,6 +173,7 @@ def load_meta(path: Path | None) -> DatasetMeta:
         full_scale=device.get("full_scale"),
         g_local=float(site.get("g_local", STANDARD_GRAVITY)),
         g_local_uncertainty=g_u,
+        g_local_source=f"{path.name} [site]" if "g_local" in site and path is not None else DatasetMeta.g_local_source,
         angle_source=doc.get("angle_source", "commanded"),
         csv_format=csv_format,
         imu_topic=mcap.get("imu_topic", "/imu"),

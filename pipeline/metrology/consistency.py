@@ -38,8 +38,9 @@ def chi2_sf(chi2: float, dof: int) -> float:
     return float(chdtrc(dof, chi2))
 
 
-def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str) -> pl.DataFrame:
-    """The ``consistency`` table: one row per (rate, component or offset)."""
+def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str, model: str) -> pl.DataFrame:
+    """The ``consistency`` table of the segment ``fits`` under ``model``:
+    one row per (rate, component or offset)."""
     rows = []
     for rate, segs in rate_segments(fits):
         if not segs:
@@ -61,7 +62,7 @@ def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_u
     frame = pl.DataFrame(rows, schema_overrides=schema("consistency").polars_schema, strict=False)
     alpha = FAMILY_ALPHA / max(frame.filter(pl.col("dof") > 0).height, 1)
     frame = frame.with_columns(
-        alpha=pl.lit(alpha),
+        model=pl.lit(model), alpha=pl.lit(alpha),
         consistent=pl.when(pl.col("dof") > 0).then(pl.col("p_value") >= alpha).otherwise(None),
     )
     return conform(frame, "consistency")

@@ -125,8 +125,10 @@ def _static_offset_cov_with_s0(fits: pl.DataFrame, g_local: float) -> dict[int, 
     return {seg.segment: np.array([cross[9 * k + 3 * r, r] for r in range(3)]) for k, seg in enumerate(stage.segments)}
 
 
-def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame, dataset: str, output_unit: str) -> pl.DataFrame:
-    """The ``frequency_response`` table (empty without a DC result)."""
+def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame, dataset: str, output_unit: str,
+                             model: str) -> pl.DataFrame:
+    """The ``frequency_response`` table of ``model``'s ``results`` (empty
+    without a DC result); the per-axis offset slopes from the segment ``fits``."""
     by_rate = {res.rate_hz: res for res in results}
     res_0 = by_rate.get(0.0)
     rows: list[dict] = []
@@ -151,6 +153,6 @@ def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame,
                                     part["u_C"].to_numpy(), cov_s0, res_0, output_unit)
     if not rows:
         return schema("frequency_response").empty()
-    frame = pl.DataFrame([{"dataset": dataset, "chi2": None, "dof": None, "p_value": None, **row} for row in rows],
+    frame = pl.DataFrame([{"dataset": dataset, "model": model, "chi2": None, "dof": None, "p_value": None, **row} for row in rows],
                          schema_overrides=schema("frequency_response").polars_schema, strict=False)
     return conform(frame, "frequency_response")

@@ -15,20 +15,79 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jsonschema
 import numpy as np
+import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal.tables import schema_text
 
+if TYPE_CHECKING:
+    from rotcal.ingest.meta import DatasetMeta
+
 CALIBRATION_SCHEMA = "calibration"
 CALIBRATION_VERSION = "1.0"
+BASELINE, REFINED = "baseline", "refined"
+
+
+def recommended_model(intrinsic: pl.DataFrame, modelled: tuple[str, ...], baseline_reason: str) -> tuple[str, str]:
+    """The model of ``intrinsic.parquet`` whose rows are the result, and why.
+
+    The refined model where the diagnosis modelled effects (``modelled``,
+    its findings): the papers' model omits them, so its estimates carry
+    their bias (a channel delay's phase read as angle; Geist 2017's model
+    has no term for it), while the refined one estimates the same nine
+    parameters with the effects as extra terms. The baseline otherwise,
+    for ``baseline_reason`` (no effect found, or the diagnosis not run).
+    The one place that chooses: a dataset with other candidate models
+    adds its rule here."""
+    models = set(intrinsic["model"].to_list())
+    if REFINED in models and modelled:
+        return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}"
+    return BASELINE, baseline_reason
+
+
+@dataclass(frozen=True, eq=False)
+class Recommended:
+    """The recommended model, why, and its results per rate with the frames
+    of their responsivity vectors."""
+
+    model: str
+    reason: str
+    results: tuple[IntrinsicResult, ...]
+    frames: tuple[str, ...]
+
+
+def recommend(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...], frames: tuple[str, ...],
+              refined: tuple[IntrinsicResult, ...], modelled: tuple[str, ...], baseline_reason: str) -> Recommended:
+    """The recommended model (``recommended_model``) with its results: the
+    baseline ``results`` or the ``refined`` ones, in the baseline's frames."""
+    model, reason = recommended_model(intrinsic, modelled, baseline_reason)
+    if model == BASELINE:
+        return Recommended(model, reason, results, frames)
+    frame_of = dict(zip((r.rate_hz for r in results), frames))
+    return Recommended(model, reason, refined, tuple(frame_of[r.rate_hz] for r in refined))
+
+
+def mark_recommended(intrinsic: pl.DataFrame, model: str) -> pl.DataFrame:
+    """``intrinsic`` with its ``recommended`` column: the rows of ``model``."""
+    return intrinsic.with_columns(recommended=pl.col("model") == model)
+
+
+def created_utc() -> str:
+    """The time of the run, UTC ISO 8601 to the second; ``SOURCE_DATE_EPOCH``
+    (reproducible-builds.org) when set, so that reruns are bit-identical."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = datetime.fromtimestamp(int(epoch), UTC) if epoch and epoch.isdigit() else datetime.now(UTC)
+    return when.isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 @dataclass(frozen=True)
@@ -218,3 +277,19 @@ class Calibration:
         return cls(doc["dataset"], doc["device"], doc["output_unit"], float(g["value"]), float(g["std_uncertainty"]),
                    g["source"], tuple(doc["inputs"]), doc["configuration"], doc["rotcal_version"], doc["created_utc"],
                    tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
+
+
+def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],
+                            configuration: dict[str, Any]) -> Calibration:
+    """The run's document: ``chosen``'s result per rate, the dataset's
+    metadata (device, g_local and its source), rotcal's version and the time
+    of the run (``created_utc``)."""
+    from rotcal import __version__
+
+    unit = meta.output_unit
+    device = {k: v for k, v in (("id", meta.device_id), ("output_unit", unit), ("full_scale", meta.full_scale))
+              if v is not None}
+    return Calibration(dataset, device, unit, meta.g_local, meta.g_local_uncertainty, meta.g_local_source, inputs,
+                       configuration, __version__, created_utc(),
+                       tuple(rate_calibration(r, f, chosen.model, chosen.reason, unit)
+                             for r, f in zip(chosen.results, chosen.frames)))

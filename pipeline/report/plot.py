@@ -26,7 +26,8 @@ PANELS = (
 
 def frequency_response_png(frame: pl.DataFrame, path: Path, title: str) -> Path | None:
     """Nine panels (sensitivities, angles, offsets) from a
-    ``frequency_response`` table; None (nothing written) when it has no rates."""
+    ``frequency_response`` table, titled with its model; None (nothing
+    written) when it has no rates."""
     per_rate = frame.filter(pl.col("rate_hz").is_not_null())
     if per_rate.is_empty():
         return None
@@ -57,7 +58,7 @@ def frequency_response_png(frame: pl.DataFrame, path: Path, title: str) -> Path 
             ax.tick_params(labelsize=8)
             if row == 2:
                 ax.set_xlabel("rotation rate / Hz", fontsize=9)
-    fig.suptitle(f"{title}: deviation from the static (DC) result, error bars k = 2", fontsize=11)
+    fig.suptitle(f"{title}, {per_rate['model'][0]} model: deviation from the static (DC) result, error bars k = 2", fontsize=11)
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.91, wspace=0.3, hspace=0.35)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

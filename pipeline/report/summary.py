@@ -11,6 +11,8 @@ from rich.text import Text
 from rotcal.combine.labelled import units
 from rotcal.combine.poses import ReferenceFit
 from rotcal.combine.static import StaticReduction
+from rotcal.errors import ExitCode
+from rotcal.model.calibration import Recommended, rate_calibration
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
 
@@ -121,3 +123,22 @@ def findings_table(findings, title: str) -> Table:
             "effect", "where", "evidence", "delta_bic").iter_rows():
         table.add_row(effect, where, evidence, f"{dbic:+.0f}")
     return table
+
+
+def recommendation_line(chosen: Recommended) -> str:
+    """Which model's results are the calibration (calibration.json), and why."""
+    return f"recommended: the {chosen.model} model's results ({chosen.reason}); calibration.json holds them"
+
+
+def run_summary(dataset: str, output_unit: str, chosen: Recommended, warnings: tuple[str, ...], notes: tuple[str, ...],
+                written: tuple) -> dict:
+    """``rotcal run --json``: the recommended result per rate (each of the
+    nine parameters as calibration.json gives it: value, u, dof, k, U), the
+    exit status, warnings, notes and the files written."""
+    rates = [{"rate_hz": res.rate_hz, "frame": frame,
+              "parameters": [q.to_dict() for q in rate_calibration(res, frame, chosen.model, chosen.reason,
+                                                                    output_unit).parameters]}
+             for res, frame in zip(chosen.results, chosen.frames)]
+    return {"dataset": dataset, "output_unit": output_unit, "exit_status": int(ExitCode.OK), "model": chosen.model,
+            "reason": chosen.reason, "rates": rates, "warnings": list(warnings), "notes": list(notes),
+            "written": [str(p) for p in written]}
