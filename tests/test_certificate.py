@@ -94,9 +94,16 @@ def test_budget_without_its_table_separates_g_local_by_hand():
     """s = 1000 bit/(m/s^2), u(g)/g = 1e-5: g_local gives s u(g)/g = 0.01 of u = 0.02, a quarter of the variance."""
     params = (Quantity("s_u", 1000.0, 0.02, 50.0, "bit/(m/s^2)"), Quantity("phi_uv", 90.0, 0.001, 50.0, "deg"))
     cal = _cal(np.eye(3), np.zeros(3), g=9.8, u_g=9.8e-5, parameters=params)
-    got = {p: (i, f, g_share) for _, p, i, f, g_share in main_contributions(None, cal).iter_rows()}
+    got = {p: (i, f, g_share) for _, p, i, f, g_share, source in main_contributions(None, cal).iter_rows()}
     assert got["s_u"][2] == pytest.approx(0.25) and got["s_u"][1] == pytest.approx([0.75, 0.25])
     assert got["phi_uv"] == (["the rest (noise, Type A)"], [1.0], 0.0)
+    # the budget table describes the baseline model: used for a baseline rate, not for a refined one
+    table = pl.DataFrame({"rate_hz": 0.0, "parameter": "s_u", "source": ["noise", "g_local", "combined"],
+                          "segment": [3, None, None], "axis": ["x", "", ""], "fraction": [0.9, 0.1, 1.0]})
+    by_table = main_contributions(table, cal).row(0)
+    assert by_table[2:] == (["noise of segment 3 (axis x)", "g_local"], [0.9, 0.1], 0.1, "uncertainty_budget.parquet")
+    refined = replace(cal, rates=(replace(cal.rates[0], model="refined"),))
+    assert main_contributions(table, refined).row(0)[4:] == (0.25, "calibration.json")
 
 
 class _Page(HTMLParser):
@@ -200,7 +207,7 @@ def test_page_references_nothing_outside_itself(runs, kind, images):
 def test_sections_follow_the_kind_of_run(runs):
     table, static, unlabelled = ((runs[k] / CERTIFICATE).read_text() for k in ("table", "static", "unlabelled"))
     assert "table segments" in table and "Gaitan &amp; Geist 2021 Figs. 6 and 7" in table
-    assert "from uncertainty_budget.parquet" in table and "residual RMS before → after" in table
+    assert "<td>uncertainty_budget.parquet</td>" in table and "residual RMS before → after" in table
     assert "static poses" in static and "dut-7" in static
     poses = pl.read_parquet(runs["static"] / "poses.parquet").height
     assert f"every pose, dwell and segment ({poses})" in static and "Not applicable" in static
@@ -218,7 +225,7 @@ def test_optional_tables_absent_and_rerendered_by_the_command(runs, tmp_path, cl
     code, out, err = cli("certificate", run)
     assert code == 0 and "certificate written to" in out, err
     text = (run / CERTIFICATE).read_text()
-    assert "from the calibration (g_local against the rest)" in text and "This run was not diagnosed" in text
+    assert "<td>calibration.json</td>" in text and "<td>uncertainty_budget.parquet</td>" not in text and "This run was not diagnosed" in text
     assert "No pose, dwell or segment fit" in text
     # the same files give the same page, byte for byte
     shutil.copytree(runs["static"], tmp_path / "again")

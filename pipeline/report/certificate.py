@@ -94,7 +94,7 @@ def run_kind(tables: dict[str, pl.DataFrame]) -> str:
 
 
 def identification(cal: Calibration, kind: str) -> str:
-    device = [(f"device {k}", "" if v is None else str(v)) for k, v in cal.device.items()]
+    device = [(f"device {k}", "" if v is None else str(v)) for k, v in cal.device.items() if k != "output_unit"]
     fields = _fields([("dataset", cal.dataset), *device, ("output unit", cal.output_unit), ("kind of run", KINDS[kind])])
     inputs = _table(["input file", "bytes", "SHA-256"], [
         f"<tr>{_cell(f['path'])}{_cell(f['bytes'], 'num')}{_cell(f['sha256'], 'hash')}</tr>" for f in cal.inputs])
@@ -102,12 +102,13 @@ def identification(cal: Calibration, kind: str) -> str:
 
 
 def method(cal: Calibration, kind: str) -> str:
-    frames = ", ".join(sorted({r.frame for r in cal.rates}))
+    frames = sorted({r.frame for r in cal.rates})
+    where = f"the {frames[0]} frame" if len(frames) == 1 else "the frame each rate's results name"
     return ("<h2>2. Method and conventions</h2>"
             f"<p><b>Method:</b> {escape(METHODS[kind])}</p>"
             "<p><b>Conventions:</b> channels u, v, w read the table-frame axes x, y, z (docs/conventions.md): s is "
             "each channel's sensitivity, phi the angles between the sensitive axes, O the offsets; the calibrated "
-            f"acceleration is a = P (R - O) for a raw output R, P's rows in the {escape(frames)} frame. "
+            f"acceleration is a = P (R - O) for a raw output R, P's rows in {escape(where)}. "
             "U = k u with k = t<sub>0.975</sub>(&nu;<sub>eff</sub>) for 95 % coverage (GUM G.4), rounded to two "
             "significant digits of U and the value to the same decimal place (GUM 7.2.6).</p>")
 
@@ -129,7 +130,7 @@ def _rate_results(rc: RateCalibration) -> str:
         "<tr><th>O</th>" + "".join(_cell(gum_text(q.value, q.expanded_uncertainty), "num") for q in rc.O) + "</tr>"])
     ks = [q.coverage_factor for q in (*rc.P, *rc.O)]
     fixed = " (0 ± 0: zero by the frame's definition)" if any(q.std_uncertainty == 0 for q in rc.P) else ""
-    return (f"<div><h3>{escape(_rate_label(rc.rate_hz))}: {escape(rc.model)} model</h3>"
+    return (f"<div><h3>{escape(_rate_label(rc.rate_hz))}: {escape(rc.model)} model, {escape(rc.frame)} frame</h3>"
             f'<p class="note">{escape(rc.reason)}</p>{table}'
             f'<p class="note">correction a = P (R - O): value ± U, P in {escape(rc.P[0].unit)}, O in {escape(rc.O[0].unit)}, '
             f"k {min(ks):.2f} to {max(ks):.2f}{fixed}</p>{correction}</div>")
@@ -137,7 +138,7 @@ def _rate_results(rc: RateCalibration) -> str:
 
 def results(cal: Calibration) -> str:
     return ("<h2>3. Results</h2>"
-            f'<p class="note">{len(cal.rates)} rate(s); per rate the recommended model, value and expanded '
+            f'<p class="note">{len(cal.rates)} rate{"s" if len(cal.rates) > 1 else ""}; per rate the recommended model, value and expanded '
             f"uncertainty U at {EXPANDED_COVERAGE:.0%} coverage.</p>"
             f'<div class="rates">{"".join(_rate_results(rc) for rc in cal.rates)}</div>')
 
@@ -198,34 +199,32 @@ def diagnosis(run_dir: Path, tables: dict[str, pl.DataFrame], cal: Calibration, 
                        f"angle).</p>{recommended}")
     found = findings.filter(pl.col("detected"))
     sentence = ("No finding: the recording agrees with the papers' model within its noise." if found.is_empty() else
-                f"{found.height} finding(s): " + "; ".join(f"{e} ({w})" for e, w in found.select("effect", "where").iter_rows()))
+                f"{found.height} finding{'s' if found.height > 1 else ''}: " + "; ".join(f"{e} ({w})" for e, w in found.select("effect", "where").iter_rows()))
     rows = [f"<tr>{_cell(e)}{_cell('yes' if d else 'no')}{_cell(w)}{_cell(f'{b:.6g} → {a:.6g}', 'num')}"
             f"{_cell(f'{bic:+.0f}', 'num')}{_cell(ev)}</tr>"
             for e, d, w, ev, b, a, bic in findings.select("effect", "detected", "where", "evidence", "rms_before",
                                                           "rms_after", "delta_bic").iter_rows()]
     table = _table(["effect", "detected", "where", f"residual RMS before → after ({cal.output_unit})", "ΔBIC",
                     "evidence"], rows)
-    residuals = _residual_figures(run_dir) if figures else []
-    images = "".join(_image(p.read_bytes(), p.stem) for p in residuals)
+    drawn = _diagnosis_figures(run_dir) if figures else []
+    images = "".join(_image(p.read_bytes(), p.stem) for p in drawn)
     return head + f"<p>{escape(sentence)}</p>{recommended}{table}{images}"
 
 
 def budget(tables: dict[str, pl.DataFrame], cal: Calibration) -> str:
-    source = "uncertainty_budget.parquet" if "uncertainty_budget" in tables else "the calibration (g_local against the rest)"
     contributions = main_contributions(tables.get("uncertainty_budget"), cal)
     quantity = {(rc.rate_hz, q.name): q for rc in cal.rates for q in rc.parameters}
     rows = []
-    for rate, name, inputs, fractions, g_share in contributions.iter_rows():
-        q = quantity.get((rate, name))
-        if q is None:  # a rate the budget has and the calibration does not recommend (a refined one)
-            continue
+    for rate, name, inputs, fractions, g_share, source in contributions.iter_rows():
+        q = quantity[(rate, name)]
         main = "; ".join(f"{i}: {f:.1%}" for i, f in zip(inputs, fractions))
         rows.append(f"<tr>{_cell(_rate_label(rate))}{_cell(name)}{_cell(gum_round(q.std_uncertainty, q.std_uncertainty)[1], 'num')}"
-                    f"{_cell(q.unit)}{_cell(main)}{_cell(f'{g_share:.1%}', 'num')}</tr>")
+                    f"{_cell(q.unit)}{_cell(main)}{_cell(f'{g_share:.1%}', 'num')}{_cell(source)}</tr>")
     return ("<h2>7. Main contributions to the uncertainty</h2>"
-            f'<p class="note">The largest input groups of each standard uncertainty u (GUM 5.1.3), from {escape(source)}; '
-            "fractions of the variance.</p>"
-            + _table(["rate", "parameter", "u", "unit", "largest contributions", "g_local"], rows))
+            '<p class="note">The largest input groups of each standard uncertainty u (GUM 5.1.3), as fractions of '
+            "the variance: from uncertainty_budget.parquet where the recommended model is the baseline it was "
+            "drawn up for, else from calibration.json (g_local against the rest).</p>"
+            + _table(["rate", "parameter", "u", "unit", "largest contributions", "g_local", "from"], rows))
 
 
 def traceability(cal: Calibration, run_dir: Path, read: list[Path]) -> str:
@@ -242,11 +241,12 @@ def traceability(cal: Calibration, run_dir: Path, read: list[Path]) -> str:
 
 def _embedded(run_dir: Path) -> list[Path]:
     """The run's own figures the page embeds."""
-    return [p for p in (run_dir / "frequency_response.png", *_residual_figures(run_dir)) if p.is_file()]
+    return [p for p in (run_dir / "frequency_response.png", *_diagnosis_figures(run_dir)) if p.is_file()]
 
 
-def _residual_figures(run_dir: Path) -> list[Path]:
-    return sorted((run_dir / "figures").glob("residuals_*.png"))
+def _diagnosis_figures(run_dir: Path) -> list[Path]:
+    """report.md's figures: residuals before and after each finding, offsets against w^2."""
+    return sorted((run_dir / "figures").glob("*.png"))
 
 
 def _sha256(path: Path) -> str:

@@ -120,30 +120,36 @@ def norm_summary(check: pl.DataFrame) -> pl.DataFrame:
 
 def main_contributions(budget: pl.DataFrame | None, cal: Calibration, top: int = 2) -> pl.DataFrame:
     """Per rate and parameter, the ``top`` largest input groups of the
-    variance (GUM 5.1.3) with their fractions: from ``uncertainty_budget``
-    where the run wrote it; otherwise from the calibration itself, which
-    separates g_local (a sensitivity s = |r| scales with 1/g_local, so g
-    contributes s u(g)/g; angles and offsets do not depend on it) from the
+    variance (GUM 5.1.3) with their fractions, and where they come from:
+    ``uncertainty_budget`` (the baseline model's) for the rates whose
+    recommended model is the baseline; otherwise the calibration itself,
+    which separates g_local (a sensitivity s = |r| scales with 1/g_local, so
+    g contributes s u(g)/g; angles and offsets do not depend on it) from the
     rest (the noise of the fits, Type A)."""
-    if budget is not None and not budget.is_empty():
-        groups = (budget.filter(pl.col("source") != "combined")
-                  .with_columns(pl.when(pl.col("source") == "noise")
-                                .then(pl.format("noise of segment {} (axis {})", pl.col("segment"), pl.col("axis")))
-                                .otherwise(pl.col("source")).alias("input")))
-    else:
-        rows = []
-        for rc in cal.rates:
-            for q in rc.parameters:
-                g_part = (q.value * cal.g_local_uncertainty / cal.g_local) ** 2 if q.name.startswith("s_") else 0.0
-                total = q.std_uncertainty**2
-                rows += [(rc.rate_hz, q.name, "g_local", g_part / total if total else 0.0),
-                         (rc.rate_hz, q.name, "the rest (noise, Type A)", 1 - g_part / total if total else 0.0)]
-        groups = pl.DataFrame(rows, schema={"rate_hz": pl.Float64, "parameter": pl.String, "input": pl.String,
-                                            "fraction": pl.Float64}, orient="row")
+    baseline = [rc.rate_hz for rc in cal.rates if rc.model == "baseline"]
+    tabled = (pl.DataFrame(schema={"rate_hz": pl.Float64, "parameter": pl.String, "input": pl.String,
+                                   "fraction": pl.Float64}) if budget is None else
+              budget.filter((pl.col("source") != "combined") & pl.col("rate_hz").is_in(baseline))
+              .select("rate_hz", "parameter",
+                      pl.when(pl.col("source") == "noise")
+                      .then(pl.format("noise of segment {} (axis {})", pl.col("segment"), pl.col("axis")))
+                      .otherwise(pl.col("source")).alias("input"), "fraction"))
+    covered = set(tabled["rate_hz"].to_list())
+    rows = []
+    for rc in (rc for rc in cal.rates if rc.rate_hz not in covered):
+        for q in rc.parameters:
+            g_part = (q.value * cal.g_local_uncertainty / cal.g_local) ** 2 if q.name.startswith("s_") else 0.0
+            total = q.std_uncertainty**2
+            rows += [(rc.rate_hz, q.name, "g_local", g_part / total if total else 0.0),
+                     (rc.rate_hz, q.name, "the rest (noise, Type A)", 1 - g_part / total if total else 0.0)]
+    groups = pl.concat([tabled.with_columns(pl.lit("uncertainty_budget.parquet").alias("from")),
+                        pl.DataFrame(rows, schema=tabled.schema, orient="row")
+                        .with_columns(pl.lit("calibration.json").alias("from"))])
     order = {name: i for i, name in enumerate(INTRINSIC)}
     return (groups.sort("fraction", descending=True).group_by("rate_hz", "parameter", maintain_order=True)
             .agg(pl.col("input").filter(pl.col("fraction") > 0).head(top),
                  pl.col("fraction").filter(pl.col("fraction") > 0).head(top),
-                 pl.col("fraction").filter(pl.col("input") == "g_local").sum().alias("g_local_fraction"))
+                 pl.col("fraction").filter(pl.col("input") == "g_local").sum().alias("g_local_fraction"),
+                 pl.col("from").first())
             .with_columns(pl.col("parameter").replace_strict(order, return_dtype=pl.Int32).alias("order"))
             .sort("rate_hz", "order").drop("order"))
