@@ -106,11 +106,17 @@ def method(cal: Calibration, kind: str) -> str:
     where = f"the {frames[0]} frame" if len(frames) == 1 else "the frame each rate's results name"
     return ("<h2>2. Method and conventions</h2>"
             f"<p><b>Method:</b> {escape(METHODS[kind])}</p>"
-            "<p><b>Conventions:</b> channels u, v, w read the table-frame axes x, y, z (docs/conventions.md): s is "
-            "each channel's sensitivity, phi the angles between the sensitive axes, O the offsets; the calibrated "
-            f"acceleration is a = P (R - O) for a raw output R, P's rows in {escape(where)}. "
+            "<p><b>Conventions</b> (docs/conventions.md): u, v, w are the DUT's output channels and x, y, z the "
+            f"axes of the frame of P's rows ({escape(where)}); s is each channel's sensitivity, phi the angles "
+            "between the sensitive axes, O the offsets; the calibrated acceleration is a = P (R - O) for a raw "
+            "output R. "
             "U = k u with k = t<sub>0.975</sub>(&nu;<sub>eff</sub>) for 95 % coverage (GUM G.4), rounded to two "
             "significant digits of U and the value to the same decimal place (GUM 7.2.6).</p>")
+
+
+def _span(ks: list[float]) -> str:
+    low, high = f"{min(ks):.2f}", f"{max(ks):.2f}"
+    return low if low == high else f"{low} to {high}"
 
 
 def _rate_results(rc: RateCalibration) -> str:
@@ -133,7 +139,7 @@ def _rate_results(rc: RateCalibration) -> str:
     return (f"<div><h3>{escape(_rate_label(rc.rate_hz))}: {escape(rc.model)} model, {escape(rc.frame)} frame</h3>"
             f'<p class="note">{escape(rc.reason)}</p>{table}'
             f'<p class="note">correction a = P (R - O): value ± U, P in {escape(rc.P[0].unit)}, O in {escape(rc.O[0].unit)}, '
-            f"k {min(ks):.2f} to {max(ks):.2f}{fixed}</p>{correction}</div>")
+            f"k {_span(ks)}{fixed}</p>{correction}</div>")
 
 
 def results(cal: Calibration) -> str:
