@@ -244,6 +244,15 @@ def export_cmd(
     else:
         out.print(f"{result.format} export written to {result.write(target)}", highlight=False, markup=False)
 
+@app.command()
+def certificate(
+    run_dir: Annotated[Path, typer.Argument(help="a run's output directory (calibration.json and its tables)")],
+) -> None:
+    """Render a run's calibration certificate (RUN_DIR/certificate.html) again from its published files."""
+    from rotcal.report.certificate import write_certificate
+
+    out.print(f"certificate written to {write_certificate(writable_out(run_dir))}", highlight=False, markup=False)
+
 
 def main() -> None:
     """Console entry point: a user's error exits with a one-line message."""

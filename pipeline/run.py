@@ -85,7 +85,7 @@ class Figure:
 PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
                  "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
                  "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
-                 "frequency_response", "frequency_response_png", "monte_carlo", "poses")
+                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
 # the tables that describe the input rather than a result: published even when no rate can be determined
 INPUT_TABLES = ("segments", "fits", "timebase", "dwells")
 
@@ -178,7 +178,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(chosen, ds, config)]
+               calibration_output(chosen, ds, config), certificate_output(config)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), chosen, diagnosis,
                       reductions.static)
@@ -386,6 +386,19 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommen
         outputs.append(Table("monte_carlo", mc))
         notes.append(monte_carlo_note(mc))
     return outputs, tuple(notes)
+
+
+def certificate_output(config: RunConfig) -> Figure:
+    """The certificate (``report.certificate``), published last: a view of
+    the files published before it, drawn when they include calibration.json."""
+    def draw(out: Path) -> Path | None:
+        if not (out / "calibration.json").is_file():
+            return None
+        from rotcal.report.certificate import write_certificate  # matplotlib only when there is a page to draw
+
+        return write_certificate(out, config.report.figures)
+
+    return Figure("certificate", draw)
 
 
 def publish(outputs: Sequence[Table | Figure], out: Path) -> tuple[Path, ...]:

@@ -24,6 +24,7 @@ from rotcal.combine.labelled import units  # noqa: E402
 from rotcal.diagnose import Diagnosis  # noqa: E402
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC  # noqa: E402
 from rotcal.model.results import IntrinsicResult  # noqa: E402
+from rotcal.report.rounding import gum_round, gum_text  # noqa: E402
 
 COLORS = ("tab:red", "tab:green", "tab:blue")
 
@@ -132,8 +133,8 @@ def _comparison(baseline: tuple[IntrinsicResult, ...], refined: tuple[IntrinsicR
         base = by_rate[res.rate_hz]
         for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
             diff = res.value[i] - base.value[i]
-            rows.append([f"{res.rate_hz:g}", name, f"{base.value[i]:.6g} ± {2 * base.std_uncertainty[i]:.2g}",
-                         f"{res.value[i]:.6g} ± {2 * res.std_uncertainty[i]:.2g}",
+            rows.append([f"{res.rate_hz:g}", name, gum_text(base.value[i], 2 * base.std_uncertainty[i]),
+                         gum_text(res.value[i], 2 * res.std_uncertainty[i]),
                          f"{diff / base.std_uncertainty[i]:+.1f}", unit])
     return _table(rows, ["rate (Hz)", "parameter", "baseline (k = 2)", "refined (k = 2)",
                          "shift / u(baseline)", "unit"]) + "\n"
@@ -163,7 +164,7 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
               ""]
     if diag.parameters.height:
         lines += ["## Effect parameters", "",
-                  _table([[e, a or "-", p, f"{v:.6g}", f"{u:.2g}", unit] for e, a, p, v, u, unit in diag.parameters.select(
+                  _table([[e, a or "-", p, *gum_round(v, u), unit] for e, a, p, v, u, unit in diag.parameters.select(
                       "effect", "axis", "parameter", "value", "std_uncertainty", "unit").iter_rows()],
                          ["effect", "axis", "parameter", "value", "standard uncertainty", "unit"]), ""]
     lines += ["## Refined against baseline intrinsic parameters", "", _comparison(baseline, diag.refined, output_unit)]

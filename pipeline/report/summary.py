@@ -15,19 +15,13 @@ from rotcal.errors import ExitCode
 from rotcal.model.calibration import Recommended, rate_calibration
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
+from rotcal.report.rounding import gum_text
 
 COVERAGE_FACTOR = 2.0  # tables without degrees of freedom (the |a| check, another lab's matrix)
 
 
 def rate_label(rate_hz: float) -> str:
     return "static (DC)" if rate_hz == 0 else f"{rate_hz:g} Hz"
-
-
-def _digits(u: float) -> int:
-    """Decimals that show an expanded uncertainty to two significant digits."""
-    if not np.isfinite(u) or u <= 0:
-        return 6
-    return max(0, 1 - int(np.floor(np.log10(u))))
 
 
 def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title: str) -> Group:
@@ -50,8 +44,7 @@ def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title:
 
 
 def _expanded(value: float, expanded: float) -> str:
-    d = _digits(expanded)
-    return f"{value:.{d}f} ± {expanded:.{d}f}" if np.isfinite(expanded) else f"{value:.6g}"
+    return gum_text(value, expanded) if np.isfinite(expanded) else f"{value:.6g}"
 
 
 def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
