@@ -85,7 +85,7 @@ PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_
                  "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
                  "frequency_response", "frequency_response_png", "monte_carlo", "poses")
 # the tables that describe the input rather than a result: published even when no rate can be determined
-INPUT_TABLES = ("segments", "fits", "timebase", "dwells")
+INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,10 +169,11 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, ds, config)
     diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    outputs = [*_tables(seg, reductions), *result_tables(results, frames, diagnosis, ds),
+    outputs = [*_tables(seg, reductions), *result_tables(results, frames, diagnosis, ds, reductions.static),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), diagnosis, reductions.static)
+                      seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
+                      publish(outputs, out), diagnosis, reductions.static)
 
 
 def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
@@ -223,8 +224,9 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
     """The results (rates ordered by magnitude), the frames of their
     responsivity vectors and the warnings: failed segments and rates.
     Raises ``UndeterminedError`` when no rate is determined."""
-    if isinstance(reductions, Failure):
-        raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {reductions.reason}", path=path)
+    if isinstance(reductions, Failure) or (reductions.static is not None and not reductions.static.results):
+        why = reductions if isinstance(reductions, Failure) else reductions.static.failures[0]  # type: ignore[union-attr]
+        raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {why.reason}", path=path)
     failed = seg.fits.filter(seg.fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
     warnings = (seg.warnings + tuple(w for r in reductions.all for w in r.warnings)
                 + tuple(f"segment {s} ({a}, {r:g} Hz): {why}"
@@ -258,15 +260,18 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
 
 
 def result_tables(results: tuple[IntrinsicResult, ...], frames: tuple[str, ...], diagnosis: Diagnosis | None,
-                  ds: Dataset) -> list[Table]:
-    """The ``intrinsic`` table (baseline, and refined by the diagnosis) and
-    the cross-sensitivities in each result's frame."""
+                  ds: Dataset, static: StaticReduction | None = None) -> list[Table]:
+    """The ``intrinsic`` table (baseline, refined by the diagnosis, a static
+    recording's nested models) and the cross-sensitivities in each result's frame."""
     unit = ds.meta.output_unit
-    intrinsic = intrinsic_frame(list(results), ds.name, "baseline", unit)
+    model = "baseline" if static is None else static.model
+    intrinsic = intrinsic_frame(list(results), ds.name, model, unit)
+    for name, nested in () if static is None else static.nested:
+        intrinsic = intrinsic.vstack(intrinsic_frame([nested], ds.name, name, unit))
     if diagnosis is not None:
         intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
     return [Table("intrinsic", intrinsic),
-            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(results, frames)), ds.name, "baseline", unit,
+            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(results, frames)), ds.name, model, unit,
                                                                ds.meta.g_local_uncertainty))]
 
 
