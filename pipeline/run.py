@@ -224,9 +224,11 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
     """The results (rates ordered by magnitude), the frames of their
     responsivity vectors and the warnings: failed segments and rates.
     Raises ``UndeterminedError`` when no rate is determined."""
-    if isinstance(reductions, Failure) or (reductions.static is not None and not reductions.static.results):
-        why = reductions if isinstance(reductions, Failure) else reductions.static.failures[0]  # type: ignore[union-attr]
-        raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {why.reason}", path=path)
+    refused = "no table segments, and the static poses cannot be reduced"
+    if isinstance(reductions, Failure):
+        raise UndeterminedError(f"{refused}: {reductions.reason}", path=path)
+    if reductions.static is not None and not reductions.static.results:  # a refusal, with its pose table
+        raise UndeterminedError(f"{refused}: {reductions.static.failures[0].reason}", path=path)
     failed = seg.fits.filter(seg.fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
     warnings = (seg.warnings + tuple(w for r in reductions.all for w in r.warnings)
                 + tuple(f"segment {s} ({a}, {r:g} Hz): {why}"

@@ -27,12 +27,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from posesim import G_LOCAL, HAND_POSES, hand_placed, pose_bounds, tilted  # noqa: E402
-
 from rotcal.combine.multiposition import pose_arrays, pose_table  # noqa: E402
 from rotcal.combine.posemodels import advice, choose_model  # noqa: E402
 from rotcal.combine.poses import correct_poses  # noqa: E402
 from rotcal.model.results import Failure  # noqa: E402
+
+from posesim import G_LOCAL, HAND_POSES, hand_placed, pose_bounds, tilted  # noqa: E402
 
 SIX = [0, 1, 2, 6, 7, 8]
 

@@ -150,9 +150,11 @@ def test_too_few_poses_are_refused_with_the_pose_table(cli, tmp_path):
     data = _write(tmp_path / "data", samples_frame(sim))
     status, _, stderr = cli("run", data, "--out", tmp_path / "out")
     assert status == 3
-    assert "no table segments, and the static poses cannot be reduced: 6 static poses: the 6-parameter model" in stderr
+    assert ("no table segments, and the static poses cannot be reduced: orthogonal axes (six parameters): 6 static "
+            "poses: the 6-parameter model needs at least 7 (its 6 intrinsic parameters and one residual degree of "
+            "freedom); nine parameters: 6 static poses: the 9-parameter model needs at least 10") in " ".join(stderr.split())
     poses = pl.read_parquet(tmp_path / "out" / "poses.parquet")
-    assert poses.height == 6 and poses["norm_m_s2"].is_nan().all()
+    assert poses.height == 6 and poses["norm_m_s2"].is_null().all() and poses["determines"].is_null().all()
     np.testing.assert_allclose(poses["n_samples"].to_numpy(), 300, atol=30)
 
 

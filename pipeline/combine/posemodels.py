@@ -93,15 +93,6 @@ def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> M
     return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
 
 
-def rough_directions(m: np.ndarray) -> np.ndarray:
-    """Gravity directions of pose means without a fit: each channel centred
-    on the middle of its range and scaled by half of it (for advice when no
-    model is determined)."""
-    low, high = m.min(axis=0), m.max(axis=0)
-    d = (m - (low + high) / 2) / np.maximum((high - low) / 2, np.finfo(float).tiny)
-    return d / np.maximum(np.linalg.norm(d, axis=1), np.finfo(float).tiny)[:, None]
-
-
 def mixing(directions: np.ndarray) -> np.ndarray:
     """(n, 3): whether each pose mixes the axes of phi_uv, phi_vw, phi_wu."""
     d = directions / np.linalg.norm(directions, axis=1)[:, None]
@@ -115,8 +106,8 @@ def determines(directions: np.ndarray) -> list[str]:
 
 def advice(directions: np.ndarray) -> list[str]:
     """One sentence per angle no pose mixes, naming the pose that fixes it."""
-    mixed = mixing(directions).any(axis=0)
+    hits = mixing(directions)
     return [f"the poses barely determine {angle}: none mixes {CHANNELS[i]} and {CHANNELS[j]} "
             f"(2 |a_{CHANNELS[i]} a_{CHANNELS[j]}| / |a|^2 >= {MIXING:g}), so it rests on their small tilts; "
             f"a pose between +{CHANNELS[i]} and +{CHANNELS[j]} (gravity about 45 degrees from both) fixes {angle}"
-            for angle, (i, j), hit in zip(ANGLES, ANGLE_PAIRS, mixed) if not hit]
+            for k, (angle, (i, j)) in enumerate(zip(ANGLES, ANGLE_PAIRS)) if not hits[:, k].any()]

@@ -21,7 +21,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
-from rotcal.combine.posemodels import advice, choose_model, determines, rough_directions
+from rotcal.combine.posemodels import advice, choose_model, determines
 from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, still_poses
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
@@ -123,9 +123,9 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
                             else (choice.orthogonal, ORTHOGONAL, "orthogonal"))
     fitter: Fitter = partial(orientation_free, free=free)
     if isinstance(general, Failure):
-        directions = rough_directions(pose_arrays(positions)[0])
-        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty, determines(directions))
-        refusal = Failure(0.0, "; ".join([general.reason, *advice(directions)]))
+        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty, None)
+        full = choice.full.reason if isinstance(choice.full, Failure) else ""
+        refusal = Failure(0.0, f"orthogonal axes (six parameters): {general.reason}; nine parameters: {full}")
         return StaticReduction(frame, (), (refusal,), (Table("poses", check),), (), "orientation-free", None, positions, check)
     directions = correct_poses(general.result, *pose_arrays(positions)).acceleration
     check = _check(positions, dataset, fitter, general, g_local, g_uncertainty, determines(directions))
