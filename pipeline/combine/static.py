@@ -4,11 +4,14 @@ poses (imu_tk, ArduPilot style), labelled poses (imucal's ``x_p``, ``x_a``,
 
 Positions whose reference acceleration is known (labels, jig) are fitted
 with ``poses.reference_fit``; otherwise the still intervals are found by
-``stillness`` and fitted with ``multiposition.orientation_free``. Either
+``stillness`` and fitted with ``multiposition.orientation_free``, both the
+nine parameters and the six of orthogonal axes where the poses determine
+them (``posemodels``: the choice, and the angles no pose determines). Either
 way the result is the static (rate 0) set of intrinsic parameters, and the
 per-pose table holds the |a| check: |a| after the full correction, with
 offsets and sensitivities alone, and under the fit to the other half of the
-positions (a two-fold cross-check of every other position).
+positions (a two-fold cross-check of every other position). When no model is
+determined the refusal still carries the pose table.
 """
 
 from __future__ import annotations
@@ -66,9 +69,10 @@ def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) ->
 
 
 def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: ReferenceFit | OrientationFreeFit | None,
-           g_local: float, g_uncertainty: float, determined: list[str] | None) -> pl.DataFrame:
+           g_local: float, g_uncertainty: float) -> pl.DataFrame:
     """The ``poses`` table: every position with the |a| check under ``fit``
-    and under the fits to each half (NaN where there is no fit)."""
+    and under the fits to each half (NaN where there is no fit), and the
+    angles each pose determines under an orientation-free fit."""
     m, cov = pose_arrays(positions)
     n = positions.height
     after = correct_poses(fit.result, m, cov) if fit is not None else CorrectedPoses(*(np.full(s, np.nan) for s in ((n, 3), n, n, n)))
@@ -92,7 +96,8 @@ def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: Reference
         norm_orthogonal_m_s2=after.magnitude_orthogonal, norm_m_s2=after.magnitude, u_norm_m_s2=after.magnitude_u,
         deviation_rel=after.magnitude / g_local - 1.0, fold=fold,
         norm_held_out_m_s2=held, u_norm_held_out_m_s2=held_u,
-        determines=pl.Series([None] * n if determined is None else determined, dtype=pl.String),
+        determines=pl.Series(determines(after.acceleration) if isinstance(fit, OrientationFreeFit) else [None] * n,
+                             dtype=pl.String),
     )
     return conform(check, "poses")
 
@@ -102,8 +107,8 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     """The static result of a recording whose samples carry no table labels:
     the most general model its positions determine, with the nested
     orthogonal model and the choice between them (``posemodels``) for
-    poses of unknown orientation; a refusal with the pose table and advice
-    when not even the six parameters of orthogonal axes are determined."""
+    poses of unknown orientation; a refusal with the pose table when not
+    even the six parameters of orthogonal axes are determined."""
     positions = labelled_poses(samples, segments)
     if positions.height == 0:
         positions = still_poses(samples)
@@ -114,21 +119,21 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     if source != "stillness":
         fit = reference_fit(positions, g_local, g_uncertainty)
         if isinstance(fit, Failure):
-            check = _check(positions, dataset, reference_fit, None, g_local, g_uncertainty, None)
+            check = _check(positions, dataset, reference_fit, None, g_local, g_uncertainty)
             return StaticReduction(frame, (), (fit,), (Table("poses", check),), (), "reference", None, positions, check)
-        check = _check(positions, dataset, reference_fit, fit, g_local, g_uncertainty, None)
+        check = _check(positions, dataset, reference_fit, fit, g_local, g_uncertainty)
         return StaticReduction(frame, (fit.result,), (), (Table("poses", check),), (), "reference", fit, positions, check)
     choice = choose_model(positions, g_local, g_uncertainty)
     general, free, model = ((choice.full, FULL, "baseline") if not isinstance(choice.full, Failure)
                             else (choice.orthogonal, ORTHOGONAL, "orthogonal"))
     fitter: Fitter = partial(orientation_free, free=free)
     if isinstance(general, Failure):
-        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty, None)
+        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty)
         full = choice.full.reason if isinstance(choice.full, Failure) else ""
         refusal = Failure(0.0, f"orthogonal axes (six parameters): {general.reason}; nine parameters: {full}")
         return StaticReduction(frame, (), (refusal,), (Table("poses", check),), (), "orientation-free", None, positions, check)
-    directions = correct_poses(general.result, *pose_arrays(positions)).acceleration
-    check = _check(positions, dataset, fitter, general, g_local, g_uncertainty, determines(directions))
+    check = _check(positions, dataset, fitter, general, g_local, g_uncertainty)
+    directions = check.select(f"a_{s}" for s in AXES).to_numpy()
     nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
     return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(advice(directions)),
                            "orientation-free", general, positions, check, model, nested, (choice.note,))
