@@ -38,7 +38,7 @@ from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure
 
 SELECTION_LEVEL = 0.01  # the orthogonal model is rejected when the F test's p-value falls below it
-MIXING = 0.5
+MIXING = 0.5  # a pose mixes axes i and j when 2 |a_i a_j| / |a|^2 reaches it (15 to 75 degrees in their plane)
 ANGLES = INTRINSIC[3:6]
 
 
