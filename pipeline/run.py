@@ -47,7 +47,7 @@ from rotcal.metrology import (
     temperature_frame,
 )
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
-from rotcal.model.calibration import BASELINE, Recommended, mark_recommended, recommend, recommended_calibration
+from rotcal.model.calibration import BASELINE, REFINED, Recommended, mark_recommended, recommend, recommended_calibration
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.tables import write_parquet
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
@@ -87,7 +87,7 @@ PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_
                  "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
                  "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
 # the tables that describe the input rather than a result: published even when no rate can be determined
-INPUT_TABLES = ("segments", "fits", "timebase", "dwells")
+INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,10 +168,13 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
         raise
     assert isinstance(reductions, Reductions)  # determined() raises for a Failure
     diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
-    intrinsic = intrinsic_table(results, diagnosis, ds)
-    chosen = recommend(intrinsic, results, frames, diagnosis.refined if diagnosis else (),
+    static = reductions.static
+    intrinsic = intrinsic_table(results, diagnosis, ds, static)
+    chosen = recommend(intrinsic, results, frames,
+                       {REFINED: diagnosis.refined if diagnosis else (), **{n: (r,) for n, r in (static.nested if static else ())}},
                        tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
-                       baseline_reason(diagnosis, reductions, config, diagnosis_notes))
+                       baseline_reason(diagnosis, reductions, config, diagnosis_notes),
+                       (static.chosen, static.notes[0].removeprefix("static model: ")) if static and static.notes else None)
     # the model-dependent tables of the recommended model
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
@@ -180,8 +183,8 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
                calibration_output(chosen, ds, config), certificate_output(config)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + diagnosis_notes + metrology_notes, publish(outputs, out), chosen, diagnosis,
-                      reductions.static)
+                      seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
+                      publish(outputs, out), chosen, diagnosis, reductions.static)
 
 
 def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
@@ -233,8 +236,11 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
     """The results (rates ordered by magnitude), the frames of their
     responsivity vectors and the warnings: failed segments and rates.
     Raises ``UndeterminedError`` when no rate is determined."""
+    refused = "no table segments, and the static poses cannot be reduced"
     if isinstance(reductions, Failure):
-        raise UndeterminedError(f"no table segments, and the static poses cannot be reduced: {reductions.reason}", path=path)
+        raise UndeterminedError(f"{refused}: {reductions.reason}", path=path)
+    if reductions.static is not None and not reductions.static.results:  # a refusal, with its pose table
+        raise UndeterminedError(f"{refused}: {reductions.static.failures[0].reason}", path=path)
     failed = seg.fits.filter(seg.fits["status"] == "failed").unique("segment", keep="first", maintain_order=True)
     warnings = (seg.warnings + tuple(w for r in reductions.all for w in r.warnings)
                 + tuple(f"segment {s} ({a}, {r:g} Hz): {why}"
@@ -267,10 +273,14 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
     return diagnosis, ()
 
 
-def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | None, ds: Dataset) -> pl.DataFrame:
-    """The ``intrinsic`` rows: baseline, and refined by the diagnosis."""
+def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | None, ds: Dataset,
+                    static: StaticReduction | None) -> pl.DataFrame:
+    """The ``intrinsic`` rows: baseline (or a static recording's most general
+    determined model), its nested models, and refined by the diagnosis."""
     unit = ds.meta.output_unit
-    intrinsic = intrinsic_frame(list(results), ds.name, BASELINE, unit)
+    intrinsic = intrinsic_frame(list(results), ds.name, BASELINE if static is None else static.model, unit)
+    for name, nested in () if static is None else static.nested:
+        intrinsic = intrinsic.vstack(intrinsic_frame([nested], ds.name, name, unit))
     if diagnosis is not None:
         intrinsic = intrinsic.vstack(intrinsic_frame(list(diagnosis.refined), ds.name, "refined", unit))
     return intrinsic

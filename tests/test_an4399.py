@@ -59,7 +59,9 @@ def test_worked_examples_reproduce_from_their_printed_inputs(example, parameters
     raw = np.array(example["G"])
     reference = g_p(example["theta"], example["phi"])
     corrections, warnings = fit_corrections(raw, reference, models=(parameters,))
-    assert not warnings and [c.channel for c in corrections] == ["x", "y", "z"]
+    exact = parameters == 12 and len(raw) == 4
+    assert len(warnings) == exact and [c.channel for c in corrections] == ["x", "y", "z"]
+    assert not exact or "an exact fit to 4 positions, no residual degree of freedom" in warnings[0]
     coef = np.array([c.coef for c in corrections])
     np.testing.assert_allclose(coef, printed[0], atol=PRINTED, rtol=0)
     p = np.array([c.sum_sq_residual for c in corrections])
@@ -172,7 +174,35 @@ def test_too_few_positions_for_a_model_become_warnings():
     raw = np.random.default_rng(1).normal(0, 1, (4, 3))
     corr, warnings = fit_corrections(raw, raw + 0.01)
     assert {c.parameters for c in corr} == {6, 12}
-    assert len(warnings) == 1 and "15-parameter correction not determined: 4 positions cannot determine 5" in warnings[0]
+    assert len(warnings) == 2 and "12-parameter correction: an exact fit to 4 positions" in warnings[0]
+    assert "15-parameter correction not determined: 4 positions cannot determine 5" in warnings[1]
+
+
+def test_six_faces_do_not_determine_the_cubic_term():
+    """On the six faces every reference reads -1, 0 or +1 g, where x^3 = x:
+    gamma duplicates W_rr, so the 15-parameter correction is skipped with
+    the reason, whatever the raw outputs' noise; two tilted positions more
+    determine it."""
+    faces = np.vstack([np.eye(3), -np.eye(3)])
+    raw = 1000.0 * faces + np.random.default_rng(2).normal(0, 1, (6, 3)) + 30.0
+    corr, warnings = fit_corrections(raw, faces)
+    assert {c.parameters for c in corr} == {6, 12}
+    assert warnings == ["AN4399 15-parameter correction skipped: the positions do not determine gamma of channel x (its "
+                        "column is a combination of the others); positions where x reads other levels than -1, 0 and "
+                        "+1 g (tilted, e.g. 45 degrees) would"]
+    tilted = np.vstack([faces, [[1, 1, 1], [-1, 1, -1]] / np.sqrt(3)])
+    corr, warnings = fit_corrections(1000.0 * tilted + 30.0, tilted)
+    assert {c.parameters for c in corr} == {6, 12, 15} and not warnings
+
+
+def test_references_in_one_plane_do_not_determine_the_cross_terms():
+    """Gravity always in the plane x = z: every channel sees two levels (the
+    six-parameter model is determined), but W_x and W_z cannot be told apart."""
+    plane = np.array([[1, 0, 1], [-1, 0, -1], [0, 1, 0], [0, -1, 0], [0.5, np.sqrt(0.5), 0.5]])
+    corr, warnings = fit_corrections(1000.0 * plane + 30.0, plane, models=(6, 12))
+    assert {c.parameters for c in corr} == {6} and len(warnings) == 1
+    assert "12-parameter correction skipped: the positions do not determine W_z of channel x" in warnings[0]
+    assert "positions with gravity along z would" in warnings[0]
 
 
 def test_corrections_from_simulated_table_steps(make_dataset, tmp_path):

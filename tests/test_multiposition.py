@@ -6,7 +6,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.combine.multiposition import magnitude_and_gradient, orientation_free, pose_table
+from rotcal.combine.multiposition import ORTHOGONAL, magnitude_and_gradient, orientation_free, pose_table
 from rotcal.model.physics import INTRINSIC, rotation_matrix
 from rotcal.model.results import Failure
 from rotcal.simulate import DutSpec, SimulationSpec, simulate
@@ -121,9 +121,15 @@ def test_g_uncertainty_scales_the_sensitivities_only():
     np.testing.assert_allclose(sum(fit.result.budget.values()), fit.result.std_uncertainty**2, rtol=1e-9)
 
 
-def test_refuses_too_few_poses():
-    few = orientation_free(poses_of(hand_placed(4, n_poses=11)), G_LOCAL, 0.0)
-    assert isinstance(few, Failure) and "11 static poses" in few.reason and "at least 12" in few.reason
+def test_refuses_fewer_poses_than_parameters_plus_one():
+    """Nine parameters need ten poses (one residual degree of freedom), the
+    six of orthogonal axes seven: the count follows from the model."""
+    nine = orientation_free(poses_of(hand_placed(4, n_poses=9)), G_LOCAL, 0.0)
+    assert isinstance(nine, Failure) and "9 static poses" in nine.reason and "at least 10" in nine.reason
+    assert not isinstance(orientation_free(poses_of(hand_placed(4, n_poses=10)), G_LOCAL, 0.0), Failure)
+    six = orientation_free(poses_of(hand_placed(4, n_poses=6)), G_LOCAL, 0.0, ORTHOGONAL)
+    assert isinstance(six, Failure) and "the 6-parameter model needs at least 7" in six.reason
+    assert not isinstance(orientation_free(poses_of(hand_placed(4, n_poses=7)), G_LOCAL, 0.0, ORTHOGONAL), Failure)
 
 
 def test_refuses_poses_about_one_axis():

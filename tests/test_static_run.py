@@ -36,7 +36,10 @@ def test_xsens_orientation_free_matches_the_factory_calibration(xsens):
     assert np.all(np.abs(value[:3] / XSENS_SCALE - 1) < 0.005)
     assert np.all(np.abs(value[6:] - XSENS_OFFSET) < 10)
     intrinsic = pl.read_parquet(out / "intrinsic.parquet")
-    assert intrinsic.height == 9 and set(intrinsic["rate_hz"]) == {0.0}
+    assert intrinsic.height == 18 and set(intrinsic["rate_hz"]) == {0.0}
+    assert intrinsic["model"].to_list() == ["baseline"] * 9 + ["orthogonal"] * 9
+    # the F test rejects orthogonal axes (phi_vw is 88.8 degrees): the nine parameters are chosen
+    assert any(n.startswith("static model: baseline; the F test of orthogonal axes") and "rejects" in n for n in outcome.notes)
     assert set(pl.read_parquet(out / "cross_sensitivity.parquet")["frame"]) == {"intrinsic"}
 
 
@@ -81,9 +84,10 @@ def test_imucal_run_prints_the_twelve_parameter_fit_and_every_pose(cli, tmp_path
     np.testing.assert_allclose(poses.select("ref_x", "ref_y", "ref_z").to_numpy(),
                                [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]])
     correction = pl.read_parquet(tmp_path / "correction.parquet")
-    assert correction.height == 9 and set(correction["input_unit"]) == {"count"}
+    assert correction.height == 6 and set(correction["input_unit"]) == {"count"}
     dof = pl.read_parquet(tmp_path / "correction_uncertainty.parquet").group_by("parameters").agg(pl.col("dof").first())
-    assert dict(dof.iter_rows()) == {6: 4, 12: 2, 15: 1}
+    assert dict(dof.iter_rows()) == {6: 4, 12: 2}  # the six faces do not determine the cubic term (x^3 = x on -1, 0, +1 g)
+    assert "AN4399 15-parameter correction skipped: the positions do not determine gamma" in " ".join(stderr.split())
 
 
 def _write(tmp_path, frame, g_local=G_LOCAL):
@@ -124,12 +128,34 @@ def test_simulated_jig_recording_gives_intrinsic_parameters_and_corrections(tmp_
     np.testing.assert_allclose(twelve.select("W_x", "W_y", "W_z").to_numpy(), w, rtol=2e-3, atol=2e-3 * np.abs(w).max())
 
 
-def test_too_few_poses_is_refused_with_the_reason(cli, tmp_path):
+def test_eight_poses_give_the_orthogonal_model(cli, tmp_path):
+    """Eight poses cannot determine nine parameters with a residual degree
+    of freedom, but they determine the six of orthogonal axes: those are the
+    result (rows model = orthogonal), with the reason the nine are not."""
     sim = hand_placed(79, n_poses=8, samples=300, move_samples=150)
     data = _write(tmp_path / "data", samples_frame(sim))
     status, _, stderr = cli("run", data, "--out", tmp_path / "out")
+    assert status == 0, stderr
+    assert "static model: orthogonal (the baseline model is not determined: 8 static poses" in " ".join(stderr.split())
+    intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet")
+    assert set(intrinsic["model"]) == {"orthogonal"} and intrinsic.height == 9
+    assert intrinsic.filter(pl.col("parameter").str.starts_with("phi"))["value"].to_list() == [90.0] * 3
+
+
+def test_too_few_poses_are_refused_with_the_pose_table(cli, tmp_path):
+    """Six poses do not determine even the six parameters with a residual
+    degree of freedom: exit 3 with the reason, and poses.parquet still
+    lists the six intervals found."""
+    sim = hand_placed(79, n_poses=6, samples=300, move_samples=150)
+    data = _write(tmp_path / "data", samples_frame(sim))
+    status, _, stderr = cli("run", data, "--out", tmp_path / "out")
     assert status == 3
-    assert "no table segments, and the static poses cannot be reduced: 8 static poses" in stderr
+    assert ("no table segments, and the static poses cannot be reduced: orthogonal axes (six parameters): 6 static "
+            "poses: the 6-parameter model needs at least 7 (its 6 intrinsic parameters and one residual degree of "
+            "freedom); nine parameters: 6 static poses: the 9-parameter model needs at least 10") in " ".join(stderr.split())
+    poses = pl.read_parquet(tmp_path / "out" / "poses.parquet")
+    assert poses.height == 6 and poses["norm_m_s2"].is_null().all() and poses["determines"].is_null().all()
+    np.testing.assert_allclose(poses["n_samples"].to_numpy(), 300, atol=30)
 
 
 def test_jig_positions_at_two_temperatures_give_corrections_per_temperature(tmp_path):

@@ -20,11 +20,17 @@ weighted least squares; the covariance of the nine parameters is
 (J' W J)^-1 at the solution, split into the share of the pose noise and of
 the excess scatter.
 
-The poses identify the nine parameters only if their gravity directions do
-not all lie near one circle on the sphere (one rotation axis, or a cone):
-points on a conic lie on a family of ellipsoids. ``direction_spread`` is the
-smallest singular value of the normalised quadric design of the directions;
-below ``MIN_SPREAD`` rotcal refuses instead of reporting a meaningless fit.
+The same fit with the three angles fixed at 90 degrees (``ORTHOGONAL``: L
+diagonal, six parameters) is the nested model of orthogonal axes
+(``combine.posemodels`` chooses between the two).
+
+A model is determined when the poses outnumber its parameters (one residual
+degree of freedom at least, to judge the scatter) and their gravity
+directions do not all lie near one circle on the sphere (one rotation axis,
+or a cone): points on a conic lie on a family of ellipsoids.
+``direction_spread`` is the smallest singular value of the normalised
+quadric design of the directions (the model's columns of it); below
+``MIN_SPREAD`` rotcal refuses instead of reporting a meaningless fit.
 """
 
 from __future__ import annotations
@@ -42,7 +48,10 @@ TRIL = np.tril_indices(3)  # (0,0) (1,0) (1,1) (2,0) (2,1) (2,2)
 MIN_SPREAD = 1e-3  # below it the directions are degenerate to within noise; weaker geometry shows in u
 MAX_ITERATIONS = 30
 VARIANCE_FLOOR = 1e-24  # relative to g^2: keeps noise-free (simulated) poses finite
-TOO_ALIKE = ("the poses are too alike to identify the nine intrinsic parameters: their gravity directions lie "
+# the free elements of (L[TRIL], O) per model: every one, or L's diagonal and O (the axes orthogonal)
+FULL = np.arange(9)
+ORTHOGONAL = np.array([0, 2, 5, 6, 7, 8])
+TOO_ALIKE = ("the poses are too alike to identify the {k} intrinsic parameters: their gravity directions lie "
              "near one circle on the sphere (one rotation axis, or a cone){detail}; add poses turned about another axis")
 
 
@@ -59,6 +68,17 @@ class OrientationFreeFit:
     dof: int
     excess_std: float = 0.0
     direction_spread: float = float("nan")
+    noise_var: np.ndarray | None = None
+
+    @property
+    def parameters(self) -> int:
+        return len(self.magnitude) - self.dof
+
+    @property
+    def variance(self) -> np.ndarray:
+        """Each pose's residual variance in the fit: noise and excess scatter ((m/s^2)^2)."""
+        assert self.noise_var is not None
+        return self.noise_var + self.excess_std**2
 
 
 def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -106,13 +126,16 @@ def pose_arrays(poses: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     return m, cov
 
 
-def _ellipsoid_start(m: np.ndarray, g: float) -> np.ndarray:
-    """Algebraic ellipsoid fit (m - O)' S (m - O) = g^2 as a starting point."""
+def _ellipsoid_start(m: np.ndarray, g: float, free: np.ndarray = FULL) -> np.ndarray:
+    """Algebraic ellipsoid fit (m - O)' S (m - O) = g^2 as a starting point
+    (axis-aligned, S diagonal, for the orthogonal model)."""
     centre = m.mean(axis=0)
     span = np.abs(m - centre).max()
     x, y, z = ((m - centre) / span).T
     design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z])
-    coef = np.linalg.lstsq(design, np.ones(len(m)), rcond=None)[0]
+    coef = np.zeros(9)
+    columns = FULL if len(free) == 9 else np.array([0, 1, 2, 6, 7, 8])  # S's diagonal and the linear terms
+    coef[columns] = np.linalg.lstsq(design[:, columns], np.ones(len(m)), rcond=None)[0]
     A = np.array([[coef[0], coef[3], coef[4]], [coef[3], coef[1], coef[5]], [coef[4], coef[5], coef[2]]])
     offset = -np.linalg.solve(A, coef[6:])
     unit_quadric = A / (1.0 + offset @ A @ offset)  # (m - O)' Q (m - O) = 1, scaled coordinates
@@ -137,10 +160,16 @@ def magnitude_and_gradient(params: np.ndarray, m: np.ndarray) -> tuple[np.ndarra
     return mag, grad, jac
 
 
-def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray) -> np.ndarray:
-    """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights."""
-    return nonlinear(lambda p: (magnitude_and_gradient(p, m)[0] - g) / sigma,
-                     lambda p: magnitude_and_gradient(p, m)[2] / sigma[:, None], start).x
+def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights,
+    over the ``free`` parameters (the others stay as in ``start``)."""
+    def whole(p: np.ndarray) -> np.ndarray:
+        params = start.copy()
+        params[free] = p
+        return params
+
+    return whole(nonlinear(lambda p: (magnitude_and_gradient(whole(p), m)[0] - g) / sigma,
+                           lambda p: magnitude_and_gradient(whole(p), m)[2][:, free] / sigma[:, None], start[free]).x)
 
 
 def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> float:
@@ -157,41 +186,43 @@ def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> f
     return brentq(chi2, 0.0, upper + 1e-300, xtol=1e-14 * upper, rtol=1e-12)
 
 
-def direction_spread(directions: np.ndarray) -> float:
+def direction_spread(directions: np.ndarray, free: np.ndarray = FULL) -> float:
     """Smallest singular value of the quadric design of unit directions
-    (d_i d_j, d_i), divided by sqrt(n): zero when they lie on one circle."""
+    (d_i d_j, d_i; the columns of the ``free`` parameters), divided by
+    sqrt(n): zero when they lie on one circle."""
     d = directions
     rows, cols = TRIL
-    design = np.hstack([d[:, rows] * d[:, cols], d])
+    design = np.hstack([d[:, rows] * d[:, cols], d])[:, free]
     if len(d) < design.shape[1]:
         return 0.0
     return float(np.linalg.svd(design, compute_uv=False)[-1] / np.sqrt(len(d)))
 
 
 def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                     min_poses: int = 12) -> OrientationFreeFit | Failure:
-    """The nine intrinsic parameters from static poses of unknown orientation.
+                     free: np.ndarray = FULL) -> OrientationFreeFit | Failure:
+    """The nine intrinsic parameters from static poses of unknown orientation
+    (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees).
 
     ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
     ``pose_table``). Returns a ``Failure`` (rate 0) with the reason when the poses
-    are too few or too alike to identify the nine parameters.
+    are too few or too alike to identify the model's parameters.
     """
-    n = poses.height
-    if n < min_poses:
-        return Failure(0.0, f"{n} static poses: at least {min_poses} are needed to identify the nine "
-                           "intrinsic parameters with residual degrees of freedom")
+    n, k = poses.height, len(free)
+    if n <= k:
+        return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {k + 1} (its {k} "
+                           "intrinsic parameters and one residual degree of freedom)")
     m, cov = pose_arrays(poses)
     try:
-        params = _ellipsoid_start(m, g_local)
+        params = _ellipsoid_start(m, g_local, free)
     except np.linalg.LinAlgError:
-        return Failure(0.0, TOO_ALIKE.format(detail=": their means do not span an ellipsoid"))
-    dof = n - 9
+        return Failure(0.0, TOO_ALIKE.format(k=k, detail=": their means do not span an ellipsoid"))
+    dof = n - k
     tau2 = 0.0
     floor = VARIANCE_FLOOR * g_local**2
     for _ in range(MAX_ITERATIONS):
         mag, grad, _ = magnitude_and_gradient(params, m)
         noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
-        params = _solve(params, m, g_local, np.sqrt(noise_var + tau2))
+        params = _solve(params, m, g_local, np.sqrt(noise_var + tau2), free)
         mag, grad, jac = magnitude_and_gradient(params, m)
         noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
         new = excess_variance(mag - g_local, noise_var, dof)
@@ -203,22 +234,24 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     if not np.all(np.isfinite(params)) or np.any(np.diag(L) <= 0):
         return Failure(0.0, "the orientation-free fit did not converge to a valid responsivity matrix")
     a = np.linalg.solve(L, (m - params[6:]).T).T
-    spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None])
+    spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None], free)
     if spread < MIN_SPREAD:
-        return Failure(0.0, TOO_ALIKE.format(detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
+        return Failure(0.0, TOO_ALIKE.format(k=k, detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
     chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof)
     weight = 1.0 / (noise_var + tau2)
+    jac = jac[:, free]
     params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]))
-    gain = params_cov @ (jac * weight[:, None]).T  # (9, n): d params / d residual
+    gain = params_cov @ (jac * weight[:, None]).T  # (k, n): d params / d residual
     # state = g * rows of L (the g-free coefficient space of combine) and O
     lift = np.zeros((12, 9))
-    for k, (i, j) in enumerate(zip(*TRIL)):
-        lift[3 * i + j, k] = g_local
+    for j, (r, c) in enumerate(zip(*TRIL)):
+        lift[3 * r + c, j] = g_local
     lift[9:, 6:] = np.eye(3)
+    lift = lift[:, free]
     gain = lift @ gain
     # the pose means' noise is known from many samples each; the excess scatter is estimated from the dof residuals
     parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T),
              (whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T)]
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
     result = IntrinsicResult.from_state(0.0, state, lift @ params_cov @ lift.T, g_local, g_uncertainty, parts)
-    return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread)
+    return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)

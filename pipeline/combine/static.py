@@ -4,21 +4,27 @@ poses (imu_tk, ArduPilot style), labelled poses (imucal's ``x_p``, ``x_a``,
 
 Positions whose reference acceleration is known (labels, jig) are fitted
 with ``poses.reference_fit``; otherwise the still intervals are found by
-``stillness`` and fitted with ``multiposition.orientation_free``. Either
+``stillness`` and fitted with ``multiposition.orientation_free``, both the
+nine parameters and the six of orthogonal axes where the poses determine
+them (``posemodels``: the choice, and the angles no pose determines). Either
 way the result is the static (rate 0) set of intrinsic parameters, and the
 per-pose table holds the |a| check: |a| after the full correction, with
 offsets and sensitivities alone, and under the fit to the other half of the
-positions (a two-fold cross-check of every other position).
+positions (a two-fold cross-check of every other position). When no model is
+determined the refusal still carries the pose table.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import OrientationFreeFit, orientation_free, pose_arrays
+from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
+from rotcal.combine.posemodels import advice, choose_model, determines
 from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, still_poses
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
@@ -32,22 +38,27 @@ class StaticReduction(Reduction):
     """The static reduction of a recording (its one result, rate 0, and the
     ``poses`` table), with how it was fitted, the fit, the positions used
     (pose table with ``cov_mean``) and the per-pose check (schema
-    ``poses``)."""
+    ``poses``); ``model`` names the model of its result (``baseline``, or
+    ``orthogonal`` when the poses do not determine the nine parameters),
+    ``nested`` the other models fitted, ``notes`` the model choice and
+    ``chosen`` the model it chooses (``posemodels.choose_model``). A
+    refusal has no result, its failure, and the pose table (``fit`` None)."""
 
     method: str
-    fit: ReferenceFit | OrientationFreeFit
+    fit: ReferenceFit | OrientationFreeFit | None
     positions: pl.DataFrame
     check: pl.DataFrame
+    model: str = "baseline"
+    nested: tuple[tuple[str, IntrinsicResult], ...] = ()
+    notes: tuple[str, ...] = ()
+    chosen: str = "baseline"
 
     @property
     def result(self) -> IntrinsicResult:
-        return self.fit.result
+        return self.results[0]
 
 
-def _fit(positions: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | OrientationFreeFit | Failure:
-    if positions["source"][0] == "stillness":
-        return orientation_free(positions, g_local, g_uncertainty)
-    return reference_fit(positions, g_local, g_uncertainty)
+Fitter = Callable[[pl.DataFrame, float, float], ReferenceFit | OrientationFreeFit | Failure]
 
 
 def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) -> CorrectedPoses:
@@ -59,24 +70,19 @@ def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) ->
     return correct_poses(fit.result, m, cov, fit.excess_std**2)
 
 
-def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g_local: float,
-                  g_uncertainty: float) -> StaticReduction | Failure:
-    """The static result of a recording whose samples carry no table labels."""
-    positions = labelled_poses(samples, segments)
-    if positions.height == 0:
-        positions = still_poses(samples)
-        if positions.height == 0:
-            return Failure(0.0, "no still intervals found")
-    fit = _fit(positions, g_local, g_uncertainty)
-    if isinstance(fit, Failure):
-        return fit
+def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: ReferenceFit | OrientationFreeFit | None,
+           g_local: float, g_uncertainty: float) -> pl.DataFrame:
+    """The ``poses`` table: every position with the |a| check under ``fit``
+    and under the fits to each half (NaN where there is no fit), and the
+    angles each pose determines under an orientation-free fit."""
     m, cov = pose_arrays(positions)
-    after = correct_poses(fit.result, m, cov)
+    n = positions.height
+    after = correct_poses(fit.result, m, cov) if fit is not None else CorrectedPoses(*(np.full(s, np.nan) for s in ((n, 3), n, n, n)))
     fold = (positions["pose"].to_numpy() % 2).astype(np.int32)
-    held = np.full(positions.height, np.nan)
-    held_u = np.full(positions.height, np.nan)
-    for k in (0, 1):
-        other = _fit(positions.filter(pl.Series(fold != k)), g_local, g_uncertainty)
+    held = np.full(n, np.nan)
+    held_u = np.full(n, np.nan)
+    for k in (0, 1) if fit is not None else ():
+        other = fitter(positions.filter(pl.Series(fold != k)), g_local, g_uncertainty)
         if not isinstance(other, Failure):
             pred = _predict(other, positions.filter(pl.Series(fold == k)))
             held[fold == k], held_u[fold == k] = pred.magnitude, pred.magnitude_u
@@ -92,7 +98,44 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         norm_orthogonal_m_s2=after.magnitude_orthogonal, norm_m_s2=after.magnitude, u_norm_m_s2=after.magnitude_u,
         deviation_rel=after.magnitude / g_local - 1.0, fold=fold,
         norm_held_out_m_s2=held, u_norm_held_out_m_s2=held_u,
+        determines=pl.Series(determines(after.acceleration) if isinstance(fit, OrientationFreeFit) else [None] * n,
+                             dtype=pl.String),
     )
-    method = "orientation-free" if source == "stillness" else "reference"
-    check = conform(check, "poses")
-    return StaticReduction(FRAMES[source], (fit.result,), (), (Table("poses", check),), (), method, fit, positions, check)
+    return conform(check, "poses")
+
+
+def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g_local: float,
+                  g_uncertainty: float) -> StaticReduction | Failure:
+    """The static result of a recording whose samples carry no table labels:
+    the most general model its positions determine, with the nested
+    orthogonal model and the choice between them (``posemodels``) for
+    poses of unknown orientation; a refusal with the pose table when not
+    even the six parameters of orthogonal axes are determined."""
+    positions = labelled_poses(samples, segments)
+    if positions.height == 0:
+        positions = still_poses(samples)
+        if positions.height == 0:
+            return Failure(0.0, "no still intervals found")
+    source = positions["source"][0]
+    frame = FRAMES[source]
+    if source != "stillness":
+        fit = reference_fit(positions, g_local, g_uncertainty)
+        if isinstance(fit, Failure):
+            check = _check(positions, dataset, reference_fit, None, g_local, g_uncertainty)
+            return StaticReduction(frame, (), (fit,), (Table("poses", check),), (), "reference", None, positions, check)
+        check = _check(positions, dataset, reference_fit, fit, g_local, g_uncertainty)
+        return StaticReduction(frame, (fit.result,), (), (Table("poses", check),), (), "reference", fit, positions, check)
+    choice = choose_model(positions, g_local, g_uncertainty)
+    general, free, model = ((choice.full, FULL, "baseline") if not isinstance(choice.full, Failure)
+                            else (choice.orthogonal, ORTHOGONAL, "orthogonal"))
+    fitter: Fitter = partial(orientation_free, free=free)
+    if isinstance(general, Failure):
+        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty)
+        full = choice.full.reason if isinstance(choice.full, Failure) else ""
+        refusal = Failure(0.0, f"orthogonal axes (six parameters): {general.reason}; nine parameters: {full}")
+        return StaticReduction(frame, (), (refusal,), (Table("poses", check),), (), "orientation-free", None, positions, check)
+    check = _check(positions, dataset, fitter, general, g_local, g_uncertainty)
+    directions = check.select(f"a_{s}" for s in AXES).to_numpy()
+    nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
+    return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(advice(directions)),
+                           "orientation-free", general, positions, check, model, nested, (choice.note,), choice.chosen)

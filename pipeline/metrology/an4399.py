@@ -22,6 +22,15 @@ input unit (AN4399's W divided by N when the input is in counts), V in g
 and gamma in g per input unit cubed; for a DUT that outputs g, W is
 AN4399's dimensionless gain matrix.
 
+Which models the positions determine is judged on their references alone
+(``undetermined``): a model whose reference design has a column that is a
+combination of the others (to ``COLLINEAR``, relative) is skipped with the
+coefficient and the position that would fix it; the raw outputs' noise and
+offsets break such a degeneracy only by chance (the six faces read -1, 0
+and +1 g on each axis, where x^3 = x, so gamma duplicates W_rr). A
+determined model with no residual degree of freedom (AN4399's exact
+four-position fit) is kept with a warning that nothing judges its scatter.
+
 Uncertainties: the readings, not the references, carry the noise, so each
 position's equation has the variance grad' Sigma_k grad (grad = W_r +
 3 gamma out_r^2 e_r, Sigma_k the covariance of the position's mean), to
@@ -47,6 +56,7 @@ from rotcal.tables import conform, schema
 COEFFICIENTS = ("W_x", "W_y", "W_z", "V", "gamma")
 MODELS = (6, 12, 15)
 TEMPERATURE_GAP_C = 2.0  # positions whose temperatures differ by more start a new calibration temperature
+COLLINEAR = 1e-6  # a reference column within this (relative) of the others' span is not determined by them
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,6 +117,32 @@ def fit_channel(raw: np.ndarray, reference: np.ndarray, channel: int, parameters
                       fit.dof, len(raw), excess)
 
 
+def undetermined(reference: np.ndarray, parameters: int) -> str | None:
+    """Why positions with references ``reference`` (M, 3) in g do not
+    determine a model's coefficients, naming the last coefficient (in
+    ``COEFFICIENTS`` order) whose column the others span and the positions that would fix it; None when
+    they do (or when the count alone falls short: ``ols`` says so)."""
+    n = len(reference)
+    for r in range(3):
+        cols = model_columns(parameters, r)
+        if n < len(cols):
+            return None
+        design = np.column_stack([reference, np.ones(n), reference[:, r] ** 3])[:, cols]
+        norm = np.linalg.norm(design, axis=0)
+        unit = design / np.where(norm > 0, norm, 1.0)
+        for j, col in reversed(list(enumerate(cols))):  # the model's extensions first: gamma, then the cross terms
+            others = np.delete(unit, j, axis=1)
+            rest = unit[:, j] - others @ np.linalg.lstsq(others, unit[:, j], rcond=None)[0]
+            if np.linalg.norm(rest) >= COLLINEAR:
+                continue
+            name = COEFFICIENTS[col]
+            fix = (f"positions where {AXES[r]} reads other levels than -1, 0 and +1 g (tilted, e.g. 45 degrees)"
+                   if name == "gamma" else f"positions with gravity along {AXES[col]}" if col < 3
+                   else "positions of other references")
+            return f"the positions do not determine {name} of channel {AXES[r]} (its column is a combination of the others); {fix} would"
+    return None
+
+
 def temperature_groups(temperature_c: np.ndarray, gap_c: float = TEMPERATURE_GAP_C) -> np.ndarray:
     """Group positions into calibration temperatures: sorted temperatures
     more than ``gap_c`` apart start a new group; positions without a
@@ -131,6 +167,13 @@ def fit_corrections(raw: np.ndarray, reference: np.ndarray, raw_cov: np.ndarray 
         t_c = float(np.mean(temps[at])) if grp >= 0 else float("nan")
         where = f" at {t_c:.1f} degC" if grp >= 0 else ""
         for parameters in models:
+            why = undetermined(reference[at], parameters)
+            if why is not None:
+                warnings.append(f"AN4399 {parameters}-parameter correction{where} skipped: {why}")
+                continue
+            if at.sum() == len(model_columns(parameters, 0)):
+                warnings.append(f"AN4399 {parameters}-parameter correction{where}: an exact fit to {at.sum()} positions, "
+                                "no residual degree of freedom to judge its scatter (uncertainty not determined)")
             try:
                 out += [fit_channel(raw[at], reference[at, r], r, parameters,
                                     None if raw_cov is None else raw_cov[at], t_c) for r in range(3)]

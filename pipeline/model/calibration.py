@@ -38,20 +38,24 @@ CALIBRATION_VERSION = "1.0"
 BASELINE, REFINED = "baseline", "refined"
 
 
-def recommended_model(intrinsic: pl.DataFrame, modelled: tuple[str, ...], baseline_reason: str) -> tuple[str, str]:
+def recommended_model(intrinsic: pl.DataFrame, modelled: tuple[str, ...], baseline_reason: str,
+                      static_choice: tuple[str, str] | None = None) -> tuple[str, str]:
     """The model of ``intrinsic.parquet`` whose rows are the result, and why.
 
     The refined model where the diagnosis modelled effects (``modelled``,
     its findings): the papers' model omits them, so its estimates carry
     their bias (a channel delay's phase read as angle; Geist 2017's model
     has no term for it), while the refined one estimates the same nine
-    parameters with the effects as extra terms. The baseline otherwise,
-    for ``baseline_reason`` (no effect found, or the diagnosis not run).
-    The one place that chooses: a dataset with other candidate models
-    adds its rule here."""
+    parameters with the effects as extra terms. For static poses of unknown
+    orientation, the nested model the evidence chooses (``static_choice``:
+    its name and the F test's verdict, ``combine.posemodels``). The baseline
+    otherwise, for ``baseline_reason`` (no effect found, or the diagnosis
+    not run). The one place that chooses."""
     models = set(intrinsic["model"].to_list())
     if REFINED in models and modelled:
         return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}"
+    if static_choice is not None and static_choice[0] in models:
+        return static_choice
     return BASELINE, baseline_reason
 
 
@@ -67,14 +71,16 @@ class Recommended:
 
 
 def recommend(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...], frames: tuple[str, ...],
-              refined: tuple[IntrinsicResult, ...], modelled: tuple[str, ...], baseline_reason: str) -> Recommended:
-    """The recommended model (``recommended_model``) with its results: the
-    baseline ``results`` or the ``refined`` ones, in the baseline's frames."""
-    model, reason = recommended_model(intrinsic, modelled, baseline_reason)
-    if model == BASELINE:
+              others: dict[str, tuple[IntrinsicResult, ...]], modelled: tuple[str, ...], baseline_reason: str,
+              static_choice: tuple[str, str] | None = None) -> Recommended:
+    """The recommended model (``recommended_model``) with its results, in
+    the frames of ``results`` (the first model's): those ``results``, or
+    the ``others`` of its name (refined, a static recording's nested models)."""
+    model, reason = recommended_model(intrinsic, modelled, baseline_reason, static_choice)
+    if model not in others:
         return Recommended(model, reason, results, frames)
     frame_of = dict(zip((r.rate_hz for r in results), frames))
-    return Recommended(model, reason, refined, tuple(frame_of[r.rate_hz] for r in refined))
+    return Recommended(model, reason, others[model], tuple(frame_of[r.rate_hz] for r in others[model]))
 
 
 def mark_recommended(intrinsic: pl.DataFrame, model: str) -> pl.DataFrame:

@@ -1,0 +1,113 @@
+"""What static poses of unknown orientation determine: the nested models of
+the orientation-free fit, the choice between them by evidence, and which
+angles the poses leave to their small tilts (with the pose that would fix
+each).
+
+Two nested models (``multiposition.orientation_free``): ``baseline``, the
+nine intrinsic parameters (Geist 2017's model), and ``orthogonal``, six (the
+three angles fixed at 90 degrees). Each is fitted where the poses determine
+it: more poses than parameters, and directions not on one circle. When both
+are, the choice is an F test of the six against the nine (nested least
+squares; e.g. Seber and Wild, *Nonlinear Regression*, section 5.3):
+
+    F = ((S_6 - S_9) / 3) / (S_9 / nu),   S = sum_k (|a_k| - g)^2 / (v_k + tau^2)
+
+with both models' residuals weighed by the nine-parameter fit's variances
+(pose noise v_k and excess scatter tau^2). The scale is known when the pose
+noise alone explains the nine-parameter residuals (tau = 0: S_9 / nu is
+taken as 1 and F follows F(3, inf) = chi-square(3) / 3); estimated from the
+residuals otherwise (tau > 0, S_9 = nu: F follows F(3, nu)). The orthogonal
+model is chosen unless the data reject it at ``SELECTION_LEVEL``.
+
+An angle is determined by poses whose gravity mixes its two axes: a pose
+*mixes* u and v when 2 |a_u a_v| / |a|^2 >= ``MIXING`` (0.5: gravity at
+least 15 degrees from both axes in their plane, at most 75). With none, the
+angle rests only on the poses' small tilts, and the advice names the pose
+that would fix it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free
+from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
+from rotcal.model.results import Failure
+
+SELECTION_LEVEL = 0.01  # the orthogonal model is rejected when the F test's p-value falls below it
+MIXING = 0.5  # a pose mixes axes i and j when 2 |a_i a_j| / |a|^2 reaches it (15 to 75 degrees in their plane)
+ANGLES = INTRINSIC[3:6]
+
+
+@dataclass(frozen=True, eq=False)
+class ModelChoice:
+    """Both models' fits (or why the poses do not determine them), the
+    chosen model's name, and the F test between them (NaN when only one is
+    determined)."""
+
+    full: OrientationFreeFit | Failure
+    orthogonal: OrientationFreeFit | Failure
+    chosen: str
+    f_statistic: float = float("nan")
+    p_value: float = float("nan")
+    denominator_dof: float = float("nan")
+
+    @property
+    def note(self) -> str:
+        """The choice in one sentence."""
+        if np.isnan(self.p_value):
+            missing = "baseline" if self.chosen == "orthogonal" else "orthogonal"
+            why = getattr(self.full if missing == "baseline" else self.orthogonal, "reason", "")
+            return f"static model: {self.chosen} (the {missing} model is not determined: {why})"
+        verdict = "rejects" if self.chosen == "baseline" else "does not reject"
+        dof = "inf" if np.isinf(self.denominator_dof) else f"{self.denominator_dof:g}"
+        return (f"static model: {self.chosen}; the F test of orthogonal axes against the nine parameters "
+                f"{verdict} them at the {SELECTION_LEVEL:g} level (F = {self.f_statistic:.3g} with (3, {dof}) "
+                f"degrees of freedom, p = {self.p_value:.3g}); intrinsic.parquet has both models' rows")
+
+
+def f_test(full: OrientationFreeFit, restricted: OrientationFreeFit, g_local: float) -> tuple[float, float, float]:
+    """F, its p-value and the denominator's degrees of freedom (module docstring)."""
+    from scipy.special import chdtrc, fdtrc  # here: scipy's import would slow every CLI start
+
+    assert restricted.noise_var is not None
+    q = full.parameters - restricted.parameters
+    s_full = float(np.sum((full.magnitude - g_local) ** 2 / full.variance))
+    s_restricted = float(np.sum((restricted.magnitude - g_local) ** 2 / (restricted.noise_var + full.excess_std**2)))
+    f = max(s_restricted - s_full, 0.0) / q
+    if full.excess_std == 0.0:
+        return f, float(chdtrc(q, q * f)), float("inf")
+    return f, float(fdtrc(q, full.dof, f)), float(full.dof)
+
+
+def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ModelChoice:
+    """Both models fitted to ``poses`` and the one the evidence chooses."""
+    full = orientation_free(poses, g_local, g_uncertainty, FULL)
+    orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL)
+    if isinstance(full, Failure) or isinstance(orthogonal, Failure):
+        return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")
+    f, p, dof = f_test(full, orthogonal, g_local)
+    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
+
+
+def mixing(directions: np.ndarray) -> np.ndarray:
+    """(n, 3): whether each pose mixes the axes of phi_uv, phi_vw, phi_wu."""
+    d = directions / np.linalg.norm(directions, axis=1)[:, None]
+    return np.column_stack([2 * np.abs(d[:, i] * d[:, j]) >= MIXING for i, j in ANGLE_PAIRS])
+
+
+def determines(directions: np.ndarray) -> list[str]:
+    """Per pose, the angles it mixes (space-separated; empty for none)."""
+    return [" ".join(a for a, hit in zip(ANGLES, row) if hit) for row in mixing(directions)]
+
+
+def advice(directions: np.ndarray) -> list[str]:
+    """One sentence per angle no pose mixes, naming the pose that fixes it."""
+    hits = mixing(directions)
+    return [f"the poses barely determine {angle}: none mixes {CHANNELS[i]} and {CHANNELS[j]} "
+            f"(2 |a_{CHANNELS[i]} a_{CHANNELS[j]}| / |a|^2 >= {MIXING:g}), so it rests on their small tilts; "
+            f"a pose between +{CHANNELS[i]} and +{CHANNELS[j]} (gravity about 45 degrees from both) fixes {angle}"
+            for k, (angle, (i, j)) in enumerate(zip(ANGLES, ANGLE_PAIRS)) if not hits[:, k].any()]
