@@ -60,9 +60,17 @@ def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) ->
 
 
 def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g_local: float,
-                  g_uncertainty: float) -> StaticReduction | Failure:
-    """The static result of a recording whose samples carry no table labels."""
-    positions = labelled_poses(samples, segments)
+                  g_uncertainty: float, positions: pl.DataFrame | None = None) -> StaticReduction | Failure:
+    """The static result of a recording whose samples carry no table labels,
+    or of the pose table ``positions`` (``poses.summary_poses``: the
+    recording given as pose summaries)."""
+    if positions is None:
+        positions = labelled_poses(samples, segments)
+    single = positions.filter(pl.col("n_samples") < 2)
+    if single.height:
+        return Failure(0.0, f"{single.height} of the {positions.height} labelled poses have one sample each: a pose's "
+                            "scatter needs two or more (one row per pose? give its mean, standard deviation and count "
+                            "as pose summaries, docs/inputs.md)")
     if positions.height == 0:
         positions = still_poses(samples)
         if positions.height == 0:
