@@ -74,21 +74,30 @@ def _sample_lines(fh: BinaryIO, start: int, comment: str | None) -> list[bytes]:
     return kept[:SNIFF_LINES]
 
 
-def _separator(lines: list[bytes], path: Path) -> str:
+def _splits(sep: str, lines: list[bytes], header: bool) -> bool:
+    """Whether ``sep`` splits every line into the same number (two or more)
+    of fields; a comma, only where no data field holds a blank between two
+    values (``0.00  15765,25  288,50``: blanks separate, commas are decimal)."""
+    counts = {line.count(sep.encode()) for line in lines}
+    if len(counts) != 1 or counts.pop() == 0:
+        return False
+    data = lines[1:] if header else lines
+    return sep != "," or not any(len(field.split()) > 1 for line in data for field in line.split(b","))
+
+
+def _separator(lines: list[bytes], header: bool, path: Path) -> str:
     """The separator that splits every sample line into the same number
     (two or more) of fields; ``whitespace`` when only runs of blanks do."""
     for sep, _ in SEPARATORS:
-        counts = {line.count(sep.encode()) for line in lines}
-        if len(counts) == 1 and counts.pop() > 0:
+        if _splits(sep, lines, header):
             return sep
     fields = {len(line.split()) for line in lines}
     if len(fields) == 1 and fields.pop() > 1:
         return "whitespace"
-    if all(not any(sep.encode() in line for sep, _ in SEPARATORS) and len(line.split()) == 1 for line in lines):
-        return ","  # one column: nothing to separate (the column check says what is missing)
     tried = ", ".join(name for _, name in SEPARATORS)
+    first = lines[0][:60].decode("utf-8", "replace")
     raise InputError(f"cannot detect the delimiter: no {tried} or whitespace splits the first {len(lines)} lines into "
-                     "the same number of fields", path=path,
+                     f"the same number of fields (first line {first!r})", path=path,
                      hint="set dataset.toml [format] delimiter, or skip_lines for a preamble before the header")
 
 
@@ -97,7 +106,7 @@ def layout(fh: BinaryIO, fmt: CsvFormat, path: Path) -> Layout:
     leave open detected from the first lines after ``skip_lines``."""
     start = _offset_after(fh, fmt.skip_lines, path) if fmt.skip_lines else 0
     lines = [] if fmt.delimiter is not None and fmt.decimal_comma is not None else _sample_lines(fh, start, fmt.comment_prefix)
-    delimiter = fmt.delimiter if fmt.delimiter is not None else (_separator(lines, path) if lines else ",")
+    delimiter = fmt.delimiter if fmt.delimiter is not None else (_separator(lines, fmt.header, path) if lines else ",")
     decimal_comma = fmt.decimal_comma
     if decimal_comma is None:
         rows = lines[1:] if fmt.header else lines

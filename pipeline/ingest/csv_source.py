@@ -229,14 +229,13 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
 
 
 def iso_times(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
-    """ISO 8601 date-times in ``t`` as ``t_ns``, nanoseconds since the Unix
-    epoch (UTC; a time without an offset is taken as UTC)."""
-    stamps = pl.col("t").str.strip_chars().str.to_datetime(time_unit="ns", time_zone="UTC", strict=False)
-    try:
-        parsed = frame.select(stamps.dt.epoch("ns").alias("t_ns"), pl.col("t").alias("text"))
-        bad = parsed["t_ns"].is_null().arg_true()
-    except pl.exceptions.ComputeError:  # no ISO 8601 form fits the first value
-        parsed, bad = frame.select(pl.col("t").alias("text")), pl.Series([0])
+    """ISO 8601 date-times in ``t`` (``T`` or a blank between date and time,
+    an offset, ``Z`` or none: UTC) as ``t_ns``, nanoseconds since the Unix epoch."""
+    text = pl.col("t").str.strip_chars().str.replace(r"^(\d{4}-\d\d-\d\d) ", "${1}T").str.replace(r"Z$", "+00:00")
+    text = pl.when(text.str.contains(r"[+-]\d\d:?\d\d$")).then(text).otherwise(text + "+00:00")
+    stamps = text.str.to_datetime("%Y-%m-%dT%H:%M:%S%.f%#z", time_unit="ns", time_zone="UTC", strict=False)
+    parsed = frame.select(stamps.dt.epoch("ns").alias("t_ns"), pl.col("t").alias("text"))
+    bad = parsed["t_ns"].is_null().arg_true()
     if len(bad):
         row = int(bad[0])
         text = parsed["text"][row]
