@@ -88,15 +88,20 @@ def _references(labels: list[str | None], jig: np.ndarray) -> tuple[np.ndarray, 
 def summary_poses(summaries: pl.DataFrame) -> pl.DataFrame:
     """The pose table of pose summaries (``ingest.summaries``: a label or
     ``gx, gy, gz``, and per channel the mean, the sample standard deviation
-    s and the count n): the statistics ``group_statistics`` takes from the
-    samples, the covariance of the mean diag(s^2 / n) (the summaries carry
-    no covariance between channels)."""
+    s and the count n, optionally the channels' correlations r): the
+    statistics ``group_statistics`` takes from the samples, the covariance
+    of the mean s_i r_ij s_j / sqrt(n_i n_j) (r = 0 between channels where
+    not given)."""
     labels = summaries["pose"].to_list()
     reference, source = _references(labels, summaries.select("gx", "gy", "gz").to_numpy())
     means = summaries.select(f"{c}_mean" for c in CHANNELS).to_numpy()
-    variance = (summaries.select(f"{c}_std" for c in CHANNELS).to_numpy() ** 2
-                / summaries.select(f"{c}_n" for c in CHANNELS).to_numpy())
-    cov = np.einsum("ki,ij->kij", variance, np.eye(3))
+    # standard deviations of the means, s / sqrt(n), and the channels' correlations (0 where not given)
+    std = (summaries.select(f"{c}_std" for c in CHANNELS).to_numpy()
+           / np.sqrt(summaries.select(f"{c}_n" for c in CHANNELS).to_numpy()))
+    corr = np.broadcast_to(np.eye(3), (summaries.height, 3, 3)).copy()
+    for (i, j), name in zip(((0, 1), (1, 2), (2, 0)), ("corr_uv", "corr_vw", "corr_wu")):
+        corr[:, i, j] = corr[:, j, i] = summaries[name].fill_null(0.0).to_numpy()
+    cov = std[:, :, None] * corr * std[:, None, :]
     counts = summaries.select(pl.min_horizontal(f"{c}_n" for c in CHANNELS)).to_series().to_numpy()
     return _statistics_frame(source, labels, reference, counts, means, cov,
                              summaries["temperature_c"].fill_null(np.nan).to_numpy())

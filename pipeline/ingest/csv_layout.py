@@ -55,7 +55,6 @@ def _offset_after(fh: BinaryIO, lines: int, path: Path) -> int:
             if offset + pos + 1 < size:
                 return offset + pos + 1
         seen, offset = seen + count, offset + len(block)
-        fh.seek(offset)
     fh.seek(size - 1)
     total = seen + (fh.read(1) != b"\n")
     raise InputError(f"dataset.toml [format] skip_lines = {lines} skips the whole file (it has {total} lines)", path=path)
@@ -70,7 +69,7 @@ def _sample_lines(fh: BinaryIO, start: int, comment: str | None) -> list[bytes]:
     if len(text) == SNIFF_BYTES and len(lines) > 1:
         lines = lines[:-1]
     prefix = comment.encode() if comment else None
-    kept = [line.rstrip(b"\r") for line in lines if line.strip() and not (prefix and line.startswith(prefix))]
+    kept = [line.rstrip(b"\r") for line in lines if line.strip() and not (prefix and line.lstrip().startswith(prefix))]
     return kept[:SNIFF_LINES]
 
 

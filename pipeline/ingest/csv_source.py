@@ -49,7 +49,7 @@ def check_line_lengths(fh: BinaryIO, path: Path, max_line_bytes: int) -> None:
             raise LimitError(f"a line is longer than the limit of {max_line_bytes} bytes", path=path)
 
 
-def _commas(lines: bytes, separator: int = 44) -> bytes:
+def _commas(lines: bytes, separator: int) -> bytes:
     """Whole lines with runs of blanks and tabs made one ``separator`` (a
     comma, or a semicolon between decimal commas), and those that open or
     close a line dropped (a line ends at \\n, or at the end of the file)."""
@@ -64,8 +64,9 @@ def _commas(lines: bytes, separator: int = 44) -> bytes:
     return np.where(blank, np.uint8(separator), b)[keep].tobytes()
 
 
-def _whitespace_to_commas(fh: BinaryIO, separator: str = ",") -> bytes:
-    """A whitespace-delimited file as comma-separated text, converted a block
+def _whitespace_to_commas(fh: BinaryIO, separator: str) -> bytes:
+    """A whitespace-delimited file as text separated by ``separator`` (a
+    comma, or a semicolon where the numbers have decimal commas), converted a block
     of whole lines at a time: about twice the file (the result and its parts)
     and a few times the block, where regular expressions over the whole text
     took up to 40 times the file (a bytes object per token)."""

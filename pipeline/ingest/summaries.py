@@ -1,7 +1,8 @@
 """Pose summaries: a static calibration given as one row per pose (docs/inputs.md,
 "Pose summaries") instead of the samples, as many authors publish a
 six-position test: the pose (a label or the jig reference ``gx, gy, gz``)
-and per channel the mean, the sample standard deviation and the sample count.
+and per channel the mean, the sample standard deviation and the sample count
+(optionally the channels' sample correlations).
 
 They are the statistics the static reduction takes from a pose's samples
 (``combine.poses``: the mean and the covariance of the mean, std^2 / n per
@@ -22,10 +23,12 @@ from rotcal.model.physics import CHANNELS
 MEANS = tuple(f"{c}_mean" for c in CHANNELS)
 STDS = tuple(f"{c}_std" for c in CHANNELS)
 COUNTS = tuple(f"{c}_n" for c in CHANNELS)
+# optional: the sample correlation of two channels' noise (the pairs of a covariance's off-diagonal)
+CORRELATIONS = ("corr_uv", "corr_vw", "corr_wu")
 # every column a summary file may hold (besides [format] pose_column); ``n``: one count for all channels
-SUMMARY_COLUMNS = (*REFERENCES, "temperature_c", *MEANS, *STDS, *COUNTS, "n")
+SUMMARY_COLUMNS = (*REFERENCES, "temperature_c", *MEANS, *STDS, *COUNTS, "n", *CORRELATIONS)
 SUMMARY_SCHEMA = {"pose": pl.String, **dict.fromkeys((*REFERENCES, "temperature_c", *MEANS, *STDS), pl.Float64),
-                  **dict.fromkeys(COUNTS, pl.Int64)}
+                  **dict.fromkeys(COUNTS, pl.Int64), **dict.fromkeys(CORRELATIONS, pl.Float64)}
 
 
 def _missing(columns: list[str]) -> list[str]:
@@ -52,6 +55,11 @@ def pose_summaries(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
         if len(bad):
             raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: {counts[int(bad[0])]:g} is not a sample count "
                              "of 2 or more (the standard deviation needs two samples)", path=path)
+    for name in CORRELATIONS:
+        bad = (frame[name].abs() > 1).arg_true() if name in frame.columns else []
+        if len(bad):
+            raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: {frame[name][int(bad[0])]:g} is not a correlation "
+                             "(-1 to 1)", path=path)
     for name in STDS:
         bad = (frame[name] <= 0).arg_true()
         if len(bad):
