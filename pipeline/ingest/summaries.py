@@ -55,8 +55,8 @@ def pose_summaries(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
         if len(bad):
             raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: {counts[int(bad[0])]:g} is not a sample count "
                              "of 2 or more (the standard deviation needs two samples)", path=path)
-    for name in CORRELATIONS:
-        bad = (frame[name].abs() > 1).arg_true() if name in frame.columns else []
+    for name in (c for c in CORRELATIONS if c in frame.columns):
+        bad = (frame[name].abs() > 1).arg_true()
         if len(bad):
             raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: {frame[name][int(bad[0])]:g} is not a correlation "
                              "(-1 to 1)", path=path)
