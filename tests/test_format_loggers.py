@@ -91,12 +91,19 @@ def test_names_rename_a_header(tmp_path):
     assert_samples(read(tmp_path, text, '[format]\nnames = ["t", "u", "v", "w", ""]\n'))
 
 
-@pytest.mark.parametrize("unit, scale", [("ms", 1e3), ("us", 1e6), ("ns", 1e9)])
+@pytest.mark.parametrize("unit, scale", [("ms", 10**3), ("us", 10**6), ("ns", 10**9)])
 def test_time_unit(tmp_path, unit, scale):
-    """Millisecond (and finer) stamps, as integer counters write them."""
-    stamps = [f"{round(x * scale)}" for x in T_S + 12.5]
+    """Millisecond (and finer) stamps, as integer counters write them; Unix-
+    epoch stamps are exact to the nanosecond."""
+    epoch_s = 1_709_647_331
+    stamps = [f"{epoch_s * scale + round(x * scale)}" for x in T_S]
     frame = read(tmp_path, "t,u,v,w\n" + rows(t=stamps), f'[format]\ntime_unit = "{unit}"\n')
-    assert_samples(frame, np.round((T_S + 12.5) * 1e9))
+    assert_samples(frame, epoch_s * 10**9 + np.round(T_S * 1e9).astype(np.int64))
+
+
+def test_time_unit_keeps_the_range_check(tmp_path):
+    with pytest.raises(InputError, match=r"column 't', row 1 is 1e\+16, beyond ±9e\+09 s"):
+        read(tmp_path, "t,u,v,w\n1e19,1,2,3\n", '[format]\ntime_unit = "ms"\n')
 
 
 def test_iso8601_timestamps(tmp_path):
@@ -195,3 +202,9 @@ def test_default_format_detects_the_comma_files_it_always_read(tmp_path):
     """The detected delimiter of a plain file is the old default's comma."""
     assert_samples(read(tmp_path, "t, u, v, w\n" + rows(", ")))
     assert CsvFormat().delimiter is None and CsvFormat().decimal_comma is None
+
+
+def test_fractional_milliseconds_with_decimal_commas(tmp_path):
+    stamps = ["0,5", "10,5", "20,5", "30,5"]
+    frame = read(tmp_path, "t;u;v;w\n" + rows(";", ",", t=stamps), '[format]\ntime_unit = "ms"\n')
+    assert_samples(frame, np.round(T_S * 1e9) + 500_000)

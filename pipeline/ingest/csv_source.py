@@ -199,7 +199,8 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
         raise InputError(f"dataset.toml [format] pose_column {fmt.pose_column!r} is the file's {both[0]!r} column too: "
                          "a column holds one kind of label", path=path)
     iso = "t" in wanted and TIME_UNITS[fmt.time_unit] is None
-    dtypes = {wanted[c]: (pl.String if c in TEXT or (c == "t" and iso) else pl.Float64) for c in wanted}
+    scaled = "t" in wanted and fmt.time_unit not in ("s", "iso8601")  # read as text: integer stamps stay exact
+    dtypes = {wanted[c]: (pl.String if c in TEXT or (c == "t" and (iso or scaled)) else pl.Float64) for c in wanted}
     columns = list(dtypes) + ([pose_col] if pose_col else [])
     try:
         frame = _read(source, fmt, lay, dtypes, columns)
@@ -207,7 +208,7 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
         raise InputError(f"the file has fewer columns than the {len(fmt.names or ())} that dataset.toml [format] names lists",
                          path=path) from None
     except (pl.exceptions.ComputeError, pl.exceptions.InvalidOperationError) as exc:  # parsing, or the cast of a file without header
-        numeric = {k: v for k, v in wanted.items() if not (k == "t" and iso)}
+        numeric = {k: v for k, v in wanted.items() if not (k == "t" and (iso or scaled))}
         raise _bad_value(source, fmt, lay, numeric, path) or _unreadable(exc, source, path) from None
     # blank lines (a logger's trailing newlines) come back as rows of nulls: no sample, no error
     blank = pl.all_horizontal(pl.all().is_null())
@@ -224,9 +225,26 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
         frame = frame.with_columns(t=pl.int_range(frame.height, dtype=pl.Int64).cast(pl.Float64) / fmt.sample_rate_hz)
     elif iso:
         frame = iso_times(frame, path)
-    elif fmt.time_unit != "s":
-        frame = frame.with_columns(t=pl.col("t") / TIME_UNITS[fmt.time_unit])
+    elif scaled:
+        frame = scaled_times(frame, lay, TIME_UNITS[fmt.time_unit] or 1.0, path)
     return label_columns(frame, spec, path)
+
+
+def scaled_times(frame: pl.DataFrame, lay: Layout, per_second: float, path: Path) -> pl.DataFrame:
+    """Time stamps in ``t`` (text) counted ``per_second`` as ``t_ns``: integer
+    stamps exactly (Unix-epoch nanoseconds need all 63 bits), others by one
+    rounding; with ``t`` in seconds for the range check of ``label_columns``."""
+    text = pl.col("t").str.strip_chars()
+    parsed = frame.select(_numbers(text, lay, strict=False).alias("value"), text.cast(pl.Int64, strict=False).alias("whole"),
+                          pl.col("t").alias("text"))
+    bad = (parsed["value"].is_null() & parsed["text"].is_not_null()).arg_true()
+    if len(bad):
+        raise InputError(f"column 't', row {int(bad[0]) + 1}: {parsed['text'][int(bad[0])]!r} is not a number", path=path)
+    exact = parsed["whole"].null_count() == parsed["text"].null_count()
+    ns_per_unit = 1e9 / per_second
+    t_ns = (parsed["whole"] * round(ns_per_unit) if exact
+            else (parsed["value"] * ns_per_unit).round().cast(pl.Int64, strict=False))
+    return frame.with_columns(t=parsed["value"] / per_second, t_ns=t_ns)
 
 
 def iso_times(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
