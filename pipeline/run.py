@@ -22,6 +22,7 @@ from rotcal.combine import (
     reduce_labelled,
     reduce_phase_free,
     reduce_static,
+    summary_poses,
     table_step_poses,
 )
 from rotcal.config import RunConfig
@@ -223,7 +224,8 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     reduced."""
     g, u = ds.meta.g_local, ds.meta.g_local_uncertainty
     if not seg.table:
-        static = reduce_static(seg.samples, seg.segments, ds.name, g, u)
+        summaries = None if ds.summaries is None else summary_poses(ds.summaries)
+        static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries)
         return static if isinstance(static, Failure) else Reductions(None, (), static)
     labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)

@@ -95,7 +95,8 @@ def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[n
     centred = yy - means[g]
     scatter = np.stack([np.bincount(g, weights=centred[:, i] * centred[:, j], minlength=n_groups)
                         for i in range(3) for j in range(3)], axis=1).reshape(n_groups, 3, 3)
-    cov = scatter / ((counts - 1.0) * counts)[:, None, None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a one-sample group: NaN, refused by reduce_static
+        cov = scatter / ((counts - 1.0) * counts)[:, None, None]
     if yy.size and np.all(yy == np.round(yy)):
         diag = np.einsum("kii->ki", cov)
         diag[:] = np.maximum(diag, (1.0 / 12.0) / counts[:, None])

@@ -56,14 +56,55 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
     last = np.full(n_groups, np.iinfo(np.int64).min)
     np.minimum.at(first, g, t_ns[inside])
     np.maximum.at(last, g, t_ns[inside])
+    temperature = np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0)
+    return _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
+
+
+def _statistics_frame(source: str, label: Sequence[str | None], reference: np.ndarray, counts: np.ndarray,
+                      means: np.ndarray, cov: np.ndarray, temperature: np.ndarray,
+                      first: np.ndarray | None = None, last: np.ndarray | None = None) -> pl.DataFrame:
+    """The pose table from each pose's statistics: sample count, mean (n, 3),
+    covariance of the mean (n, 3, 3), mean temperature and first and last
+    time stamp (null for pose summaries, which have none)."""
+    n_groups = len(counts)
+    none = [None] * n_groups
     return pl.DataFrame({
         "pose": np.arange(n_groups, dtype=np.int64), "label": pl.Series(label, dtype=pl.String),
-        "source": [source] * n_groups, "t_start_ns": first, "t_end_ns": last, "n_samples": counts,
-        "temperature_c": np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0),
+        "source": [source] * n_groups, "t_start_ns": pl.Series(none if first is None else first, dtype=pl.Int64),
+        "t_end_ns": pl.Series(none if last is None else last, dtype=pl.Int64), "n_samples": counts, "temperature_c": temperature,
         **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
         "cov_mean": cov.reshape(-1, 9).tolist(),
         **{name: reference[:, i] for i, name in enumerate(REFERENCE)},
     }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
+
+
+def _references(labels: list[str | None], jig: np.ndarray) -> tuple[np.ndarray, str]:
+    """Each pose's reference (g): its label's, else the jig's ``gx, gy, gz``;
+    and the source, ``label`` when every pose is labelled, else ``jig``."""
+    reference = np.array([LABEL_REFERENCE[lab] if lab is not None else jig[k] for k, lab in enumerate(labels)], float)
+    return reference.reshape(-1, 3), "label" if all(lab is not None for lab in labels) else "jig"
+
+
+def summary_poses(summaries: pl.DataFrame) -> pl.DataFrame:
+    """The pose table of pose summaries (``ingest.summaries``: a label or
+    ``gx, gy, gz``, and per channel the mean, the sample standard deviation
+    s and the count n, optionally the channels' correlations r): the
+    statistics ``group_statistics`` takes from the samples, the covariance
+    of the mean s_i r_ij s_j / sqrt(n_i n_j) (r = 0 between channels where
+    not given)."""
+    labels = summaries["pose"].to_list()
+    reference, source = _references(labels, summaries.select("gx", "gy", "gz").to_numpy())
+    means = summaries.select(f"{c}_mean" for c in CHANNELS).to_numpy()
+    # standard deviations of the means, s / sqrt(n), and the channels' correlations (0 where not given)
+    std = (summaries.select(f"{c}_std" for c in CHANNELS).to_numpy()
+           / np.sqrt(summaries.select(f"{c}_n" for c in CHANNELS).to_numpy()))
+    corr = np.broadcast_to(np.eye(3), (summaries.height, 3, 3)).copy()
+    for (i, j), name in zip(((0, 1), (1, 2), (2, 0)), ("corr_uv", "corr_vw", "corr_wu")):
+        corr[:, i, j] = corr[:, j, i] = summaries[name].fill_null(0.0).to_numpy()
+    cov = std[:, :, None] * corr * std[:, None, :]
+    counts = summaries.select(pl.min_horizontal(f"{c}_n" for c in CHANNELS)).to_series().to_numpy()
+    return _statistics_frame(source, labels, reference, counts, means, cov,
+                             summaries["temperature_c"].fill_null(np.nan).to_numpy())
 
 
 def labelled_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFrame:
@@ -77,11 +118,8 @@ def labelled_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFram
         return _pose_frame(samples, group, 0, "label", [], np.zeros((0, 3)))
     firsts = samples.filter(pl.Series(group >= 0)).with_columns(_g=pl.Series(group[group >= 0])) \
         .group_by("_g", maintain_order=True).agg(pl.col("pose").first(), pl.col("gx", "gy", "gz").mean()).sort("_g")
-    labels = firsts["pose"].to_list()
-    jig = firsts.select("gx", "gy", "gz").to_numpy()
-    reference = np.array([LABEL_REFERENCE[lab] if lab is not None else jig[k] for k, lab in enumerate(labels)], float)
-    source = "label" if all(lab is not None for lab in labels) else "jig"
-    return _pose_frame(samples, group, len(ids), source, labels, reference)
+    reference, source = _references(firsts["pose"].to_list(), firsts.select("gx", "gy", "gz").to_numpy())
+    return _pose_frame(samples, group, len(ids), source, firsts["pose"].to_list(), reference)
 
 
 def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFrame:

@@ -105,13 +105,21 @@ def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: Reference
 
 
 def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g_local: float,
-                  g_uncertainty: float) -> StaticReduction | Failure:
-    """The static result of a recording whose samples carry no table labels:
-    the most general model its positions determine, with the nested
-    orthogonal model and the choice between them (``posemodels``) for
-    poses of unknown orientation; a refusal with the pose table when not
-    even the six parameters of orthogonal axes are determined."""
-    positions = labelled_poses(samples, segments)
+                  g_uncertainty: float, positions: pl.DataFrame | None = None) -> StaticReduction | Failure:
+    """The static result of a recording whose samples carry no table labels,
+    or of the pose table ``positions`` (``poses.summary_poses``: the
+    recording given as pose summaries): the most general model its
+    positions determine, with the nested orthogonal model and the choice
+    between them (``posemodels``) for poses of unknown orientation; a
+    refusal with the pose table when not even the six parameters of
+    orthogonal axes are determined."""
+    if positions is None:
+        positions = labelled_poses(samples, segments)
+    single = positions.filter(pl.col("n_samples") < 2)
+    if single.height:
+        return Failure(0.0, f"{single.height} of the {positions.height} labelled poses have one sample each: a pose's "
+                            "scatter needs two or more (one row per pose? give its mean, standard deviation and count "
+                            "as pose summaries, docs/inputs.md)")
     if positions.height == 0:
         positions = still_poses(samples)
         if positions.height == 0:

@@ -18,7 +18,8 @@ from rotcal.ingest.files import require_regular
 from rotcal.ingest.labels import time_ordered
 from rotcal.ingest.mcap_source import read_mcap_capture
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta, load_meta
-from rotcal.tables import conform
+from rotcal.ingest.summaries import MEANS
+from rotcal.tables import conform, schema
 
 CAPTURE_SUFFIXES = (".csv", ".mcap")
 
@@ -34,6 +35,7 @@ class Dataset:
     notes: tuple[str, ...] = ()
     copies: tuple[tuple[str, str], ...] = ()  # captures skipped as copies: (copy, the file it copies)
     inputs: tuple[Path, ...] = ()  # every file the dataset is (captures, copies included, and its dataset.toml)
+    summaries: pl.DataFrame | None = None  # pose summaries (ingest.summaries) instead of samples
 
 
 def dataset_name(path: Path) -> str:
@@ -106,15 +108,24 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
     root = path if path.is_dir() else path.parent
     files = capture_files(path, meta)
     captures, copies = distinct_captures(files, root)
-    frames, notes = [], [*meta.notes, *(f"duplicate capture: {c!r} holds the same bytes as {o!r}: read once, {c!r} skipped"
-                                        for c, o in copies)]
+    frames, summaries, notes = [], {}, [*meta.notes, *(f"duplicate capture: {c!r} holds the same bytes as {o!r}: "
+                                                       f"read once, {c!r} skipped" for c, o in copies)]
     for file, spec in captures:
         frame, capture_notes = read_capture(file, spec, meta, limits, workers)
         notes += capture_notes
         name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-        frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
+        if MEANS[0] in frame.columns:
+            summaries[name] = frame
+        else:
+            frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
+    if summaries and frames:
+        raise InputError(f"{next(iter(summaries))!r} holds pose summaries and {frames[0]['capture'][0]!r} samples: "
+                         "a dataset is one or the other", path=path)
+    inputs = tuple(f for f, _ in files) + (() if meta_path is None else (Path(meta_path),))
+    if summaries:
+        return Dataset(name=dataset_name(path), root=root, meta=meta, samples=schema("samples").empty(),
+                       notes=tuple(notes), copies=copies, inputs=inputs, summaries=pl.concat(summaries.values()))
     joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
     samples = conform(time_ordered(joined), "samples")
-    inputs = tuple(f for f, _ in files) + (() if meta_path is None else (Path(meta_path),))
     return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes), copies=copies,
                    inputs=inputs)

@@ -26,6 +26,9 @@ MAX_ABS_VALUE = 1e15
 # Times in seconds become int64 nanoseconds, which end at 2^63 ns = 9.22e9 s:
 # 9e9 s keeps Unix-epoch times (1.7e9 s now) for two more centuries.
 MAX_ABS_TIME_S = 9e9
+REFERENCES = ("gx", "gy", "gz")
+# a jig reference is a unit vector in g; 5 % allows a tilted jig's rounded components
+REFERENCE_TOLERANCE = 0.05
 
 
 def time_ordered(frame: pl.DataFrame) -> pl.DataFrame:
@@ -42,23 +45,46 @@ def canonical_rate(rate: pl.Expr) -> pl.Expr:
     return (rate * 1e9).round() / 1e9
 
 
-def check_values(frame: pl.DataFrame, path: Path) -> None:
+def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("t", "u", "v", "w")) -> None:
     """Refuse the first empty, non-finite or out-of-range value where values
     enter: ``t`` (s) within ``MAX_ABS_TIME_S``, every other float within
-    ``MAX_ABS_VALUE``; ``u, v, w`` and ``t`` present in every row, optional
+    ``MAX_ABS_VALUE``; the ``required`` columns present in every row, optional
     columns possibly empty."""
     bounds = {name: MAX_ABS_VALUE for name in ("u", "v", "w")} | {"t": MAX_ABS_TIME_S}
-    bounds |= {name: MAX_ABS_VALUE for name in OPTIONAL_FLOATS}
+    bounds |= {name: MAX_ABS_VALUE for name in (*OPTIONAL_FLOATS, *required) if name != "t"}
     checked = [name for name in bounds if name in frame.columns]
     first_bad = frame.select(
         (pl.col(name).cast(pl.Float64).is_nan() | (pl.col(name).cast(pl.Float64).abs() > bounds[name]))
-        .fill_null(name in ("t", "u", "v", "w"))
+        .fill_null(name in required)
         .arg_true().first().alias(name)
         for name in checked
     ).row(0)
     for name, row in zip(checked, first_bad):
         if row is not None:
             raise InputError(f"column {name!r}, row {row + 1} {_fault(frame[name][row], bounds[name], name)}", path=path)
+
+
+def check_references(frame: pl.DataFrame, path: Path) -> None:
+    """Refuse jig references ``gx, gy, gz`` that are not unit vectors in g
+    (within ``REFERENCE_TOLERANCE``) in every row that has one (docs/inputs.md),
+    saying what the column looks like: a file's gyroscope, or accelerations in m/s^2."""
+    given = [c for c in REFERENCES if c in frame.columns]
+    if not given:
+        return
+    norm = pl.sum_horizontal(pl.col(c).fill_null(0.0) ** 2 for c in given).sqrt()
+    some = pl.any_horizontal(pl.col(c).is_not_null() for c in given)
+    bad = frame.select(((norm - 1.0).abs() > REFERENCE_TOLERANCE) & some).to_series().fill_null(False).arg_true()
+    if not len(bad):
+        return
+    row = int(bad[0])
+    peaks = {c: float(frame[c].abs().max() or 0.0) for c in given}  # type: ignore[arg-type]
+    column = max(peaks, key=lambda c: peaks[c])
+    length = float(frame.select(norm)[row, 0])
+    looks = ("accelerations in m/s^2? references are in g" if abs(length / 9.80665 - 1.0) < 0.05
+             else "a gyroscope or another sensor's column?")
+    raise InputError(f"reference column {column!r} holds values up to {peaks[column]:.4g}, not unit vectors in g "
+                     f"(row {row + 1}: |(gx, gy, gz)| = {length:.4g}): {looks}", path=path,
+                     hint="map only the columns you mean in dataset.toml [format] columns")
 
 
 def _fault(value: float | None, bound: float, name: str) -> str:
@@ -81,6 +107,7 @@ def label_columns(
     labels the file lacks.
     """
     check_values(frame, path)
+    check_references(frame, path)
     if "t_ns" not in frame.columns:
         frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
     back: list[int] | pl.Series = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()

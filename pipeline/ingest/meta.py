@@ -21,21 +21,33 @@ MAX_NESTING = 8
 INT64 = 2**63  # TOML integers are 64-bit (TOML 1.0, "Integer")
 
 DELIMITERS = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "whitespace": "whitespace"}
+# the time column's unit: time stamps per second, or ISO 8601 date-times (``None``)
+TIME_UNITS: dict[str, float | None] = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9, "iso8601": None}
 
 
 @dataclass(frozen=True)
 class CsvFormat:
-    """How to read a CSV capture whose layout differs from the default."""
+    """How to read a CSV capture whose layout differs from the default;
+    ``delimiter`` and ``decimal_comma`` ``None`` are detected from the file."""
 
-    delimiter: str = ","
+    delimiter: str | None = None
     header: bool = True
     names: tuple[str, ...] | None = None
     columns: tuple[tuple[str, str], ...] = ()  # (CSV column name of docs/inputs.md, file column)
     sample_rate_hz: float | None = None
     pose_column: str | None = None
+    skip_lines: int = 0
+    comment_prefix: str | None = "#"
+    decimal_comma: bool | None = None
+    time_unit: str = "s"
 
-    def file_column(self, name: str) -> str:
-        return dict(self.columns).get(name, name)
+    def file_column(self, name: str) -> str | None:
+        """The file column read as the CSV column ``name``: with ``columns``
+        given, only the ones it maps (a file's own ``gx`` is never taken as
+        a reference by accident)."""
+        if self.columns:
+            return dict(self.columns).get(name)
+        return name
 
 
 @dataclass(frozen=True)
@@ -153,12 +165,16 @@ def load_meta(path: Path | None) -> DatasetMeta:
         if "g_local_uncertainty" not in site:
             notes.append("g_local_uncertainty not given: g_local taken as exact")
     csv_format = CsvFormat(
-        delimiter=DELIMITERS[fmt.get("delimiter", ",")],
+        delimiter=DELIMITERS[fmt["delimiter"]] if "delimiter" in fmt else None,
         header=bool(fmt.get("header", True)),
         names=tuple(fmt["names"]) if "names" in fmt else None,
         columns=tuple(sorted(fmt.get("columns", {}).items())),
         sample_rate_hz=fmt.get("sample_rate_hz"),
         pose_column=fmt.get("pose_column"),
+        skip_lines=int(fmt.get("skip_lines", 0)),
+        comment_prefix=fmt.get("comment_prefix", "#") or None,
+        decimal_comma={",": True, ".": False}.get(fmt.get("decimal", "")),
+        time_unit=fmt.get("time_unit", "s"),
     )
     if not csv_format.header and csv_format.names is None:
         raise InputError("invalid dataset.toml value: [format] header = false needs names = [...]", path=path)
