@@ -175,7 +175,7 @@ def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> Ru
                        {REFINED: diagnosis.refined if diagnosis else (), **{n: (r,) for n, r in (static.nested if static else ())}},
                        tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
                        baseline_reason(diagnosis, reductions, config, diagnosis_notes),
-                       (static.chosen, static.notes[0].removeprefix("static model: ")) if static and static.notes else None)
+                       static.chosen if static and static.method == "orientation-free" else None)
     # the model-dependent tables of the recommended model
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)

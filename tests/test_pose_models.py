@@ -102,7 +102,7 @@ def test_hand_session_end_to_end(tmp_path):
     samples_frame(sim).write_csv(data / "session.csv")
     (data / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
     outcome = run_dataset(data, tmp_path / "out")
-    assert any(n.startswith("static model: orthogonal; the F test") for n in outcome.notes), outcome.notes
+    assert any(n.startswith("static model: orthogonal: the F test") for n in outcome.notes), outcome.notes
     assert any("a pose between +u and +v" in w for w in outcome.warnings)
     intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet")
     assert intrinsic["model"].to_list() == ["baseline"] * 9 + ["orthogonal"] * 9

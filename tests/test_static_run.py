@@ -39,7 +39,7 @@ def test_xsens_orientation_free_matches_the_factory_calibration(xsens):
     assert intrinsic.height == 18 and set(intrinsic["rate_hz"]) == {0.0}
     assert intrinsic["model"].to_list() == ["baseline"] * 9 + ["orthogonal"] * 9
     # the F test rejects orthogonal axes (phi_vw is 88.8 degrees): the nine parameters are chosen
-    assert any(n.startswith("static model: baseline; the F test of orthogonal axes") and "rejects" in n for n in outcome.notes)
+    assert any(n.startswith("static model: baseline: the F test of orthogonal axes") and "rejects" in n for n in outcome.notes)
     assert set(pl.read_parquet(out / "cross_sensitivity.parquet")["frame"]) == {"intrinsic"}
 
 
@@ -136,7 +136,7 @@ def test_eight_poses_give_the_orthogonal_model(cli, tmp_path):
     data = _write(tmp_path / "data", samples_frame(sim))
     status, _, stderr = cli("run", data, "--out", tmp_path / "out")
     assert status == 0, stderr
-    assert "static model: orthogonal (the baseline model is not determined: 8 static poses" in " ".join(stderr.split())
+    assert "static model: orthogonal: the baseline model is not determined: 8 static poses" in " ".join(stderr.split())
     intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet")
     assert set(intrinsic["model"]) == {"orthogonal"} and intrinsic.height == 9
     assert intrinsic.filter(pl.col("parameter").str.starts_with("phi"))["value"].to_list() == [90.0] * 3

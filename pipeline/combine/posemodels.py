@@ -56,17 +56,22 @@ class ModelChoice:
     denominator_dof: float = float("nan")
 
     @property
-    def note(self) -> str:
-        """The choice in one sentence."""
+    def reason(self) -> str:
+        """Why ``chosen`` is the model, in one clause."""
         if np.isnan(self.p_value):
             missing = "baseline" if self.chosen == "orthogonal" else "orthogonal"
             why = getattr(self.full if missing == "baseline" else self.orthogonal, "reason", "")
-            return f"static model: {self.chosen} (the {missing} model is not determined: {why})"
+            return f"the {missing} model is not determined: {why}"
         verdict = "rejects" if self.chosen == "baseline" else "does not reject"
         dof = "inf" if np.isinf(self.denominator_dof) else f"{self.denominator_dof:g}"
-        return (f"static model: {self.chosen}; the F test of orthogonal axes against the nine parameters "
-                f"{verdict} them at the {SELECTION_LEVEL:g} level (F = {self.f_statistic:.3g} with (3, {dof}) "
-                f"degrees of freedom, p = {self.p_value:.3g}); intrinsic.parquet has both models' rows")
+        return (f"the F test of orthogonal axes against the nine parameters {verdict} them at the {SELECTION_LEVEL:g} "
+                f"level (F = {self.f_statistic:.3g} with (3, {dof}) degrees of freedom, p = {self.p_value:.3g})")
+
+    @property
+    def note(self) -> str:
+        """The choice in one sentence."""
+        both = "" if np.isnan(self.p_value) else "; intrinsic.parquet has both models' rows"
+        return f"static model: {self.chosen}: {self.reason}{both}"
 
 
 def f_test(full: OrientationFreeFit, restricted: OrientationFreeFit, g_local: float) -> tuple[float, float, float]:

@@ -41,7 +41,7 @@ class StaticReduction(Reduction):
     ``poses``); ``model`` names the model of its result (``baseline``, or
     ``orthogonal`` when the poses do not determine the nine parameters),
     ``nested`` the other models fitted, ``notes`` the model choice and
-    ``chosen`` the model it chooses (``posemodels.choose_model``). A
+    ``chosen`` the model it chooses and why (``posemodels.choose_model``). A
     refusal has no result, its failure, and the pose table (``fit`` None)."""
 
     method: str
@@ -51,7 +51,7 @@ class StaticReduction(Reduction):
     model: str = "baseline"
     nested: tuple[tuple[str, IntrinsicResult], ...] = ()
     notes: tuple[str, ...] = ()
-    chosen: str = "baseline"
+    chosen: tuple[str, str] = ("baseline", "")
 
     @property
     def result(self) -> IntrinsicResult:
@@ -146,4 +146,4 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     directions = check.select(f"a_{s}" for s in AXES).to_numpy()
     nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
     return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(advice(directions)),
-                           "orientation-free", general, positions, check, model, nested, (choice.note,), choice.chosen)
+                           "orientation-free", general, positions, check, model, nested, (choice.note,), (choice.chosen, choice.reason))
