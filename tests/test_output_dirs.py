@@ -37,9 +37,9 @@ def _static_dataset(directory: Path, seed: int = 77, poses: int = 24) -> Path:
 
 
 def _files(directory: Path) -> dict[str, tuple[int, str]]:
-    """Every file under ``directory`` but the listing: (size, SHA-256) by relative name."""
-    return {p.relative_to(directory).as_posix(): (p.stat().st_size, hashlib.sha256(p.read_bytes()).hexdigest())
-            for p in directory.rglob("*") if p.is_file() and p.name != LISTING}
+    """Every file under ``directory`` but its listing: (size, SHA-256) by relative name."""
+    files = {p.relative_to(directory).as_posix(): p for p in directory.rglob("*") if p.is_file()}
+    return {name: (p.stat().st_size, hashlib.sha256(p.read_bytes()).hexdigest()) for name, p in files.items() if name != LISTING}
 
 
 def _listing(directory: Path) -> dict[str, tuple[int, str]]:
@@ -153,7 +153,14 @@ def test_files_no_listing_names_are_refused_unless_replaced(cli, tmp_path, monke
     assert "notes.txt" not in _files(out) and _listing(out) == _files(out)
     # rotcal's own listed files are replaced without being told; a file changed since, or added, is not
     assert cli("run", data, "--out", out, "--quiet")[0] == 0
-    with (out / "intrinsic.parquet").open("ab") as f:
+    table = out / "intrinsic.parquet"
+    with table.open("r+b") as f:  # one byte changed, the size kept: only the SHA-256 tells
+        f.seek(100)
+        byte = f.read(1)
+        f.seek(100)
+        f.write(bytes([byte[0] ^ 1]))
+    assert_one_line_error(cli("run", data, "--out", out), "no rotcal listing names", "intrinsic.parquet")
+    with table.open("ab") as f:
         f.write(b"\0")
     assert_one_line_error(cli("run", data, "--out", out), "no rotcal listing names", "intrinsic.parquet")
     assert cli("run", data, "--out", out, "--replace", "--quiet")[0] == 0
@@ -215,6 +222,21 @@ def test_simulate_refuses_a_directory_that_is_not_empty(cli, tmp_path, monkeypat
     assert json.loads((target / "truth.json").read_text())["plan"]["rates_hz"] == [0.5]
     assert 'id = "sim"' in (target / "dataset.toml").read_text()
     assert_one_line_error(cli("simulate", target, "--config", small), "is not empty")
+
+
+def test_demo_replaces_its_own_folder(cli, tmp_path, monkeypatch):
+    from batch_support import SMALL
+
+    monkeypatch.setattr("rotcal.simulate.SimulationSpec", lambda: SMALL)  # the demo's steps on a small plan
+    for seed in ("1", "2"):
+        status, out, err = cli("demo", "--dir", tmp_path / "demo", "--seed", seed)
+        assert status == 0, err
+        assert f"tables written to {tmp_path / 'demo' / 'results'}" in out
+    files = _files(tmp_path / "demo")
+    assert _listing(tmp_path / "demo") == files and "results/rotcal-files.json" in files
+    assert {"data/dataset.toml", "data/truth.json", "results/intrinsic.parquet"} <= set(files)
+    assert json.loads((tmp_path / "demo" / "data" / "truth.json").read_text())["seed"] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]
 
 
 def test_demo_refuses_a_folder_not_its_own(cli, tmp_path, monkeypatch):
