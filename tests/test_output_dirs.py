@@ -148,9 +148,11 @@ def test_files_no_listing_names_are_refused_unless_replaced(cli, tmp_path, monke
         _not_computed(m)
         assert_one_line_error(cli("run", data, "--out", out), "out", "no rotcal listing names", "notes.txt", "--replace")
     assert (out / "notes.txt").read_text() == "mine"
+    out.chmod(0o750)
     status, _, err = cli("run", data, "--out", out, "--replace", "--quiet")
     assert status == 0, err
     assert "notes.txt" not in _files(out) and _listing(out) == _files(out)
+    assert out.stat().st_mode & 0o777 == 0o750
     # rotcal's own listed files are replaced without being told; a file changed since, or added, is not
     assert cli("run", data, "--out", out, "--quiet")[0] == 0
     table = out / "intrinsic.parquet"

@@ -50,7 +50,10 @@ def usable(path: Path, swapped: bool = True) -> Path:
     directory is replaced by renames, which need its parent writable too
     (and the directory itself, whose ``..`` entry a rename rewrites:
     rename(2), EACCES). Raises ``InputError`` naming ``path``."""
-    target = Path(path).resolve()
+    try:
+        target = Path(path).resolve()
+    except (OSError, RuntimeError) as exc:  # a loop of links (RuntimeError before Python 3.13)
+        raise InputError(f"output directory cannot be resolved: {exc}", path=path) from None
     existing = target
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
@@ -93,12 +96,11 @@ def foreign_files(directory: Path, listed: bool = True) -> Iterator[str]:
     not write, links, empty or unreadable folders. A generator: a refusal
     needs only the first."""
     owned = _listed(directory) if listed else {}
-    unreadable: list[OSError] = []
+    unreadable: list[OSError] = []  # folders os.walk could not list: what they hold cannot be known
     for root, folders, files in os.walk(directory, onerror=unreadable.append):
         here = Path(root)
         folders.sort()
-        for error in unreadable:
-            yield Path(error.filename).relative_to(directory).as_posix()
+        yield from (Path(error.filename).relative_to(directory).as_posix() for error in unreadable)
         unreadable.clear()
         if here != directory and not folders and not files:
             yield here.relative_to(directory).as_posix()
@@ -106,6 +108,7 @@ def foreign_files(directory: Path, listed: bool = True) -> Iterator[str]:
             name = path.relative_to(directory).as_posix()
             if not (name == LISTING and owned) and not _unchanged(path, owned.get(name)):
                 yield name
+    yield from (Path(error.filename).relative_to(directory).as_posix() for error in unreadable)
 
 
 def _listed(directory: Path) -> dict[str, tuple[int, str]]:
@@ -201,6 +204,7 @@ def _swap(staging: Path, target: Path) -> None:
         if not target.exists():
             os.rename(staging, target)
             return
+        shutil.copymode(target, staging)  # the permissions a user gave the directory stay
         aside = _beside(target, "old")
         os.rename(target, aside)
         try:
