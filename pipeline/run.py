@@ -341,11 +341,13 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, ds: Dataset,
 
 def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
     """Publish what the run produced as the whole of ``out``, in
-    ``PUBLISH_ORDER``: each table as Parquet under its schema
-    (``tables.write_parquet``), each figure drawn, staged beside ``out``,
-    listed and swapped in (``report.publish``); the paths published."""
+    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
+    table as Parquet under its schema (``tables.write_parquet``), each
+    figure drawn, staged beside ``out``, listed and swapped in
+    (``report.publish``); the paths published."""
     def write(staging: Path) -> list[Path]:
-        items = sorted(outputs, key=lambda o: PUBLISH_ORDER.index(o.name))
+        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
+        items = sorted(outputs, key=lambda o: order.get(o.name, len(order)))
         paths = (write_parquet(i.data, staging / f"{i.name}.parquet", i.name) if isinstance(i, Table) else i.draw(staging)
                  for i in items)
         return [path for path in paths if path is not None]
