@@ -18,9 +18,10 @@ from rich.console import Console
 from rich.markup import escape
 
 from rotcal.config import load_config, with_options
-from rotcal.errors import InputError, RotcalError
+from rotcal.errors import RotcalError, printable
 
 if TYPE_CHECKING:
+    from rotcal.report.publish import OutputDir
     from rotcal.simulate import SimulationSpec
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -51,20 +52,22 @@ def _options(
 FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
 
 
-def writable_out(path: Path) -> Path:
-    """``path`` if results can be written there: a directory, or one that can
-    be made (its nearest existing ancestor a directory this user may write
-    into); checked before any work, so that a run never ends in an error
-    after its computation. Raises ``InputError``."""
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if existing.exists() and not existing.is_dir():
-        problem = "is not a directory" if existing == path else f"cannot be made: {existing} is not a directory"
-        raise InputError(f"output directory {problem}", path=path)
-    if not os.access(existing, os.W_OK | os.X_OK):
-        where = "" if existing == path else f" ({existing} cannot be written)"
-        raise InputError(f"output directory cannot be written{where}", path=path)
+REPLACE_HELP = "replace files in the output directory that no rotcal listing (rotcal-files.json) names"
+
+
+def _out_dir(path: Path, replace: bool = False, inputs: tuple[Path | None, ...] = (), listed: bool = True) -> OutputDir:
+    """The output directory checked before any work (``report.publish.check_out``),
+    so that a run never ends in an error after its computation."""
+    from rotcal.report.publish import OutputDir, check_out
+
+    return check_out(OutputDir(path, replace), inputs, listed)
+
+
+def _writable(path: Path) -> Path:
+    """A directory written into, not replaced (``rotcal intrinsic``, ``rotcal batch``), checked before any work."""
+    from rotcal.report.publish import usable
+
+    usable(path, swapped=False)
     return path
 
 
@@ -110,20 +113,22 @@ def run(
     workers: Annotated[int | None, typer.Option(min=0, help="cores the run uses ([run] workers); 0 = every core it may run on")] = None,
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary (the recommended result per rate, warnings, files written) as JSON on stdout")] = False,
+    replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
 ) -> None:
     """Run the whole pipeline on one dataset."""
+    target = _out_dir(out_dir, replace_files, (dataset, meta, config))
     from rotcal.run import run_dataset
 
     cfg = load_config(config)
     if workers is not None:
         cfg = with_options(cfg, run={"workers": workers})
     if not json_summary:
-        _print_outcome(run_dataset(dataset, writable_out(out_dir), meta, cfg), quiet)
+        _print_outcome(run_dataset(dataset, target, meta, cfg), quiet)
         return
     from rotcal.report import run_summary
 
     try:
-        outcome = run_dataset(dataset, writable_out(out_dir), meta, cfg)
+        outcome = run_dataset(dataset, target, meta, cfg)
     except RotcalError as exc:  # the document says why; the one-line message follows on stderr
         _print_json({"dataset": str(dataset), "exit_status": int(exc.exit_code), "error": str(exc)})
         raise
@@ -156,8 +161,10 @@ def simulate_cmd(
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
     timebase: Annotated[str | None, typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
     plan: Annotated[str | None, typer.Option(help="plan numbers key=value,..., e.g. step_move_s=0,dt_s=0.05 (steps faster than a sample)")] = None,
+    replace_files: Annotated[bool, typer.Option("--replace", help="replace DIR's contents; without it a DIR that is not empty is refused")] = False,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
+    target = _out_dir(directory, replace_files, listed=False)
     spec = _spec(config, effect)
     if continuous:
         spec = replace(spec, plan=replace(spec.plan, continuous=True))
@@ -165,10 +172,13 @@ def simulate_cmd(
         spec = spec.with_timebase(timebase)
     if plan:
         spec = spec.with_plan(plan)
+    from rotcal.report.publish import publish_directory
     from rotcal.simulate import simulate, write_dataset
 
-    path = write_dataset(simulate(spec, seed), spec, writable_out(directory), fmt)
-    out.print(f"dataset written to {path} (truth in {path / 'truth.json'})", highlight=False, markup=False)
+    sim = simulate(spec, seed)
+    # no listing: a dataset is the user's once written, so any file in DIR is refused without --replace
+    publish_directory(target, lambda staging: [write_dataset(sim, spec, staging, fmt, target.path.name)], listed=False)
+    out.print(f"dataset written to {directory} (truth in {directory / 'truth.json'})", highlight=False, markup=False)
 
 
 @app.command()
@@ -176,17 +186,26 @@ def demo(
     directory: Annotated[Path, typer.Option("--dir", help="where the demo writes data and results")] = Path("rotcal-demo"),
     seed: Annotated[int, typer.Option(help="random seed of the simulated DUT")] = 1,
     effect: Annotated[list[str] | None, typer.Option(help="NAME:key=value,... to switch an effect on")] = None,
+    replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
 ) -> None:
-    """Simulate a default dataset and run the pipeline on it."""
+    """Simulate a default dataset and run the pipeline on it, in DIR (replaced whole: data/, results/)."""
+    target = _out_dir(directory, replace_files)
     spec = _spec(None, effect)
+    from rotcal.report.publish import publish_directory
+    from rotcal.run import run_dataset
     from rotcal.simulate import simulate, write_dataset
 
-    data = write_dataset(simulate(spec, seed), spec, writable_out(directory) / "data", "csv")
-    out.print(f"simulated dataset in {data}", highlight=False, markup=False)
-    from rotcal.run import run_dataset
-
     config = with_options(load_config(None), uncertainty={"monte_carlo": True})  # the demo shows every table
-    _print_outcome(run_dataset(data, directory / "results", None, config))
+    outcomes = []
+
+    def write(staging: Path) -> list[Path]:  # the dataset and its results, published as one folder
+        data = write_dataset(simulate(spec, seed), spec, staging / "data", "csv")
+        out.print(f"simulated dataset in {directory / 'data'}", highlight=False, markup=False)
+        outcomes.append(run_dataset(data, staging / "results", None, config))
+        return list(outcomes[0].written)
+
+    published = publish_directory(target, write)  # the run's files where they now are, then the demo's listing
+    _print_outcome(replace(outcomes[0], written=published[:-1]))
 
 
 @app.command()
@@ -199,7 +218,7 @@ def intrinsic(
     from rotcal.metrology import matrix_intrinsic
     from rotcal.report import matrix_table
 
-    frame, path = matrix_intrinsic(matrix, writable_out(out_dir), unit)
+    frame, path = matrix_intrinsic(matrix, _writable(out_dir), unit)
     out.print(matrix_table(frame, f"{escape(matrix.name)}: intrinsic parameters, expanded uncertainty (k = 2)"))
     out.print(f"written to {path}", highlight=False, markup=False)
 
@@ -251,7 +270,7 @@ def certificate(
     """Render a run's calibration certificate (RUN_DIR/certificate.html) again from its published files."""
     from rotcal.report.certificate import write_certificate
 
-    out.print(f"certificate written to {write_certificate(writable_out(run_dir))}", highlight=False, markup=False)
+    out.print(f"certificate written to {write_certificate(_writable(run_dir))}", highlight=False, markup=False)
 
 
 def main() -> None:
@@ -259,9 +278,8 @@ def main() -> None:
     try:
         app()
     except RotcalError as exc:
-        from rotcal.batch.plan import printable  # control characters in a path must not reach the terminal
-
         # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
+        # control characters in a path must not reach the terminal (errors.printable)
         err.print(f"rotcal: error: {printable(str(exc))}", highlight=False, markup=False, soft_wrap=True)
         sys.exit(exc.exit_code)  # errors.ExitCode, the one table of exit statuses
 
@@ -282,7 +300,7 @@ def batch(
     options = {"workers": workers, "executor": executor}
     cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})
     with Reporter(err) as reporter:
-        summary = run_batch(root, writable_out(out_dir), cfg, reporter)
+        summary = run_batch(root, _writable(out_dir), cfg, reporter)
     if json_summary:
         _print_json(summary.as_dict())
     else:

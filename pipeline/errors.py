@@ -7,6 +7,7 @@ problem, and where it helps, what to do next.
 
 from __future__ import annotations
 
+import re
 from enum import IntEnum
 from pathlib import Path
 
@@ -73,3 +74,18 @@ class UndeterminedError(RotcalError):
     """What remains after failed segments cannot determine the result."""
 
     exit_code = ExitCode.UNDETERMINED
+
+
+def decoded(text: str) -> str:
+    """``text`` (a file name) with the bytes that are not UTF-8 shown as ``\\xNN``."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def printable(text: str) -> str:
+    """``text`` as it may be printed: bytes that are not UTF-8 and control
+    characters escaped (``\\n``, ``\\x1b``), so that a file name cannot
+    forge log lines or colour a terminal."""
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], decoded(text))

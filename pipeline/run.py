@@ -49,6 +49,7 @@ from rotcal.metrology import (
 )
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
 from rotcal.model.calibration import BASELINE, REFINED, Recommended, mark_recommended, recommend, recommended_calibration
+from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.tables import write_parquet
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
@@ -144,16 +145,17 @@ def _rate_order(rate_hz: float) -> tuple[float, float]:
     return abs(rate_hz), rate_hz
 
 
-def run_dataset(path: Path, out: Path, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
+def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
     """Run the pipeline on one dataset (see ``_run``) with BLAS on one thread:
     rotcal's parallelism is across segments and datasets, and a threaded BLAS
-    on small matrices competing with it costs more than it gives."""
+    on small matrices competing with it costs more than it gives. A bare
+    path ``out`` replaces only what a rotcal listing there names."""
     with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), Path(out), meta_path, config)
+        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config)
 
 
-def _run(path: Path, out: Path, meta_path: Path | None, config: RunConfig) -> RunOutcome:
-    """Run the pipeline on one dataset and write its tables into ``out``.
+def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) -> RunOutcome:
+    """Run the pipeline on one dataset and publish its tables as ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
     what remains after failed segments cannot determine any rate's result
@@ -413,14 +415,17 @@ def certificate_output(config: RunConfig) -> Figure:
     return Figure("certificate", draw)
 
 
-def publish(outputs: Sequence[Table | Figure], out: Path) -> tuple[Path, ...]:
-    """Write what the run produced into ``out``, in ``PUBLISH_ORDER``: each
+def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
+    """Publish what the run produced as the whole of ``out``, in
+    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
     table as Parquet under its schema (``tables.write_parquet``), each
-    figure drawn; the paths written."""
-    written = []
-    for item in sorted(outputs, key=lambda o: PUBLISH_ORDER.index(o.name)):
-        path = (write_parquet(item.data, out / f"{item.name}.parquet", item.name) if isinstance(item, Table)
-                else item.draw(out))
-        if path is not None:
-            written.append(path)
-    return tuple(written)
+    figure drawn, staged beside ``out``, listed and swapped in
+    (``report.publish``); the paths published."""
+    def write(staging: Path) -> list[Path]:
+        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
+        items = sorted(outputs, key=lambda o: order.get(o.name, len(order)))
+        paths = (write_parquet(i.data, staging / f"{i.name}.parquet", i.name) if isinstance(i, Table) else i.draw(staging)
+                 for i in items)
+        return [path for path in paths if path is not None]
+
+    return publish_directory(out, write)

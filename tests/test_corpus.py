@@ -20,6 +20,7 @@ import pytest
 
 from rotcal.model.physics import ANGLE_PAIRS, INTRINSIC
 from rotcal.run import run_dataset
+
 from testdata import REPO
 
 MIKOFF = REPO / "tests" / "data" / "corpus" / "mikoff_mpu9150"

@@ -29,7 +29,8 @@ def test_mcap_gives_the_csv_result(make_dataset, tmp_path, fmt):
 
 
 def _digest(directory):
-    return {p.relative_to(directory).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+    """Every file's SHA-256; the listing's (rotcal-files.json) but for the time of the run, which it records."""
+    return {p.relative_to(directory).as_posix(): hashlib.sha256(re.sub(rb'"run_time": "[^"]*"', b"", p.read_bytes())).hexdigest()
             for p in sorted(directory.rglob("*")) if p.is_file()}
 
 
@@ -55,7 +56,10 @@ def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path, 
     run_dataset(make_dataset(22), tmp_path / "one", config=RunConfig(run=RunSection(workers=1)))
     run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(run=RunSection(workers=4)))
     one, four = _digest(tmp_path / "one"), _digest(tmp_path / "four")
-    assert one.pop("calibration.json") != four.pop("calibration.json") and one == four
+    # the certificate shows the configuration and calibration.json's hash, the listing every file's
+    for name in ("calibration.json", "certificate.html", "rotcal-files.json"):
+        assert one.pop(name) != four.pop(name)
+    assert one == four
     # calibration.json records every configuration key, the worker count too: nothing else differs
     docs = [json.loads((tmp_path / k / "calibration.json").read_text()) for k in ("one", "four")]
     assert [d["configuration"].pop("run") for d in docs] == [{"workers": 1}, {"workers": 4}] and docs[0] == docs[1]

@@ -15,7 +15,7 @@ from pathlib import Path
 from rotcal import __version__
 from rotcal.batch.manifest import Manifest
 from rotcal.config import Limits, RunConfig
-from rotcal.errors import InputError, LimitError, RotcalError
+from rotcal.errors import InputError, LimitError, RotcalError, decoded
 from rotcal.ingest import CAPTURE_SUFFIXES, capture_files
 from rotcal.ingest.meta import load_meta
 
@@ -31,21 +31,6 @@ class Found:
 
     dataset_path: str
     source: Path
-
-
-def decoded(text: str) -> str:
-    """``text`` (a file name) with the bytes that are not UTF-8 shown as ``\\xNN``."""
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
-
-
-_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
-
-
-def printable(text: str) -> str:
-    """``text`` as it may be printed: bytes that are not UTF-8 and control
-    characters escaped (``\\n``, ``\\x1b``), so that a file name cannot
-    forge log lines or colour a terminal."""
-    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], decoded(text))
 
 
 def dataset_id(dataset_path: str) -> str:

@@ -25,9 +25,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn
 from rotcal import __version__
 from rotcal.batch.jobs import Job, JobResult, execute, open_executor
 from rotcal.batch.manifest import DatasetRecord, Layout, Manifest, now, run_lock
-from rotcal.batch.plan import Plan, config_json, discover, plan_dataset, printable
+from rotcal.batch.plan import Plan, config_json, discover, plan_dataset
 from rotcal.config import RunConfig, RunSection
-from rotcal.errors import ExitCode, InputError
+from rotcal.errors import ExitCode, InputError, printable
 from rotcal.parallel import share
 
 # -- progress -----------------------------------------------------------------------
