@@ -1,19 +1,14 @@
-"""One dataset through every stage: ingest -> time base -> segment (labels,
-then the signals for what labels leave out) -> fit -> combine (the
-reductions) -> metrology -> diagnose, and one writer at the end that
-publishes the tables the stages produced into the output directory. The CLI
-and the batch runner both call ``run_dataset``; neither holds pipeline
-logic."""
+"""The run's stage adapters: each calls one stage package on what the
+stages before it produced (``Segmented``, ``Reductions``) and returns
+tables or results for the next."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import polars as pl
-from threadpoolctl import threadpool_limits
 
 from rotcal.combine import (
     StaticReduction,
@@ -28,8 +23,8 @@ from rotcal.combine import (
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
-from rotcal.ingest import Dataset, load_dataset
-from rotcal.ingest.duplicates import content_hashes, duplicate_findings
+from rotcal.ingest import Dataset
+from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.metrology import (
     budget_frame,
     consistency_frame,
@@ -37,7 +32,6 @@ from rotcal.metrology import (
     correction_frame,
     correction_uncertainty_frame,
     corrections_from_poses,
-    cross_sensitivity_frame,
     frequency_response_frame,
     gaitan_frame,
     monte_carlo,
@@ -48,48 +42,13 @@ from rotcal.metrology import (
     temperature_frame,
 )
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
-from rotcal.model.calibration import BASELINE, REFINED, Recommended, mark_recommended, recommend, recommended_calibration
-from rotcal.report.publish import OutputDir, publish_directory
+from rotcal.model.calibration import BASELINE, REFINED, Recommended, recommend
+from rotcal.run.outputs import Figure
 from rotcal.segment import infer_segments, segment_by_labels
-from rotcal.tables import write_parquet
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
-
-
-@dataclass(frozen=True, eq=False)
-class RunOutcome:
-    """What a run produced: results per rate, warnings (failed segments or
-    rates), notes (defaults applied), the files written and the recommended model."""
-
-    dataset: str
-    output_unit: str
-    results: tuple[IntrinsicResult, ...]
-    warnings: tuple[str, ...]
-    notes: tuple[str, ...]
-    written: tuple[Path, ...]
-    recommended: Recommended
-    diagnosis: Diagnosis | None = None
-    static: StaticReduction | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class Figure:
-    """A file drawn into the output directory (a plot, the diagnosis
-    report, calibration.json): ``draw`` returns its path, or None when there is nothing to draw."""
-
-    name: str
-    draw: Callable[[Path], Path | None]
-
-
-# the run's files in the order they are published (and listed in RunOutcome.written)
-PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
-                 "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
-                 "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
-                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
-# the tables that describe the input rather than a result: published even when no rate can be determined
-INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,56 +102,6 @@ class Reductions:
 
 def _rate_order(rate_hz: float) -> tuple[float, float]:
     return abs(rate_hz), rate_hz
-
-
-def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
-    """Run the pipeline on one dataset (see ``_run``) with BLAS on one thread:
-    rotcal's parallelism is across segments and datasets, and a threaded BLAS
-    on small matrices competing with it costs more than it gives. A bare
-    path ``out`` replaces only what a rotcal listing there names."""
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config)
-
-
-def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) -> RunOutcome:
-    """Run the pipeline on one dataset and publish its tables as ``out``.
-
-    Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
-    what remains after failed segments cannot determine any rate's result
-    (the tables that describe the input, with the failure rows, are written then).
-    """
-    ds = load_dataset(path, meta_path, config.limits, config.run.workers)
-    seg = segment_and_fit(ds, config)
-    reductions = reduce(seg, ds)
-    try:
-        results, frames, warnings = determined(reductions, seg, path)
-    except UndeterminedError:
-        publish([t for t in _tables(seg, reductions) if t.name in INPUT_TABLES], out)
-        raise
-    assert isinstance(reductions, Reductions)  # determined() raises for a Failure
-    diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
-    static = reductions.static
-    intrinsic = intrinsic_table(results, diagnosis, ds, static)
-    chosen = recommend(intrinsic, results, frames,
-                       {REFINED: diagnosis.refined if diagnosis else (), **{n: (r,) for n, r in (static.nested if static else ())}},
-                       tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
-                       baseline_reason(diagnosis, reductions, config, diagnosis_notes),
-                       static.chosen if static and static.method == "orientation-free" else None)
-    # the model-dependent tables of the recommended model
-    metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
-                                                 recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
-    corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
-               *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(chosen, ds, config), certificate_output(config)]
-    return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
-                      publish(outputs, out), chosen, diagnosis, reductions.static)
-
-
-def _tables(seg: Segmented, reductions: Reductions | Failure) -> list[Table]:
-    """The tables of the segmentation and of every reduction."""
-    return [*seg.tables, *(t for r in ([] if isinstance(reductions, Failure) else reductions.all) for t in r.tables)]
 
 
 def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
@@ -301,37 +210,18 @@ def baseline_reason(diagnosis: Diagnosis | None, reductions: Reductions, config:
     return f"diagnosis not run: {why.removeprefix('diagnosis skipped: ')}"
 
 
-def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> list[Table]:
-    """The ``intrinsic`` table and the cross-sensitivities of the
-    recommended model in each result's frame."""
-    return [Table("intrinsic", intrinsic),
-            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(chosen.results, chosen.frames)), ds.name,
-                                                               chosen.model, ds.meta.output_unit,
-                                                               ds.meta.g_local_uncertainty))]
-
-
-def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> Figure:
-    """``calibration.json``: the recommended result per rate, g_local and
-    its source, the inputs' hashes and every configuration key."""
-    calibration = recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
-    return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
-
-
-def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
-                      ds: Dataset, config: RunConfig) -> list[Table | Figure]:
-    """The diagnosis's findings and effect parameters, and its report when wanted."""
-    if diagnosis is None:
-        return []
-    outputs: list[Table | Figure] = [Table("diagnosis", diagnosis.findings),
-                                     Table("effect_parameters", diagnosis.parameters)]
-    if config.diagnosis.report:
-        def draw(out: Path) -> Path:
-            from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
-
-            return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
-
-        outputs.append(Figure("diagnosis_report", draw))
-    return outputs
+def recommend_stage(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...], frames: tuple[str, ...],
+                    diagnosis: Diagnosis | None, reductions: Reductions, config: RunConfig,
+                    diagnosis_notes: tuple[str, ...]) -> Recommended:
+    """The recommended model with its results (``model.calibration.recommend``):
+    refined where the diagnosis modelled effects, a static recording's
+    nested model where the F test chooses it, the baseline otherwise."""
+    static = reductions.static
+    others = {REFINED: diagnosis.refined if diagnosis else (), **{n: (r,) for n, r in (static.nested if static else ())}}
+    return recommend(intrinsic, results, frames, others,
+                     tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
+                     baseline_reason(diagnosis, reductions, config, diagnosis_notes),
+                     static.chosen if static and static.method == "orientation-free" else None)
 
 
 def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:
@@ -400,32 +290,3 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommen
         outputs.append(Table("monte_carlo", mc))
         notes.append(monte_carlo_note(mc))
     return outputs, tuple(notes)
-
-
-def certificate_output(config: RunConfig) -> Figure:
-    """The certificate (``report.certificate``), published last: a view of
-    the files published before it, drawn when they include calibration.json."""
-    def draw(out: Path) -> Path | None:
-        if not (out / "calibration.json").is_file():
-            return None
-        from rotcal.report.certificate import write_certificate  # matplotlib only when there is a page to draw
-
-        return write_certificate(out, config.report.figures)
-
-    return Figure("certificate", draw)
-
-
-def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
-    """Publish what the run produced as the whole of ``out``, in
-    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
-    table as Parquet under its schema (``tables.write_parquet``), each
-    figure drawn, staged beside ``out``, listed and swapped in
-    (``report.publish``); the paths published."""
-    def write(staging: Path) -> list[Path]:
-        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
-        items = sorted(outputs, key=lambda o: order.get(o.name, len(order)))
-        paths = (write_parquet(i.data, staging / f"{i.name}.parquet", i.name) if isinstance(i, Table) else i.draw(staging)
-                 for i in items)
-        return [path for path in paths if path is not None]
-
-    return publish_directory(out, write)

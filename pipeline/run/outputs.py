@@ -1,0 +1,109 @@
+"""What a run publishes: its output items (``Table``s and ``Figure``s: the
+intrinsic and cross-sensitivity tables of the recommended model,
+calibration.json, the diagnosis's tables and report, the certificate) and
+the one writer, ``publish``, in ``PUBLISH_ORDER``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import polars as pl
+
+from rotcal.config import RunConfig
+from rotcal.ingest import Dataset
+from rotcal.ingest.duplicates import content_hashes
+from rotcal.metrology import (
+    cross_sensitivity_frame,
+)
+from rotcal.model import IntrinsicResult, Table
+from rotcal.model.calibration import Recommended, recommended_calibration
+from rotcal.report.publish import OutputDir, publish_directory
+from rotcal.tables import write_parquet
+
+if TYPE_CHECKING:
+    from rotcal.diagnose import Diagnosis
+
+
+@dataclass(frozen=True, eq=False)
+class Figure:
+    """A file drawn into the output directory (a plot, the diagnosis
+    report, calibration.json): ``draw`` returns its path, or None when there is nothing to draw."""
+
+    name: str
+    draw: Callable[[Path], Path | None]
+
+
+# the run's files in the order they are published (and listed in RunOutcome.written)
+PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
+                 "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
+                 "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
+                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
+
+
+# the tables that describe the input rather than a result: published even when no rate can be determined
+INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
+
+
+def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> list[Table]:
+    """The ``intrinsic`` table and the cross-sensitivities of the
+    recommended model in each result's frame."""
+    return [Table("intrinsic", intrinsic),
+            Table("cross_sensitivity", cross_sensitivity_frame(list(zip(chosen.results, chosen.frames)), ds.name,
+                                                               chosen.model, ds.meta.output_unit,
+                                                               ds.meta.g_local_uncertainty))]
+
+
+def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> Figure:
+    """``calibration.json``: the recommended result per rate, g_local and
+    its source, the inputs' hashes and every configuration key."""
+    calibration = recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
+    return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
+
+
+def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
+                      ds: Dataset, config: RunConfig) -> list[Table | Figure]:
+    """The diagnosis's findings and effect parameters, and its report when wanted."""
+    if diagnosis is None:
+        return []
+    outputs: list[Table | Figure] = [Table("diagnosis", diagnosis.findings),
+                                     Table("effect_parameters", diagnosis.parameters)]
+    if config.diagnosis.report:
+        def draw(out: Path) -> Path:
+            from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
+
+            return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
+
+        outputs.append(Figure("diagnosis_report", draw))
+    return outputs
+
+
+def certificate_output(config: RunConfig) -> Figure:
+    """The certificate (``report.certificate``), published last: a view of
+    the files published before it, drawn when they include calibration.json."""
+    def draw(out: Path) -> Path | None:
+        if not (out / "calibration.json").is_file():
+            return None
+        from rotcal.report.certificate import write_certificate  # matplotlib only when there is a page to draw
+
+        return write_certificate(out, config.report.figures)
+
+    return Figure("certificate", draw)
+
+
+def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
+    """Publish what the run produced as the whole of ``out``, in
+    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
+    table as Parquet under its schema (``tables.write_parquet``), each
+    figure drawn, staged beside ``out``, listed and swapped in
+    (``report.publish``); the paths published."""
+    def write(staging: Path) -> list[Path]:
+        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
+        items = sorted(outputs, key=lambda o: order.get(o.name, len(order)))
+        paths = (write_parquet(i.data, staging / f"{i.name}.parquet", i.name) if isinstance(i, Table) else i.draw(staging)
+                 for i in items)
+        return [path for path in paths if path is not None]
+
+    return publish_directory(out, write)
