@@ -219,7 +219,7 @@ def intrinsic(
     from rotcal.report import matrix_table
 
     frame, path = matrix_intrinsic(matrix, _writable(out_dir), unit)
-    out.print(matrix_table(frame, f"{escape(matrix.name)}: intrinsic parameters, expanded uncertainty (k = 2)"))
+    out.print(matrix_table(frame, f"{escape(matrix.name)}: intrinsic parameters, standard uncertainty"))
     out.print(f"written to {path}", highlight=False, markup=False)
 
 

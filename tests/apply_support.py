@@ -11,7 +11,7 @@ from pathlib import Path
 from rotcal.config import RunConfig
 from rotcal.ingest import load_dataset
 from rotcal.model.calibration import Calibration, rate_calibration
-from rotcal.run import Reductions, reduce, segment_and_fit
+from rotcal.run.stages import Reductions, reduce, segment_and_fit
 
 
 def calibrate(dataset: Path, out: Path, meta_path: Path | None = None) -> tuple[Path, Reductions]:

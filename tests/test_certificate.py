@@ -23,7 +23,7 @@ from rotcal.model.physics import CHANNELS, INTRINSIC
 from rotcal.report.certificate import CERTIFICATE, render, write_certificate
 from rotcal.report.certificate_checks import main_contributions, segment_norms
 from rotcal.report.rounding import decimals_for, gum_round, gum_text
-from rotcal.run import PUBLISH_ORDER, certificate_output
+from rotcal.run.outputs import PUBLISH_ORDER, certificate_output
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 from calibration_support import calibrated_run

@@ -165,7 +165,7 @@ def frequency_response(run_dir: Path, tables: dict[str, pl.DataFrame], cal: Cali
     from rotcal.report.certificate_figures import frequency_response_figure
 
     return head + ('<p class="note">Each parameter at each rotation rate against its static (DC) value; error bars '
-                   "k = 2 (Gaitan &amp; Geist 2021 Figs. 6 and 7).</p>"
+                   "the standard uncertainty (Gaitan &amp; Geist 2021 Figs. 6 and 7).</p>"
                    + _image(frequency_response_figure(run_dir, response, cal.dataset), "frequency response"))
 
 
@@ -179,10 +179,10 @@ def norm_section(tables: dict[str, pl.DataFrame], cal: Calibration, figures: boo
         for k, n, m, r, x in norm_summary(check).iter_rows()])
     rows = []
     for kind, item, _, norm, u, dev, held in check.iter_rows():
-        shown = gum_text(norm, 2 * u) if u is not None else f"{norm:.6f}"
+        shown = gum_text(norm, u) if u is not None else f"{norm:.6f}"
         rows.append(f"<tr>{_cell(kind)}{_cell(item)}{_cell(shown, 'num')}{_cell(f'{dev:+.1f}', 'num')}"
                     f"{_cell('' if held is None else f'{held:+.1f}', 'num')}</tr>")
-    every = _table(["from", "item", "|a| (m/s², ± U, k = 2)", "|a|/g - 1 (ppm)", "held out (ppm)"], rows)
+    every = _table(["from", "item", "|a| (m/s², ± u)", "|a|/g - 1 (ppm)", "held out (ppm)"], rows)
     figure = ""
     if figures:
         from rotcal.report.certificate_figures import norm_figure

@@ -16,7 +16,7 @@ import polars as pl
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from rotcal.report.plot import COVERAGE_FACTOR, frequency_response_png
+from rotcal.report.plot import frequency_response_png
 
 MARKERS = {"pose": ("o", "C0"), "dwell": ("s", "C2"), "segment fit": ("D", "C1")}
 
@@ -27,12 +27,13 @@ def data_uri(png: bytes) -> str:
 
 def norm_figure(check: pl.DataFrame, g_local: float) -> bytes:
     """|a| / g_local - 1 (ppm) of every pose, dwell or segment in the
-    order the tables list them, error bars k = 2 where the table gives u."""
+    order the tables list them, error bars the standard uncertainty where
+    the table gives it."""
     fig = Figure(figsize=(10, 3.6), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     deviation = check["deviation_ppm"].to_numpy()
-    u = check["u_norm_m_s2"].fill_null(0.0).to_numpy() / g_local * 1e6 * COVERAGE_FACTOR
+    u = check["u_norm_m_s2"].fill_null(0.0).to_numpy() / g_local * 1e6
     # the axis spans the points with their error bars; a held-out prediction beyond it sits on its edge
     low, high = (deviation - u).min(), (deviation + u).max()
     low, high = low - 0.15 * (high - low + 1), high + 0.15 * (high - low + 1)
@@ -57,7 +58,7 @@ def norm_figure(check: pl.DataFrame, g_local: float) -> bytes:
     ax.axhline(0.0, color="0.6", lw=0.8)
     ax.set_xlabel("pose, dwell or segment (in the order of the tables)", fontsize=9)
     ax.set_ylabel("|a| / g_local - 1 (ppm)", fontsize=9)
-    ax.set_title(f"|a| check against g_local = {g_local:g} m/s^2, error bars k = 2", fontsize=10)
+    ax.set_title(f"|a| check against g_local = {g_local:g} m/s^2, error bars: standard uncertainty", fontsize=10)
     ax.tick_params(labelsize=8)
     ax.legend(fontsize=8, frameon=False, loc="best")
     fig.subplots_adjust(left=0.08, right=0.98, bottom=0.15, top=0.9)

@@ -133,10 +133,10 @@ def _comparison(baseline: tuple[IntrinsicResult, ...], refined: tuple[IntrinsicR
         base = by_rate[res.rate_hz]
         for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
             diff = res.value[i] - base.value[i]
-            rows.append([f"{res.rate_hz:g}", name, gum_text(base.value[i], 2 * base.std_uncertainty[i]),
-                         gum_text(res.value[i], 2 * res.std_uncertainty[i]),
+            rows.append([f"{res.rate_hz:g}", name, gum_text(base.value[i], base.expanded_uncertainty[i]),
+                         gum_text(res.value[i], res.expanded_uncertainty[i]),
                          f"{diff / base.std_uncertainty[i]:+.1f}", unit])
-    return _table(rows, ["rate (Hz)", "parameter", "baseline (k = 2)", "refined (k = 2)",
+    return _table(rows, ["rate (Hz)", "parameter", "baseline (± U, 95 %)", "refined (± U, 95 %)",
                          "shift / u(baseline)", "unit"]) + "\n"
 
 

@@ -1,6 +1,7 @@
 """Plots for people: the frequency response in the style of Gaitan & Geist
 2021 Fig. 6 (each parameter's deviation from the static result against the
-rotation rate, with expanded uncertainties, k = 2) and Fig. 7 (the offset
+rotation rate, with standard uncertainties: the rate-to-DC differences carry no
+degrees of freedom of their own, so no coverage factor is claimed) and Fig. 7 (the offset
 change with its omega^2 fit). Agg backend, no global pyplot state, written
 atomically; the same table gives the same PNG."""
 
@@ -16,7 +17,6 @@ from matplotlib.figure import Figure
 
 from rotcal.model.physics import INTRINSIC
 
-COVERAGE_FACTOR = 2.0
 PANELS = (
     ("sensitivity_ratio", "({p}(f) / {p}(DC) - 1) / ppm", 1e6, -1.0),
     ("angle_deviation", "({p}(f) - {p}(DC)) / mdeg", 1e3, 0.0),
@@ -42,7 +42,7 @@ def frequency_response_png(frame: pl.DataFrame, path: Path, title: str) -> Path 
             ax = axes[row, col]
             part = per_rate.filter((pl.col("quantity") == quantity) & (pl.col("parameter") == param)).sort("rate_hz")
             y = (part["value"].to_numpy() + shift) * scale
-            err = COVERAGE_FACTOR * part["std_uncertainty"].to_numpy() * scale
+            err = part["std_uncertainty"].to_numpy() * scale
             ax.axhline(0.0, color="0.6", lw=0.8)
             ax.errorbar(part["rate_hz"].to_numpy(), y, yerr=err, fmt="o", color="C0", capsize=3, ms=4)
             slope = frame.filter((pl.col("quantity") == "offset_omega2_slope") & (pl.col("parameter") == param)
@@ -58,7 +58,7 @@ def frequency_response_png(frame: pl.DataFrame, path: Path, title: str) -> Path 
             ax.tick_params(labelsize=8)
             if row == 2:
                 ax.set_xlabel("rotation rate / Hz", fontsize=9)
-    fig.suptitle(f"{title}, {per_rate['model'][0]} model: deviation from the static (DC) result, error bars k = 2", fontsize=11)
+    fig.suptitle(f"{title}, {per_rate['model'][0]} model: deviation from the static (DC) result, error bars: standard uncertainty", fontsize=11)
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.91, wspace=0.3, hspace=0.35)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

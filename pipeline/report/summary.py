@@ -17,8 +17,6 @@ from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
 from rotcal.report.rounding import gum_text
 
-COVERAGE_FACTOR = 2.0  # tables without degrees of freedom (the |a| check, another lab's matrix)
-
 
 def rate_label(rate_hz: float) -> str:
     return "static (DC)" if rate_hz == 0 else f"{rate_hz:g} Hz"
@@ -72,12 +70,12 @@ def pose_check_table(check: pl.DataFrame, g_local: float, title: str, per_pose_m
     dev = {name: check[col].to_numpy() / g_local - 1.0 for name, col in columns.items()}
     if check.height <= per_pose_max:
         table.add_column("pose")
-        table.add_column("|a| after (m/s^2, k = 2)", justify="right")
+        table.add_column("|a| after (m/s^2, ± u)", justify="right")
         for name in columns:
             table.add_column(f"{name}: |a|/g - 1 (%)", justify="right")
         for k, row in enumerate(check.iter_rows(named=True)):
             label = row["label"] or str(row["pose"])
-            table.add_row(label, _expanded(row["norm_m_s2"], COVERAGE_FACTOR * row["u_norm_m_s2"]),
+            table.add_row(label, _expanded(row["norm_m_s2"], row["u_norm_m_s2"]),
                           *(f"{100 * dev[name][k]:+.3f}" if np.isfinite(dev[name][k]) else "-" for name in columns))
         return table
     table.add_column("|a| / g_local - 1")
@@ -97,13 +95,14 @@ def pose_check_table(check: pl.DataFrame, g_local: float, title: str, per_pose_m
 
 
 def matrix_table(frame: pl.DataFrame, title: str) -> Table:
-    """The six parameters of a cross-sensitivity matrix, value ± expanded
-    uncertainty (k = 2)."""
+    """The six parameters of a cross-sensitivity matrix, value ± standard
+    uncertainty (another laboratory's matrix carries no degrees of freedom
+    to give a coverage factor)."""
     table = Table(title=title, title_justify="left")
-    for name in ("parameter", "unit", "value ± U (k = 2)"):
+    for name in ("parameter", "unit", "value ± u"):
         table.add_column(name, justify="right" if name.startswith("value") else "left")
     for row in frame.iter_rows(named=True):
-        table.add_row(row["parameter"], row["unit"], _expanded(row["value"], COVERAGE_FACTOR * row["std_uncertainty"]))
+        table.add_row(row["parameter"], row["unit"], _expanded(row["value"], row["std_uncertainty"]))
     return table
 
 
