@@ -6,6 +6,7 @@ it, and the logger's time-base defects; from the CLI form
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import polars as pl
 from rotcal.config import read_toml
 from rotcal.errors import ConfigError
 from rotcal.model.conventions import AXES, Dut
-from rotcal.model.effects import Effects, names
+from rotcal.model.effects import Effects, effect_named, names
 from rotcal.simulate.timebase_sim import TimebaseDefects
 
 # Structures outside the catalogue of docs/effects.md, for testing that rotcal
@@ -80,7 +81,10 @@ class DutSpec:
 
 
 def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    """A finite float, or an integer within TOML's 64 bits (np.isfinite refuses larger ones with a TypeError)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    return math.isfinite(value) if isinstance(value, float) else -(2**63) <= value < 2**63
 
 
 def _require(spec, table: str, positive: tuple[str, ...] = (), not_negative: tuple[str, ...] = (),
@@ -173,6 +177,9 @@ def spec_from_toml(path: Path) -> SimulationSpec:
     bad_site = sorted(set(site) - {"g_local", "g_local_uncertainty"})
     if bad_site:
         raise ConfigError(f"unknown key {bad_site[0]!r} in [site]", path=path)
+    not_numbers = [k for k, v in site.items() if not _is_number(v) or v < 0]
+    if not_numbers:
+        raise ConfigError(f"[site] {not_numbers[0]} = {site[not_numbers[0]]!r} must be a finite number >= 0", path=path)
     effects = []
     for entry in doc.get("effect", []):
         entry = dict(entry)
@@ -182,6 +189,10 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         bad = [k for k, v in entry.items() if k not in ("axis", "channel") and not _is_number(v)]
         if bad:
             raise ConfigError(f"[[effect]] {name}: {bad[0]} = {entry[bad[0]]!r} is not a number", path=path)
+        try:  # the effect's own check of its parameters, here where the file is known
+            effect_named(name).complete(dict(entry), np.random.default_rng(0))
+        except ConfigError as exc:
+            raise ConfigError(exc.problem, path=path) from None
         effects.append((name, tuple(sorted(entry.items()))))
     try:
         plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
