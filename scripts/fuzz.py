@@ -214,8 +214,9 @@ def worker(indices: list[int], seed: int, failures: Path | None, budget: float, 
 
 
 def run(inputs: int, seed: int, workers: int, failures: Path | None, budget: float, memory_mib: float, full_every: int,
-        only: int | None = None) -> tuple[list[Verdict], float]:
+        only: int | None = None, progress: int = 0) -> tuple[list[Verdict], float]:
     """Every verdict (ordered by input) and the largest RSS high-water mark of a worker, MiB."""
+    began = time.monotonic()
     todo = [only] if only is not None else list(range(inputs))
     context = mp.get_context("spawn")
     results: mp.Queue = context.Queue()
@@ -249,6 +250,9 @@ def run(inputs: int, seed: int, workers: int, failures: Path | None, budget: flo
             raise SystemExit(f"the seeds cannot be built or read:\n{verdict}")
         verdicts[verdict.index] = verdict
         peak = max(peak, worker_peak)
+        if progress and len(verdicts) % progress == 0:
+            failed = sum(v.failed for v in verdicts.values())
+            print(f"{len(verdicts)} inputs, {failed} failures, {time.monotonic() - began:.0f} s", file=sys.stderr, flush=True)
         w = owner[verdict.index]
         if verdict.index in pending[w]:
             pending[w].remove(verdict.index)
@@ -296,11 +300,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--budget-s", type=float, default=30.0, help="time budget of one input, seconds")
     parser.add_argument("--memory-mib", type=float, default=1024.0, help="bound on a worker's RSS high-water mark, MiB")
     parser.add_argument("--full-every", type=int, default=40, help="a full run_dataset for one input in this many (0: none)")
+    parser.add_argument("--progress", type=int, default=0, help="print a line to stderr every this many inputs")
     parser.add_argument("--only", type=int, default=None, help="replay the one input of this index")
     args = parser.parse_args(argv)
     began = time.monotonic()
     verdicts, peak = run(args.inputs, args.seed, max(1, args.workers), args.failures, args.budget_s, args.memory_mib,
-                         args.full_every, args.only)
+                         args.full_every, args.only, args.progress)
     print(report(verdicts, peak, time.monotonic() - began, args.memory_mib))
     return 1 if any(v.failed for v in verdicts) or peak > args.memory_mib else 0
 

@@ -18,7 +18,6 @@ import struct
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import zstandard
@@ -274,7 +273,7 @@ def _reindexed(records, k: int, inner: list[tuple[int, bytes]]) -> list[tuple[in
         channels.append(struct.unpack_from("<H", records[j][1])[0])
         j += 1
     positions, pos = [], 0
-    for op, body in inner:
+    for _, body in inner:
         positions.append(pos)
         pos += 9 + len(body)
     for channel in channels:

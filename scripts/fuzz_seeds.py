@@ -13,10 +13,9 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import fuzz_inputs as fi
 import numpy as np
 import polars as pl
-
-import fuzz_inputs as fi
 
 TINY_PLAN = dict(rates_hz=(0.5,), rotation_samples=120, step_samples=5, step_deg=45.0)
 SIMULATION_REQUEST = """\

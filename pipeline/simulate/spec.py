@@ -47,11 +47,11 @@ class Plan:
 
     def checked(self) -> Plan:
         """The plan, or a ConfigError naming the first value no plan can have."""
-        if not self.axes or any(a not in AXES for a in self.axes):
+        if not isinstance(self.axes, tuple) or not self.axes or any(a not in AXES for a in self.axes):
             raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
         _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
                  not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
-        if not all(_is_number(f) for f in self.rates_hz):
+        if not isinstance(self.rates_hz, tuple) or not all(_is_number(f) for f in self.rates_hz):
             raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
         return self
 
@@ -196,6 +196,7 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         effects.append((name, tuple(sorted(entry.items()))))
     try:
         plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
+        timebase = build(TimebaseDefects, doc.get("timebase", {})).checked()
     except ConfigError as exc:
         raise ConfigError(exc.problem, path=path) from None
     return SimulationSpec(
@@ -205,5 +206,5 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
         output_unit=doc.get("output_unit", "bit"),
         effects=tuple(effects),
-        timebase=build(TimebaseDefects, doc.get("timebase", {})).checked(),
+        timebase=timebase,
     )
