@@ -24,11 +24,13 @@ and what went wrong); the exit status is 1 if any did.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import multiprocessing as mp
 import os
 import queue
 import resource
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -86,7 +88,19 @@ def mutate(form: Form, mutation: fi.Mutation | str, seeds: Path, work: Path, rng
     return work, {}
 
 
-def check(index: int, seed: int, seeds: Path, work: Path, failures: Path | None, reference: dict, full_every: int) -> Verdict:
+def fingerprint(directory: Path, *context: object) -> str:
+    """The mutated input's files (names and bytes) and what its verdict depends on besides."""
+    digest = hashlib.sha256(repr(context).encode())
+    for path in sorted(directory.iterdir()):
+        digest.update(os.fsencode(path.name) + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def check(index: int, seed: int, seeds: Path, work: Path, failures: Path | None, reference: dict, full_every: int,
+          seen: dict | None = None) -> Verdict:
+    """One input's verdict; ``seen`` keeps the verdicts of inputs already
+    checked by their fingerprint (many mutations give the same bytes: a
+    dropped summary, CRLF line ends), so that each distinct input runs once."""
     from rotcal.errors import ExitCode, RotcalError, UndeterminedError
 
     form, mutation, full, rng = draw(index, seed, full_every)
@@ -94,8 +108,16 @@ def check(index: int, seed: int, seeds: Path, work: Path, failures: Path | None,
     neutral = name == "hostile_name" or (not isinstance(mutation, str) and mutation.neutral)
     verdict = Verdict(index, form.name, name, "result", full=full)
     directory = work
+    key = ""
     try:
         directory, renamed = mutate(form, mutation, seeds, work, rng)
+        key = fingerprint(directory, form.name, full, neutral, sorted(renamed.items()))
+        if seen is not None and key in seen:
+            outcome, detail = seen[key]
+            verdict = Verdict(index, form.name, name, outcome, detail, full)
+            if verdict.failed and failures is not None:
+                save(verdict, directory, failures, seed)
+            return verdict
         result = form.run(directory, seeds, full, work.parent / "out")
         if result.nonfinite:
             verdict = Verdict(index, form.name, name, "nonfinite", result.nonfinite, full)
@@ -121,6 +143,8 @@ def check(index: int, seed: int, seeds: Path, work: Path, failures: Path | None,
         verdict = Verdict(index, form.name, name, "exception", traceback.format_exc(), full)
     if verdict.failed and failures is not None:
         save(verdict, directory, failures, seed)
+    if seen is not None and key and verdict.outcome != "hang":
+        seen[key] = (verdict.outcome, verdict.detail)
     return verdict
 
 
@@ -196,13 +220,14 @@ def worker(indices: list[int], seed: int, failures: Path | None, budget: float, 
             results.close()
             results.join_thread()  # the verdict out before the process ends
 
+        seen: dict[str, tuple[str, str]] = {}
         watchdog = Watchdog(budget, killed)
         watchdog.start()
         over = False
         for index in indices:
             current[:] = [index]
             watchdog.begin()
-            verdict = check(index, seed, seeds, scratch / "work", failures, reference, full_every)
+            verdict = check(index, seed, seeds, scratch / "work", failures, reference, full_every, seen)
             watchdog.end()
             peak = peak_mib()
             if peak > memory_mib and not over and not verdict.failed:
@@ -231,8 +256,26 @@ def run(inputs: int, seed: int, workers: int, failures: Path | None, budget: flo
         if pending[w]:
             start(w)
     verdicts: dict[int, Verdict] = {}
-    peak = 0.0
+    peaks: list[float] = []
     owner = {i: w for w, items in pending.items() for i in items}
+    def stop(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)  # a run stopped early still reports the inputs it checked
+    try:
+        collect(todo, verdicts, results, procs, pending, owner, start, progress, began, peaks)
+    except KeyboardInterrupt:
+        for proc in procs.values():
+            proc.terminate()
+        print(f"interrupted after {len(verdicts)} of {len(todo)} inputs", file=sys.stderr, flush=True)
+    for proc in procs.values():
+        proc.join()
+    return [verdicts[i] for i in sorted(verdicts)], max(peaks, default=0.0)
+
+
+def collect(todo, verdicts, results, procs, pending, owner, start, progress, began, peaks) -> None:
+    """Gather the workers' verdicts; a worker that ends without one (a crash)
+    or is ended by its watchdog (a hang) is replaced by one that goes on after the input."""
     while len(verdicts) < len(todo):
         try:
             kind, verdict, worker_peak = results.get(timeout=5)
@@ -249,7 +292,7 @@ def run(inputs: int, seed: int, workers: int, failures: Path | None, budget: flo
                 proc.kill()
             raise SystemExit(f"the seeds cannot be built or read:\n{verdict}")
         verdicts[verdict.index] = verdict
-        peak = max(peak, worker_peak)
+        peaks.append(worker_peak)
         if progress and len(verdicts) % progress == 0:
             failed = sum(v.failed for v in verdicts.values())
             print(f"{len(verdicts)} inputs, {failed} failures, {time.monotonic() - began:.0f} s", file=sys.stderr, flush=True)
@@ -260,9 +303,6 @@ def run(inputs: int, seed: int, workers: int, failures: Path | None, budget: flo
             procs[w].join()
             if pending[w]:
                 start(w)
-    for proc in procs.values():
-        proc.join()
-    return [verdicts[i] for i in sorted(verdicts)], peak
 
 
 def report(verdicts: list[Verdict], peak: float, seconds: float, memory_mib: float) -> str:
