@@ -230,12 +230,12 @@ def mcap_records(data: bytes, start: int = 8) -> list[tuple[int, bytes]]:
     return out
 
 
-def _join(records: list[tuple[int, bytes]]) -> bytes:
+def join_records(records: list[tuple[int, bytes]]) -> bytes:
     return b"".join(struct.pack("<BQ", op, len(body)) + body for op, body in records)
 
 
 def mcap_bytes(records: list[tuple[int, bytes]]) -> bytes:
-    return MAGIC + _join(records) + MAGIC
+    return MAGIC + join_records(records) + MAGIC
 
 
 def open_chunk(body: bytes) -> tuple[tuple[int, int], bytes, bytes]:
@@ -266,7 +266,7 @@ def _reindexed(records, k: int, inner: list[tuple[int, bytes]]) -> list[tuple[in
     """The chunk ``k`` with records ``inner`` and the message indexes after
     it rebuilt for them."""
     times, compression, _ = open_chunk(records[k][1])
-    out = [*records[:k], (CHUNK, close_chunk(times, _join(inner), compression))]
+    out = [*records[:k], (CHUNK, close_chunk(times, join_records(inner), compression))]
     j = k + 1
     channels = []
     while j < len(records) and records[j][0] == MESSAGE_INDEX:
@@ -372,7 +372,7 @@ def _changed_crc(records, k, times, compression, raw, inner, messages, rng):
     body[-1] ^= 0x40
     inner[i] = (MESSAGE, bytes(body))
     old = struct.unpack_from("<I", records[k][1], 24)[0]
-    records[k] = (CHUNK, close_chunk(times, _join(inner), compression, crc=old))
+    records[k] = (CHUNK, close_chunk(times, join_records(inner), compression, crc=old))
     return records
 
 

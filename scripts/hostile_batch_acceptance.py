@@ -150,7 +150,7 @@ def build(root: Path) -> tuple[list[str], dict[str, str], list[str]]:
     quarantined["trap.csv"] = "not a regular file (a FIFO)"
     set_cell(sorted(hostile("angle_1e308", "1e308").glob("*_static.csv"))[0], "angle_deg", 5, "1e308")
     set_cell(sorted(hostile("u_1e308", "1e308").glob("*.csv"))[0], "u", 3, "1e308")
-    set_cell(sorted(hostile("t_1e12", "time").glob("*.csv"))[0], "t", 3, "1e12")
+    set_cell(sorted(hostile("t_1e12", "beyond ±9e+09 s").glob("*.csv"))[0], "t", 3, "1e12")
     set_cell(sorted(hostile("non_utf8", "UTF-8").glob("*.csv"))[0], "u", 3, "x")
     bad = sorted((root / "non_utf8").glob("*.csv"))[0]
     bad.write_bytes(bad.read_bytes().replace(b",x,", b",\xff,"))
@@ -158,7 +158,7 @@ def build(root: Path) -> tuple[list[str], dict[str, str], list[str]]:
     glob_link = hostile("glob_capture", "'xz.csv' is a symbolic link pointing outside the dataset directory")
     shutil.copyfile(sorted(template.glob("*.csv"))[0], glob_link / "x[yz].csv")
     (glob_link / "xz.csv").symlink_to("/etc/passwd")
-    whitespace = hostile("whitespace", "no samples",
+    whitespace = hostile("whitespace", "fewer columns",
                          '[format]\ndelimiter = "whitespace"\nheader = false\nnames = ["t", "u", "v", "w"]\n'
                          '[[capture]]\nfile = "blank.txt"\n')
     whitespace.joinpath("blank.txt").write_bytes(b" \t  \t \n" * (49 << 20 >> 3))
@@ -169,13 +169,17 @@ def build(root: Path) -> tuple[list[str], dict[str, str], list[str]]:
     old_crc = struct.unpack_from("<I", fi.mcap_records(crc.read_bytes())[1][1], 24)[0]
     patch_mcap(crc, lambda raw: (raw[:-1] + bytes([raw[-1] ^ 0x40]), old_crc))
     huge = hostile("mcap_huge_record", "larger than the limit", src=mcap) / "capture.mcap"
-    huge.write_bytes(huge.read_bytes()[:-8] + b"\x05" + struct.pack("<Q", 1 << 62))
+    records = fi.mcap_records(huge.read_bytes())
+    end = next(i for i, (op, _) in enumerate(records) if op == fi.DATA_END)  # a message record of 2^62 bytes before it
+    huge.write_bytes(fi.MAGIC + fi.join_records(records[:end]) + b"\x05" + struct.pack("<Q", 1 << 62) + fi.join_records(records[end:]) + fi.MAGIC)
     string = root / "mcap_string_schema"
     string.mkdir()
+    (string / "dataset.toml").write_text('[device]\nid = "string"\n')
     schema_capture(string / "capture.mcap", "std_msgs/msg/String", "string data", b"\x00\x01\x00\x00" + b"a" * (16 << 20))
     quarantined["mcap_string_schema"] = "std_msgs/msg/String"
     vector = root / "mcap_vector3_schema"
     vector.mkdir()
+    (vector / "dataset.toml").write_text('[device]\nid = "vector3"\n')
     schema_capture(vector / "capture.mcap", "geometry_msgs/msg/Vector3", "float64 x\nfloat64 y\nfloat64 z", bytes(28))
     quarantined["mcap_vector3_schema"] = "geometry_msgs/msg/Vector3"
     zeros = zstandard.compress(bytes(256 << 20))
