@@ -259,6 +259,7 @@ SIMULATION_REQUEST = '[plan]\naxes = ["x"]\nrates_hz = [0.5]\nrotation_samples =
     ('[timebase]\ndrop_fraction = "x"\n', "drop_fraction = 'x' must be a finite number"),
     ("[timebase]\njitter_s = nan\n", "jitter_s = nan must be a finite number"),
     ("[plan]\nrates_hz = 1\n", "rates_hz"),
+    ("[plan]\naxes = 1.5\n", "axes = 1.5 must be a non-empty list"),
 ])
 def test_a_bad_simulation_request_is_refused_naming_the_file(tmp_path, extra, needle):
     path = tmp_path / "request.toml"

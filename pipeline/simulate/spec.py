@@ -48,7 +48,8 @@ class Plan:
     def checked(self) -> Plan:
         """The plan, or a ConfigError naming the first value no plan can have."""
         if not isinstance(self.axes, tuple) or not self.axes or any(a not in AXES for a in self.axes):
-            raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
+            axes = list(self.axes) if isinstance(self.axes, tuple) else self.axes  # a number is no list to show
+            raise ConfigError(f"plan: axes = {axes!r} must be a non-empty list of x, y, z")
         _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
                  not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
         if not isinstance(self.rates_hz, tuple) or not all(_is_number(f) for f in self.rates_hz):
