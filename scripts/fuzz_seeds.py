@@ -10,6 +10,7 @@ ingest, time-base, segmentation and fit stages take milliseconds and a full
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,7 +157,10 @@ def simulate_form(path: Path) -> Result:
 
     spec = spec_from_toml(path)
     plan = spec.plan
-    size = len(plan.axes) * (360 / plan.step_deg * plan.step_samples + len(plan.rates_hz) * plan.rotation_samples)
+    try:
+        size = len(plan.axes) * (360 / plan.step_deg * plan.step_samples + len(plan.rates_hz) * plan.rotation_samples)
+    except OverflowError:  # counts beyond floats: far too large to simulate
+        size = math.inf
     tables = {"spec": pl.DataFrame({"spec": [repr(dataclasses.asdict(spec))]})}
     if plan.continuous or size > MAX_SIMULATED:
         return Result(tables)

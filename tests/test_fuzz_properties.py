@@ -260,6 +260,7 @@ SIMULATION_REQUEST = '[plan]\naxes = ["x"]\nrates_hz = [0.5]\nrotation_samples =
     ("[timebase]\njitter_s = nan\n", "jitter_s = nan must be a finite number"),
     ("[plan]\nrates_hz = 1\n", "rates_hz"),
     ("[plan]\naxes = 1.5\n", "axes = 1.5 must be a non-empty list"),
+    ("[plan]\ndt_s = 1e-320\n", "dt_s = 1e-320 must be at least 1e-9 s"),
 ])
 def test_a_bad_simulation_request_is_refused_naming_the_file(tmp_path, extra, needle):
     path = tmp_path / "request.toml"

@@ -52,6 +52,8 @@ class Plan:
             raise ConfigError(f"plan: axes = {axes!r} must be a non-empty list of x, y, z")
         _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
                  not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
+        if self.dt_s < 1e-9:  # stamps are whole nanoseconds: a shorter interval rounds to 0 and divides by it
+            raise ConfigError(f"plan: dt_s = {self.dt_s!r} must be at least 1e-9 s")
         if not isinstance(self.rates_hz, tuple) or not all(_is_number(f) for f in self.rates_hz):
             raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
         return self
