@@ -39,6 +39,14 @@ class SineFit:
     fit: SegmentFit
 
     @property
+    def determined(self) -> bool:
+        """Whether the ten parameters are determined: finite, with variances
+        >= 0. A few samples (a labelled rotation cut short) make the
+        information matrix near singular and its inverse no covariance."""
+        variances = np.append(np.diag(self.fit.cov), self.rate_u_hz)
+        return bool(np.isfinite(self.fit.coef).all() and np.isfinite(variances).all() and (variances >= 0).all())
+
+    @property
     def coef(self) -> np.ndarray:
         return self.fit.coef
 
