@@ -287,10 +287,12 @@ def test_a_capture_name_too_long_for_the_file_system_is_one_line(tmp_path):
     assert "does not exist" in str(error.value) and "\n" not in str(error.value)
 
 
-def test_a_labelled_rotation_cut_to_five_samples_without_angle_fails_its_fit_instead_of_nan(tmp_path):
-    """Its own-phase fit has ten parameters from fifteen values: the inverse
+@pytest.mark.parametrize("kept", [5, 1])
+def test_a_labelled_rotation_cut_short_without_angle_fails_its_fit_instead_of_nan(tmp_path, kept):
+    """Its own-phase fit has ten parameters: from five samples the inverse
     information matrix had negative variances, published as NaN
-    uncertainties of an "ok" fit (fuzz seed 17, input 35260)."""
+    uncertainties of an "ok" fit (fuzz seed 17, input 35260); from one, the
+    spectral search raised ValueError (input 63580)."""
     from rotcal.ingest import load_dataset
     from rotcal.run import segment_and_fit
     from rotcal.simulate import write_dataset
@@ -298,11 +300,11 @@ def test_a_labelled_rotation_cut_to_five_samples_without_angle_fails_its_fit_ins
     spec = SimulationSpec(plan=Plan(rates_hz=(0.5,), rotation_samples=120, step_samples=5, step_deg=45.0))
     directory = write_dataset(simulate(spec, 1), spec, tmp_path / "cut")
     rotation = directory / "03_y_0.5hz.csv"
-    lines = rotation.read_text().splitlines()[:6]
-    lines[5] = lines[5].rsplit(",", 1)[0] + ","  # the file cut inside its last angle
+    lines = rotation.read_text().splitlines()[: kept + 1]
+    lines[kept] = lines[kept].rsplit(",", 1)[0] + ","  # the file cut inside its last angle
     rotation.write_text("\n".join(lines))
     seg = segment_and_fit(load_dataset(directory), RunConfig())
-    cut = seg.fits.filter(pl.col("segment") == seg.segments.filter(pl.col("n_samples") == 5)["segment"][0])
+    cut = seg.fits.filter(pl.col("segment") == seg.segments.filter(pl.col("n_samples") == kept)["segment"][0])
     assert cut["status"].to_list() == ["failed"] * 3
     assert "not determined" in cut["reason"][0]
     ok = seg.fits.filter(pl.col("status") == "ok").select("C", "A", "B", "u_C", "u_A", "u_B", "sigma")

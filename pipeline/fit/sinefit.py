@@ -103,6 +103,8 @@ def fit_sine(t_ns: np.ndarray, y: np.ndarray, rate_guess_hz: float, search: bool
     segment's frequency resolution 1 / duration (a previous fit's rate).
     """
     t_ref = int(np.round(t_ns.mean()))
+    if t_ns.size < 4 or not np.median(np.diff(t_ns)) > 0:  # ten parameters need four samples of three channels, and a sample interval
+        return SineFit(rate_guess_hz, float("nan"), t_ref, SegmentFit.failed(-1, t_ns.size, "too few samples", rate_guess_hz))
     tau_s = (t_ns - t_ref) / 1e9
     resolution = 1.0 / max(float(tau_s[-1] - tau_s[0]), 1e-9)
     centred = y - y.mean(axis=0)  # the offset is fitted anyway; centring keeps the sums well conditioned
