@@ -155,6 +155,12 @@ def read_toml(path: Path, what: str) -> dict[str, Any]:
         raise ConfigError(f"{what} not found", path=path) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{what} is not valid TOML: {exc}", path=path) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{what} is not UTF-8 text: {exc}", path=path) from None
+    except OSError as exc:  # a directory, no permission
+        raise ConfigError(f"{what} cannot be read: {exc.strerror}", path=path) from None
+    except (RecursionError, ValueError):  # nesting beyond the parser's recursion; int() of thousands of digits
+        raise ConfigError(f"{what} is not valid TOML: tables nested too deep, or an integer beyond 64 bits", path=path) from None
 
 
 def with_options(config: RunConfig, **tables: dict[str, Any]) -> RunConfig:

@@ -101,7 +101,10 @@ def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
     non-finite is ever published. Where a column means something by it
     (infinite degrees of freedom), its schema description says so."""
     floats = [c for c, dtype in frame.schema.items() if dtype in (pl.Float64, pl.Float32)]
-    return frame.with_columns(pl.when(pl.col(c).is_finite()).then(pl.col(c)).otherwise(None).alias(c) for c in floats)
+    lists = [c for c, dtype in frame.schema.items() if isinstance(dtype, pl.List) and dtype.inner in (pl.Float64, pl.Float32)]
+    finite = pl.when(pl.element().is_finite()).then(pl.element())  # a failed fit's covariance: NaN elements
+    return frame.with_columns(*(pl.when(pl.col(c).is_finite()).then(pl.col(c)).otherwise(None).alias(c) for c in floats),
+                              *(pl.col(c).list.eval(finite).alias(c) for c in lists))
 
 
 def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:

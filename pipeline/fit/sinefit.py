@@ -39,6 +39,14 @@ class SineFit:
     fit: SegmentFit
 
     @property
+    def determined(self) -> bool:
+        """Whether the ten parameters are determined: finite, with variances
+        >= 0. A few samples (a labelled rotation cut short) make the
+        information matrix near singular and its inverse no covariance."""
+        variances = np.append(np.diag(self.fit.cov), self.rate_u_hz)
+        return bool(np.isfinite(self.fit.coef).all() and np.isfinite(variances).all() and (variances >= 0).all())
+
+    @property
     def coef(self) -> np.ndarray:
         return self.fit.coef
 
@@ -95,6 +103,8 @@ def fit_sine(t_ns: np.ndarray, y: np.ndarray, rate_guess_hz: float, search: bool
     segment's frequency resolution 1 / duration (a previous fit's rate).
     """
     t_ref = int(np.round(t_ns.mean()))
+    if t_ns.size < 4 or not np.median(np.diff(t_ns)) > 0:  # ten parameters need four samples of three channels, and a sample interval
+        return SineFit(rate_guess_hz, float("nan"), t_ref, SegmentFit.failed(-1, t_ns.size, "too few samples", rate_guess_hz))
     tau_s = (t_ns - t_ref) / 1e9
     resolution = 1.0 / max(float(tau_s[-1] - tau_s[0]), 1e-9)
     centred = y - y.mean(axis=0)  # the offset is fitted anyway; centring keeps the sums well conditioned

@@ -130,7 +130,7 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     """Rates of the rotations without an angle reference against the nominal
     ones: segment rows of the inferred ones, the fitted columns of the
     labelled ones, every own-phase fit, the clock-drift finding and warnings."""
-    usable = np.array([r.fit is not None and r.reason is None for r in rotations], bool)
+    usable = np.array([r.fit is not None and r.reason is None and r.fit.determined for r in rotations], bool)
     measured = np.array([r.fit.rate_hz if r.fit else np.nan for r in rotations])
     u = np.array([r.fit.rate_u_hz if r.fit else np.nan for r in rotations])
     nominal = np.array([r.label_hz if r.label_hz is not None else
@@ -154,7 +154,8 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
         elif measured_cols:
             updates.append({"segment": r.key, **measured_cols})
         fits.append(replace(fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if fit is not None else
-                    SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}", float("nan")))
+                    SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}" if r.reason else
+                                      "its own-phase fit is not determined (too few samples for ten parameters)", float("nan")))
     return rows, updates, fits, drift.finding(dataset), drift.warnings()
 
 

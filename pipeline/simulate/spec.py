@@ -6,6 +6,7 @@ it, and the logger's time-base defects; from the CLI form
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import polars as pl
 from rotcal.config import read_toml
 from rotcal.errors import ConfigError
 from rotcal.model.conventions import AXES, Dut
-from rotcal.model.effects import Effects, names
+from rotcal.model.effects import Effects, effect_named, names
 from rotcal.simulate.timebase_sim import TimebaseDefects
 
 # Structures outside the catalogue of docs/effects.md, for testing that rotcal
@@ -46,11 +47,14 @@ class Plan:
 
     def checked(self) -> Plan:
         """The plan, or a ConfigError naming the first value no plan can have."""
-        if not self.axes or any(a not in AXES for a in self.axes):
-            raise ConfigError(f"plan: axes = {list(self.axes)!r} must be a non-empty list of x, y, z")
+        if not isinstance(self.axes, tuple) or not self.axes or any(a not in AXES for a in self.axes):
+            axes = list(self.axes) if isinstance(self.axes, tuple) else self.axes  # a number is no list to show
+            raise ConfigError(f"plan: axes = {axes!r} must be a non-empty list of x, y, z")
         _require(self, "plan", positive=("step_deg", "dt_s", "ramp_deg_s2"),
                  not_negative=("pause_s", "step_move_s", "reorient_s"), counts=("step_samples", "rotation_samples"))
-        if not all(_is_number(f) for f in self.rates_hz):
+        if self.dt_s < 1e-9:  # stamps are whole nanoseconds: a shorter interval rounds to 0 and divides by it
+            raise ConfigError(f"plan: dt_s = {self.dt_s!r} must be at least 1e-9 s")
+        if not isinstance(self.rates_hz, tuple) or not all(_is_number(f) for f in self.rates_hz):
             raise ConfigError(f"plan: rates_hz = {self.rates_hz!r} must be a list of numbers")
         return self
 
@@ -80,7 +84,10 @@ class DutSpec:
 
 
 def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    """A finite float, or an integer within TOML's 64 bits (np.isfinite refuses larger ones with a TypeError)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    return math.isfinite(value) if isinstance(value, float) else -(2**63) <= value < 2**63
 
 
 def _require(spec, table: str, positive: tuple[str, ...] = (), not_negative: tuple[str, ...] = (),
@@ -201,6 +208,9 @@ def spec_from_toml(path: Path) -> SimulationSpec:
     bad_site = sorted(set(site) - {"g_local", "g_local_uncertainty"})
     if bad_site:
         raise ConfigError(f"unknown key {bad_site[0]!r} in [site]", path=path)
+    not_numbers = [k for k, v in site.items() if not _is_number(v) or v < 0]
+    if not_numbers:
+        raise ConfigError(f"[site] {not_numbers[0]} = {site[not_numbers[0]]!r} must be a finite number >= 0", path=path)
     effects = []
     for entry in doc.get("effect", []):
         entry = dict(entry)
@@ -210,9 +220,14 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         bad = [k for k, v in entry.items() if k not in ("axis", "channel") and not _is_number(v)]
         if bad:
             raise ConfigError(f"[[effect]] {name}: {bad[0]} = {entry[bad[0]]!r} is not a number", path=path)
+        try:  # the effect's own check of its parameters, here where the file is known
+            effect_named(name).complete(dict(entry), np.random.default_rng(0))
+        except ConfigError as exc:
+            raise ConfigError(exc.problem, path=path) from None
         effects.append((name, tuple(sorted(entry.items()))))
     try:
         plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
+        timebase = build(TimebaseDefects, doc.get("timebase", {})).checked()
     except ConfigError as exc:
         raise ConfigError(exc.problem, path=path) from None
     return SimulationSpec(
@@ -222,5 +237,5 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         g_local_uncertainty=site.get("g_local_uncertainty", 3e-5),
         output_unit=doc.get("output_unit", "bit"),
         effects=tuple(effects),
-        timebase=build(TimebaseDefects, doc.get("timebase", {})).checked(),
+        timebase=timebase,
     )

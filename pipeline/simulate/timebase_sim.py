@@ -36,6 +36,12 @@ class TimebaseDefects:
         return 1.0 + self.clock_drift_ppm * 1e-6
 
     def checked(self) -> TimebaseDefects:
+        for f in fields(self):  # comparisons below would raise TypeError for text, and pass NaN
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not -1e300 < value < 1e300 or value != value:
+                raise ConfigError(f"timebase: {f.name} = {value!r} must be a finite number")
+        if not isinstance(self.gap_count, int):
+            raise ConfigError(f"timebase: gap_count = {self.gap_count!r} must be a whole number")
         for name in ("drop_fraction", "duplicate_fraction", "repeat_stamp_fraction"):
             if not 0.0 <= getattr(self, name) < 0.5:
                 raise ConfigError(f"timebase: {name} = {getattr(self, name)} must be in [0, 0.5)")
