@@ -11,7 +11,7 @@ regular), Gaussian with ``jitter_s`` standard deviation.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import polars as pl
