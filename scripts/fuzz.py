@@ -126,7 +126,7 @@ def check(index: int, seed: int, seeds: Path, work: Path, failures: Path | None,
         elif result.undetermined:
             verdict = Verdict(index, form.name, name, "undetermined", full=full)
     except RotcalError as exc:
-        from rotcal.batch.plan import printable
+        from rotcal.errors import printable
 
         text = printable(str(exc))
         if isinstance(exc, UndeterminedError):
