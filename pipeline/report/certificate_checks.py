@@ -40,6 +40,8 @@ def _channel_major(fits: pl.DataFrame) -> tuple[pl.DataFrame, np.ndarray, np.nda
     ok = ok.filter(pl.col("segment").is_in(complete.implode())).sort("segment", "channel")
     segments = ok.unique("segment", keep="first", maintain_order=True).select("segment", "kind", "axis", "rate_hz")
     n = segments.height
+    if n == 0:  # every fit failed (e.g. rotations refused for their jitter): nothing to stack
+        return segments, np.zeros((0, 3, 3)), np.zeros((0, 9, 9))
     coef = ok.select("C", "A", "B").to_numpy().reshape(n, 3, 3)
     # row r's cov_c: 3 x 3 covariance of channel r's (C, A, B) with channel c's
     blocks = np.stack([np.stack(ok[f"cov_{c}"].to_list()).reshape(n, 3, 3, 3) for c in CHANNELS], axis=2)
