@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -107,23 +108,27 @@ def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
                               *(pl.col(c).list.eval(finite).alias(c) for c in lists))
 
 
-def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
-    """Write ``frame`` as contract ``name`` to ``path``, atomically.
+def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
+    """``write`` a temporary file beside ``path``, then move it over ``path``
+    (rename(2) is atomic within one file system): no reader ever sees half
+    a file, and an error leaves none. Every file rotcal writes goes through here."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
-    The file is written under a temporary name in the same directory and
-    moved into place, so no reader ever sees a half-written table.
-    """
+
+def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
+    """Write ``frame`` as contract ``name`` to ``path``, atomically (``atomic_write``)."""
     import pyarrow.parquet as pq  # loaded at the first write: not held through the stages before (memory)
 
     table = finite_or_null(conform(frame, name)).to_arrow()
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        pq.write_table(table, tmp, compression="zstd")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
     return path
 
 

@@ -7,22 +7,28 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import polars as pl
 import pyarrow.parquet as pq
 import pytest
-from apply_support import calibrate
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from rotcal.apply import correct, correction_covariance
 from rotcal.ingest import load_dataset
 from rotcal.model.calibration import Calibration
+from rotcal.run import RunOutcome, run_dataset
 
 from testdata import REAL, REPO, truth_of
 
 XSENS = REAL / "imu_tk_xsens"
+
+
+def calibrate(dataset, out, meta=None) -> tuple[Path, RunOutcome]:
+    """A run of ``dataset`` into ``out``: the calibration.json it wrote, and its outcome."""
+    return out / "calibration.json", run_dataset(dataset, out, meta)
 
 
 @pytest.fixture(scope="module")
@@ -145,13 +151,13 @@ def test_bad_calibration_recording_or_output_is_one_line(simulated, tmp_path, cl
 @pytest.mark.real
 def test_xsens_static_poses_read_g_local(tmp_path):
     meta = REPO / "configs" / "imu_tk_xsens.toml"
-    cal, reductions = calibrate(XSENS, tmp_path / "cal", meta)
+    cal, outcome = calibrate(XSENS, tmp_path / "cal", meta)
     from rotcal.apply import apply_calibration
 
     done = apply_calibration(cal, XSENS, tmp_path / "x.parquet", meta=meta)
     assert done.frame == "intrinsic" and done.samples == 51175
     calibrated = pl.read_parquet(tmp_path / "x.parquet")
-    poses = reductions.static.check
+    poses = outcome.static.check
     g = json.loads(cal.read_text())["g_local"]["value"]
     errors = []
     for start, end in poses.select("t_start_ns", "t_end_ns").iter_rows():

@@ -10,7 +10,6 @@ metadata, ``#`` comment lines at the top of the CSV, the Imu messages'
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ from rotcal import __version__
 from rotcal.apply.correct import full_covariance, standard_uncertainty
 from rotcal.errors import InputError
 from rotcal.model.physics import AXES
+from rotcal.tables import atomic_write as tables_atomic_write
 
 SUFFIXES = (".parquet", ".csv", ".mcap")
 IMU_TOPIC = "/imu/calibrated"
@@ -96,18 +96,16 @@ WRITERS: dict[str, Callable[[Calibrated, BinaryIO], None]] = {
 
 
 def atomic_write(path: Path, write: Callable[[BinaryIO], None], what: str) -> Path:
-    """``write`` into a temporary file beside ``path``, renamed over it once
-    whole: a reader never sees half a file, an error leaves none."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    """``write`` the file through ``tables.atomic_write``; an error writing
+    it is the user's (a full disk, a folder gone): one line naming it."""
+    def to_file(tmp: Path) -> None:
         with tmp.open("wb") as fh:
             write(fh)
-        os.replace(tmp, path)
+
+    try:
+        return tables_atomic_write(path, to_file)
     except OSError as exc:
         raise InputError(f"cannot write {what}: {exc.strerror or exc}", path=path) from None
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def write_calibrated(rec: Calibrated, path: Path) -> Path:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from html import escape
 from importlib.resources import files
 from pathlib import Path
@@ -25,7 +24,7 @@ from rotcal.model.calibration import Calibration, Quantity, RateCalibration
 from rotcal.model.results import EXPANDED_COVERAGE
 from rotcal.report.certificate_checks import main_contributions, norm_check, norm_summary
 from rotcal.report.rounding import gum_round, gum_text
-from rotcal.tables import schema
+from rotcal.tables import atomic_write, schema
 
 CERTIFICATE = "certificate.html"
 # the published tables the page reads, each where the run wrote it
@@ -281,10 +280,4 @@ def write_certificate(run_dir: Path, figures: bool = True) -> Path:
     """Write ``certificate.html`` into ``run_dir`` (atomically) from its published files."""
     path = Path(run_dir) / CERTIFICATE
     text = render(Path(run_dir), figures)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))

@@ -10,7 +10,6 @@ against the baseline parameters.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import matplotlib
@@ -25,15 +24,14 @@ from rotcal.diagnose import Diagnosis  # noqa: E402
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC  # noqa: E402
 from rotcal.model.results import IntrinsicResult  # noqa: E402
 from rotcal.report.rounding import gum_round, gum_text  # noqa: E402
+from rotcal.tables import atomic_write  # noqa: E402
 
 COLORS = ("tab:red", "tab:green", "tab:blue")
 
 
 def _save(fig, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None})
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None}))
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def _binned(t: np.ndarray, r: np.ndarray, bins: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -170,11 +168,7 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
     lines += ["## Refined against baseline intrinsic parameters", "", _comparison(baseline, diag.refined, output_unit)]
     if draw:
         lines += _figures(diag, fits, out / "figures", output_unit)
-    path = out / "report.md"
-    tmp = path.with_name(f".report.md.{os.getpid()}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
-    return path
+    return atomic_write(out / "report.md", lambda tmp: tmp.write_text("\n".join(lines)))
 
 
 def _figures(diag: Diagnosis, fits: pl.DataFrame, figures: Path, output_unit: str) -> list[str]:

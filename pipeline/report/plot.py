@@ -7,7 +7,6 @@ atomically; the same table gives the same PNG."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from rotcal.model.physics import INTRINSIC
+from rotcal.tables import atomic_write
 
 PANELS = (
     ("sensitivity_ratio", "({p}(f) / {p}(DC) - 1) / ppm", 1e6, -1.0),
@@ -61,10 +61,4 @@ def frequency_response_png(frame: pl.DataFrame, path: Path, title: str) -> Path 
     fig.suptitle(f"{title}, {per_rate['model'][0]} model: deviation from the static (DC) result, error bars: standard uncertainty", fontsize=11)
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.91, wspace=0.3, hspace=0.35)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        fig.savefig(tmp, format="png", metadata={"Software": None})
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", metadata={"Software": None}))

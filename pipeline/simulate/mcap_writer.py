@@ -11,7 +11,6 @@ defaults for the same messages (tested), without a Python call per message.
 from __future__ import annotations
 
 import json
-import os
 import struct
 import zlib
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from rotcal.ingest import ros2_cdr, ros2_msgdefs
 from rotcal.model.physics import AXES, JOINT_SIGN
+from rotcal.tables import atomic_write
 
 MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1024 * 1024  # mcap's default chunk size
@@ -254,14 +254,12 @@ def write_capture(samples: pl.DataFrame, table: pl.DataFrame, path: Path, encodi
                   imu_topic: str = "/imu", table_topic: str = "/table/joint_states") -> Path:
     """Write ``samples`` (t_ns, u, v, w) and ``table`` (t_ns, axis, rate_hz,
     angle_deg) to ``path``, atomically."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    def write(tmp: Path) -> None:
         with tmp.open("wb") as fh:
             if encoding == "cdr":
                 _write_cdr(fh, samples, table, imu_topic, table_topic)
             else:
                 _write_json(Writer(fh, compression=CompressionType.ZSTD), samples, table, imu_topic, table_topic)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+
+    atomic_write(path, write)
     return path
