@@ -108,7 +108,7 @@ def test_suarez_the_authors_result_is_the_orthogonal_model(suarez_run):
 
 def test_suarez_nine_parameters_within_three_expanded_uncertainties(suarez_run):
     """The nine-parameter model: no pose mixes u and v, so phi_uv (and with it
-    s_u, s_v, about 1.5 % U) rests on small tilts and the run says which pose
+    s_u, s_v, U 1.7 % and 1.5 %) rests on small tilts and the run says which pose
     would fix it; every parameter is still within 3 U of the authors'."""
     outcome, intrinsic, _ = suarez_run
     theirs = dict(zip(INTRINSIC, suarez_parameters()))
