@@ -49,6 +49,7 @@ from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
+    from rotcal.diagnose.static import StaticDiagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +172,9 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
 def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
                    config: RunConfig) -> tuple[Diagnosis | None, tuple[str, ...]]:
     """The diagnosis of a table recording whose segments all have the table
-    angle (its models need it), with its notes."""
+    angle (its models need it), or of a static one, with its notes."""
+    if reductions.static is not None:
+        return static_diagnosis_stage(seg, reductions.static, ds, config), ()
     if reductions.unreferenced_rates:
         return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
     if not config.diagnosis.enabled or reductions.static is not None:
@@ -184,6 +187,18 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         return diagnosis, (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
                            f"samples (long segments thinned evenly; [diagnosis] max_samples)",)
     return diagnosis, ()
+
+
+def static_diagnosis_stage(seg: Segmented, static: StaticReduction, ds: Dataset,
+                           config: RunConfig) -> StaticDiagnosis | None:
+    """The diagnosis of a static recording's poses (``diagnose.static``)."""
+    if not config.diagnosis.enabled:
+        return None
+    from rotcal.diagnose.static import diagnose_static  # scipy.stats loads when diagnosing
+
+    t_ns = seg.samples["t_ns"]
+    return diagnose_static(static, None if t_ns.is_empty() else int(t_ns.min()), ds.name, ds.meta.output_unit,
+                           ds.meta.g_local_uncertainty, config.diagnosis)
 
 
 def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | None, ds: Dataset,
@@ -242,7 +257,7 @@ def recommended_fits(seg: Segmented, diagnosis: Diagnosis | None, chosen: Recomm
                      config: RunConfig) -> pl.DataFrame:
     """The segment fits under the recommended model: under the refined one,
     those of the samples less its modelled effects (``diagnose.corrected``)."""
-    if chosen.model == BASELINE or diagnosis is None:
+    if chosen.model == BASELINE or diagnosis is None or not seg.table:   # a static recording has no segment fits
         return seg.labelled_fits
     from rotcal.diagnose.corrected import without_effects
 
