@@ -128,7 +128,9 @@ class Linearised:
         for name, col in zip(cand.names, self.model.columns(cand)):
             column = self.jac[:, col]
             free = column - base @ np.linalg.lstsq(base, column, rcond=None)[0]
-            out[name] = float(np.sqrt(threshold) / max(np.linalg.norm(free), 1e-300))
+            # a column the baseline absorbs (k3 on +-1 g poses only: a sensitivity) has no limit
+            seen = np.linalg.norm(free) > 1e-6 * np.linalg.norm(column)
+            out[name] = float(np.sqrt(threshold) / np.linalg.norm(free)) if seen else float("inf")
         return out
 
 
@@ -184,8 +186,12 @@ def _rms(model: PoseModel, theta: np.ndarray) -> float:
     return float(np.sqrt(np.mean((r * model.weights * per_g) ** 2)))
 
 
+def limit_text(size: float) -> str:
+    return f"{size:.2g}" if np.isfinite(size) else "not identifiable from these poses"
+
+
 def _limits_text(limits: dict[str, float]) -> str:
-    return ", ".join(f"{n} {v:.2g}" for n, v in limits.items())
+    return ", ".join(f"{n} {limit_text(v)}" for n, v in limits.items())
 
 
 def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov: np.ndarray, cols: np.ndarray,
@@ -194,7 +200,10 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
     parameters, the residuals without each and every tested parameter's
     detection limit."""
     model = lin.model
-    rows, params, before, limits = [], [], {}, {}
+    rows: list[dict] = []
+    params: list[dict] = []
+    before: dict[str, np.ndarray] = {}
+    limits: dict[str, float] = {}
     rms_final = _rms(model, theta)
     where_poses = f"all {len(model.means)} poses"
     logged = frozenset() if model.excursion_k is None else frozenset({"temperature_c"})

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rotcal.diagnose.static import StaticDiagnosis
+from rotcal.diagnose.static import StaticDiagnosis, limit_text
 from rotcal.model.results import IntrinsicResult
 from rotcal.report.diagnosis import _comparison, _table
 from rotcal.report.rounding import gum_round
@@ -44,6 +44,6 @@ def write_static_report(diag: StaticDiagnosis, baseline: tuple[IntrinsicResult, 
         lines += ["## Detection limits", "",
                   "The size of each parameter tested and not found at which its expected test statistic reaches "
                   "the threshold (50 % power at the false-alarm rate), with these poses and this noise:", "",
-                  _table([[name, f"{size:.2g}"] for name, size in diag.limits.items()], ["parameter", "size"]), ""]
+                  _table([[name, limit_text(size)] for name, size in diag.limits.items()], ["parameter", "size"]), ""]
     lines += ["## Refined against baseline intrinsic parameters", "", _comparison(baseline, diag.refined, output_unit)]
     return atomic_write(out / "report.md", lambda tmp: tmp.write_text("\n".join(lines)))
