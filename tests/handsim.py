@@ -22,21 +22,28 @@ from posesim import G_LOCAL, random_directions
 
 
 def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, rest_s: float = 4.0,
-                 move_s: float = 3.0, dt_s: float = 0.01) -> tuple[pl.DataFrame, dict]:
+                 move_s: float = 3.0, dt_s: float = 0.01, jig: bool = False, excess: float = 0.0) -> tuple[pl.DataFrame, dict]:
     """The samples (``t`` in s, u, v, w, and ``temperature_c`` when an
-    effect draws a temperature) and the effects' parameters as drawn."""
+    effect draws a temperature) and the effects' parameters as drawn;
+    ``jig``: each sample's gravity direction as the jig's ``gx, gy, gz``
+    (no moves then: every sample rests in a known position); ``excess``:
+    each rest's mean shifted by a normal error of that standard deviation
+    per channel (output units), as an unsteady hand leaves it."""
     dut_rng, pose_rng, effect_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
     dut, _ = draw_dut(DutSpec(), dut_rng)
     requested, described = build_effects(tuple(parse_effect(e) for e in effects), effect_rng)
     d = random_directions(pose_rng, n_poses)
-    rest, move = int(round(rest_s / dt_s)), int(round(move_s / dt_s))
-    blocks = []
+    rest, move = int(round(rest_s / dt_s)), 0 if jig else int(round(move_s / dt_s))
+    blocks, shifts = [], []
+    shift = pose_rng.normal(0.0, excess, (n_poses, 3)) if excess else np.zeros((n_poses, 3))
     for k in range(n_poses):
         blocks.append(np.repeat(d[k][None], rest, axis=0))
+        shifts.append(np.repeat(shift[k][None], rest, axis=0))
         if k + 1 < n_poses:
             frac = np.linspace(0.0, 1.0, move + 2)[1:-1, None]
             turn = (1 - frac) * d[k] + frac * d[k + 1] + np.sin(np.pi * frac) * random_directions(pose_rng, 1)
             blocks.append(turn / np.linalg.norm(turn, axis=1)[:, None])
+            shifts.append(np.zeros((move, 3)))
     direction = np.vstack(blocks)
     n = len(direction)
     t_s = np.arange(n) * dt_s
@@ -50,10 +57,12 @@ def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, re
             motion = replace(motion, temperature_c=history)
     y = G_LOCAL * direction @ dut.responsivity.T
     x1g = np.linalg.norm(dut.responsivity, axis=1) * G_LOCAL
-    clean = dut.offsets + offset_terms(motion, requested) + scaled(nonlinearity(y, x1g, requested),
+    clean = np.vstack(shifts) + dut.offsets + offset_terms(motion, requested) + scaled(nonlinearity(y, x1g, requested),
                                                                    scale_terms(motion, requested))
     out = observe(clean, dut, requested, noise_rng)
     frame = pl.DataFrame({"t": t_s, **{c: out[:, r] for r, c in enumerate(CHANNELS)}})
+    if jig:
+        frame = frame.with_columns(**{name: direction[:, i] for i, name in enumerate(("gx", "gy", "gz"))})
     if motion.temperature_c is not None:
         frame = frame.with_columns(temperature_c=motion.temperature_c)
     return frame, {k: v for item in described for k, v in item["parameters"].items()}
