@@ -7,13 +7,12 @@ finding; the detection limit against its hand derivation."""
 import numpy as np
 import polars as pl
 import pytest
+from handsim import hand_session, write_session
 from scipy.stats import chi2
 
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.combine.poses import references
 from rotcal.run import run_dataset
-
-from handsim import hand_session, write_session
 
 
 def _run(tmp_path, seed, effects=(), **kw):
