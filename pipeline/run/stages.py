@@ -219,9 +219,9 @@ def baseline_reason(diagnosis: Diagnosis | StaticDiagnosis | None, reductions: R
     """Why the baseline model is the result when it is: what the diagnosis found, or why it did not run."""
     if diagnosis is not None:
         return "the diagnosis found no effect to model"
-    why = (diagnosis_notes[0] if diagnosis_notes else "static poses (the diagnosis models table rotations)"
-           if reductions.static is not None else "switched off ([diagnosis] enabled = false)"
-           if not config.diagnosis.enabled else "no fitted table segments")
+    why = (diagnosis_notes[0] if diagnosis_notes else "switched off ([diagnosis] enabled = false)"
+           if not config.diagnosis.enabled else "the static poses leave no degree of freedom to test an effect"
+           if reductions.static is not None else "no fitted table segments")
     return f"diagnosis not run: {why.removeprefix('diagnosis skipped: ')}"
 
 
