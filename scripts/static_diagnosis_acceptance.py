@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from handsim import hand_session, write_session  # noqa: E402
-
 from rotcal.model.effects import effect_named  # noqa: E402
 from rotcal.run import run_dataset  # noqa: E402
+
+from handsim import hand_session, write_session  # noqa: E402
 
 # sizes within the catalogue's ranges (docs/effects.md), above the 80 %-power sizes of these sessions
 SIZES = {"cubic_nonlinearity": 8e-4, "quadratic_nonlinearity": 6e-4, "offset_drift": 0.025, "thermal": 1.5}

@@ -14,6 +14,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.model.conventions import CHANNELS, Motion
+from rotcal.model.effects import effect_named
 from rotcal.model.physics import nonlinearity, observe, offset_terms, scale_terms, scaled
 from rotcal.simulate import DutSpec, build_effects, draw_dut
 from rotcal.simulate.spec import parse_effect
@@ -50,8 +51,6 @@ def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, re
     zeros = np.zeros(n)
     motion = Motion(t_s, zeros.astype(np.int64), np.zeros(n, bool), zeros, zeros, zeros, zeros, 0.0)
     for item in described:   # the last temperature history requested, as the simulator records it
-        from rotcal.model.effects import effect_named
-
         history = effect_named(item["effect"]).temperature_history(item["parameters"], motion)
         if history is not None:
             motion = replace(motion, temperature_c=history)

@@ -2,17 +2,22 @@
 seeded hand-pose and jig sessions (``tests/handsim.py``) run end to end:
 an effect of the catalogue found on its channel with its parameter near
 the truth, the refined intrinsic rows written; a clean session with no
-finding; the detection limit against its hand derivation."""
+finding; the detection limit against its hand derivation; the real
+recordings (issue 15 item 5)."""
 
 import numpy as np
 import polars as pl
 import pytest
-from handsim import hand_session, write_session
 from scipy.stats import chi2
 
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.combine.poses import references
 from rotcal.run import run_dataset
+
+from handsim import hand_session, write_session
+from testdata import REAL, REPO
+
+MIKOFF = REPO / "tests" / "data" / "corpus" / "mikoff_mpu9150"
 
 
 def _run(tmp_path, seed, effects=(), **kw):
@@ -90,3 +95,36 @@ def test_jig_offset_drift_found_and_the_limit_matches_its_hand_derivation(tmp_pa
         expected = np.sqrt(chi2.isf(1e-4, 1)) / np.linalg.norm(free)
         print(c, clean.diagnosis.limits[f"drift_{c}"], expected)
         assert clean.diagnosis.limits[f"drift_{c}"] == pytest.approx(expected, rel=0.03)
+
+
+def _limits(outcome, prefix: str) -> np.ndarray:
+    return np.array([outcome.diagnosis.limits[f"{prefix}_{c}"] for c in "uvw"])
+
+
+@pytest.mark.real
+def test_real_static_recordings_show_nothing_and_say_how_small(tmp_path):
+    """Issue 15 item 5 (docs/method.md, "Real recordings diagnosed"): the
+    Xsens hand poses and imucal's six labelled poses show no effect; the
+    Xsens limits as documented. On imucal's +-1 g poses every u is 0 or
+    +-1, so k3 y u^2 = k3 y is a sensitivity: no limit (infinite), while
+    k2 and the drift have one."""
+    xsens = run_dataset(REAL / "imu_tk_xsens", tmp_path / "xsens", REPO / "configs" / "imu_tk_xsens.toml")
+    assert _found(xsens) == []
+    print(xsens.diagnosis.limits)
+    np.testing.assert_allclose(_limits(xsens, "k3"), [1.4e-3, 1.2e-3, 1.6e-3], rtol=0.05)
+    np.testing.assert_allclose(_limits(xsens, "drift"), [0.0053, 0.0043, 0.0045], rtol=0.05)
+    imucal = run_dataset(REAL / "imucal_session", tmp_path / "imucal", REPO / "configs" / "imucal_session.toml")
+    assert imucal.static.method == "reference" and _found(imucal) == []
+    assert np.all(np.isinf(_limits(imucal, "k3"))) and np.all(np.isfinite(_limits(imucal, "k2")))
+    assert "not identifiable from these poses" in (tmp_path / "imucal" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("sensor", range(5))
+def test_mikoff_mpu9150_sessions_show_nothing_within_their_limits(sensor, tmp_path):
+    """The five MPU-9150 hand-pose sessions (tests/data/corpus): no finding;
+    drift limits 3e-4 to 6e-4 m/s^2 per s, k3 limits 2.5e-3 to 6.5e-3."""
+    outcome = run_dataset(MIKOFF / f"imu{sensor}.log", tmp_path, REPO / "configs" / "mikoff_mpu9150.toml")
+    assert _found(outcome) == []
+    drift, k3 = _limits(outcome, "drift"), _limits(outcome, "k3")
+    print(drift, k3)
+    assert np.all((3e-4 < drift) & (drift < 6e-4)) and np.all((2.5e-3 < k3) & (k3 < 6.5e-3))
