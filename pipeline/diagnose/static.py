@@ -50,16 +50,24 @@ from rotcal.tables import conform, schema
 class StaticDiagnosis:
     """The diagnosis of a static recording: the findings and effect-parameter
     tables, the refined intrinsic result, per finding the weighted residuals
-    of the model without it, and the detection limit of every parameter
-    tested (50 % power at the false-alarm rate)."""
+    of the model without it and what they are drawn against (a label, each
+    pose's value, the channel), the final model's weighted residuals, and
+    the detection limit of every parameter tested (50 % power at the
+    false-alarm rate)."""
 
     findings: pl.DataFrame
     parameters: pl.DataFrame
     refined: tuple[IntrinsicResult, ...]
     before: dict[str, np.ndarray]
+    against: dict[str, tuple[str, np.ndarray, int]]
+    after: np.ndarray
     limits: dict[str, float]
     poses: int
     method: str
+
+    def channel(self, residuals: np.ndarray, r: int) -> np.ndarray:
+        """Each pose's residual in channel r (the |a| residual when orientation-free)."""
+        return residuals if self.method == "orientation-free" else residuals.reshape(-1, 3)[:, r]
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +109,9 @@ class Linearised:
         """The test of ``larger`` against the nested ``smaller``."""
         k = self.cols(larger).size - self.cols(smaller).size
         dof = self.dof(larger)
+        added = tuple(c for c in larger if c not in smaller)
+        if dof <= 0:   # more parameters than residuals: nothing to test
+            return Test(added, 0.0, 1.0, 0.0)
         removed = max(self.solve(smaller)[1] - self.solve(larger)[1], 0.0)
         if self.model.excess:
             scale = self.solve(larger)[1] / dof
@@ -109,7 +120,6 @@ class Linearised:
         else:
             stat = removed
             p = float(chi2.sf(stat, k))
-        added = tuple(c for c in larger if c not in smaller)
         return Test(added, stat, p, -stat + k * np.log(self.n))
 
     def limit(self, cand: Candidate, active: tuple[Candidate, ...], alpha: float) -> dict[str, float]:
@@ -120,6 +130,8 @@ class Linearised:
         base = self.jac[:, self.cols(others)]
         k = len(cand.names)
         dof = self.dof(others + (cand,))
+        if dof <= 0:
+            return dict.fromkeys(cand.names, float("inf"))
         if self.model.excess:
             threshold = k * float(f.isf(alpha, k, dof)) * self.solve(others + (cand,))[1] / dof
         else:
@@ -190,19 +202,34 @@ def limit_text(size: float) -> str:
     return f"{size:.2g}" if np.isfinite(size) else "not identifiable from these poses"
 
 
+def _against(model: PoseModel, theta: np.ndarray, cand: Candidate) -> tuple[str, np.ndarray, int]:
+    """What an effect's residuals follow, per pose: the channel's output in g
+    (the nonlinearities), the time (drift) or the temperature (thermal)."""
+    r = "uvw".index(cand.scope)
+    if cand.effect == "offset_drift" and model.elapsed_s is not None:
+        return "time since the first sample (s)", model.elapsed_s, r
+    if cand.effect == "thermal" and model.excursion_k is not None:
+        return "temperature - T_ref (K)", model.excursion_k, r
+    state, _ = model.state(theta)
+    rows = state[:9].reshape(3, 3)
+    return f"output of {cand.scope} (g)", (model.means[:, r] - state[9 + r]) / np.linalg.norm(rows[r]), r
+
+
 def _limits_text(limits: dict[str, float]) -> str:
     return ", ".join(f"{n} {limit_text(v)}" for n, v in limits.items())
 
 
 def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov: np.ndarray, cols: np.ndarray,
-          alpha: float, dataset: str, unit: str) -> tuple[list[dict], list[dict], dict[str, np.ndarray], dict[str, float]]:
+          alpha: float, dataset: str, unit: str) -> tuple[list[dict], list[dict], dict[str, np.ndarray],
+                                                          dict[str, tuple[str, np.ndarray, int]], dict[str, float]]:
     """One findings row per catalogue effect, the detected effects'
-    parameters, the residuals without each and every tested parameter's
-    detection limit."""
+    parameters, the residuals without each and what they follow, and every
+    tested parameter's detection limit."""
     model = lin.model
     rows: list[dict] = []
     params: list[dict] = []
     before: dict[str, np.ndarray] = {}
+    against: dict[str, tuple[str, np.ndarray, int]] = {}
     limits: dict[str, float] = {}
     rms_final = _rms(model, theta)
     where_poses = f"all {len(model.means)} poses"
@@ -236,6 +263,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
         reduced = tuple(c for c in active if c.effect != effect.name)
         test = lin.test(reduced, active)
         before[effect.name] = model.residuals(lin.solve(reduced)[0])
+        against[effect.name] = _against(model, theta, found[0])
         reported = []
         for c in found:
             pos = [int(np.flatnonzero(cols == col)[0]) for col in model.columns(c)]
@@ -249,7 +277,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
             "evidence": f"the static poses' residuals follow it: modelling it lowers chi-square by {test.chi2:.0f} on "
                         f"{sum(len(c.names) for c in found)} parameters (p = {_fmt(test.p_value)}, BIC change "
                         f"{test.delta_bic:+.0f}); {text}"})
-    return rows, params, before, limits
+    return rows, params, before, against, limits
 
 
 def _refined(model: PoseModel, theta: np.ndarray, cov: np.ndarray, dof: int, g_uncertainty: float) -> IntrinsicResult:
@@ -274,9 +302,10 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
     alpha = config.false_alarm
     active = select(lin, alpha)
     theta, cov, cols = refit(lin, active) if active else (lin.theta0, np.zeros((0, 0)), lin.cols(()))
-    rows, params, before, limits = _rows(lin, active, theta, cov, cols, alpha, dataset, output_unit)
+    rows, params, before, against, limits = _rows(lin, active, theta, cov, cols, alpha, dataset, output_unit)
     refined = (_refined(model, theta, cov, lin.dof(active), g_uncertainty),) if active else ()
     findings = conform(pl.DataFrame(rows, schema=schema("diagnosis").polars_schema), "diagnosis")
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
-    return StaticDiagnosis(findings, parameters, refined, before, limits, len(model.means), static.method)
+    return StaticDiagnosis(findings, parameters, refined, before, against, model.residuals(theta), limits,
+                           len(model.means), static.method)

@@ -78,7 +78,7 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
             from rotcal.report.static_diagnosis import write_static_report
 
             if isinstance(diagnosis, StaticDiagnosis):
-                return write_static_report(diagnosis, results, ds.name, ds.meta.output_unit, out)
+                return write_static_report(diagnosis, results, ds.name, ds.meta.output_unit, out, config.report.figures)
             return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
 
         outputs.append(Figure("diagnosis_report", draw))
