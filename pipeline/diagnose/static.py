@@ -72,6 +72,8 @@ class StaticDiagnosis:
 
 @dataclass(frozen=True, eq=False)
 class Test:
+    """One nested-model test: the extensions it adds and its numbers."""
+
     candidates: tuple[Candidate, ...]
     chi2: float        # the chi-square removed (scaled by the excess scatter's estimate under F)
     p_value: float
@@ -87,8 +89,7 @@ class Linearised:
         self.model = model
         self.theta0 = model.full(model.start)
         self.r0 = model.residuals(self.theta0)
-        self.columns = np.arange(self.theta0.size)
-        self.jac = model.jacobian(self.theta0, self.columns)
+        self.jac = model.jacobian(self.theta0, np.arange(self.theta0.size))
         self.n = self.r0.size
 
     def cols(self, active: tuple[Candidate, ...]) -> np.ndarray:
