@@ -177,7 +177,7 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         return static_diagnosis_stage(seg, reductions.static, ds, config), ()
     if reductions.unreferenced_rates:
         return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
-    if not config.diagnosis.enabled or reductions.static is not None:
+    if not config.diagnosis.enabled:
         return None, ()
     from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
