@@ -83,7 +83,8 @@ def test_a_run_into_an_earlier_runs_directory_leaves_only_its_own_files(cli, run
     assert status == 0, err
     b_files = _files(out)
     assert _listing(out) == b_files
-    assert "poses.parquet" in b_files and not {"report.md", "figures", "consistency.parquet"} & {n.split("/")[0] for n in b_files}
+    assert "poses.parquet" in b_files and not {"figures", "consistency.parquet"} & {n.split("/")[0] for n in b_files}
+    assert "Static recording" in (out / "report.md").read_text()  # B's own diagnosis report (static poses are diagnosed)
     assert set(pl.read_parquet(out / "intrinsic.parquet")["dataset"]) == {"b"}
     assert not [n for n in b_files if n in a_files and a_files[n] == b_files[n]]  # nothing of A's survives as it was
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b", "out"]  # no staging or aside directory left

@@ -39,6 +39,7 @@ from rotcal.run.stages import (
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
+    from rotcal.diagnose.static import StaticDiagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,7 +54,7 @@ class RunOutcome:
     notes: tuple[str, ...]
     written: tuple[Path, ...]
     recommended: Recommended
-    diagnosis: Diagnosis | None = None
+    diagnosis: Diagnosis | StaticDiagnosis | None = None
     static: StaticReduction | None = None
 
 

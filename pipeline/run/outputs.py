@@ -25,6 +25,7 @@ from rotcal.tables import write_parquet
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
+    from rotcal.diagnose.static import StaticDiagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,7 +64,7 @@ def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> F
     return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
 
 
-def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
+def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
                       ds: Dataset, config: RunConfig) -> list[Table | Figure]:
     """The diagnosis's findings and effect parameters, and its report when wanted."""
     if diagnosis is None:
@@ -72,8 +73,12 @@ def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: 
                                      Table("effect_parameters", diagnosis.parameters)]
     if config.diagnosis.report:
         def draw(out: Path) -> Path:
+            from rotcal.diagnose.static import StaticDiagnosis
             from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
+            from rotcal.report.static_diagnosis import write_static_report
 
+            if isinstance(diagnosis, StaticDiagnosis):
+                return write_static_report(diagnosis, results, ds.name, ds.meta.output_unit, out, config.report.figures)
             return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
 
         outputs.append(Figure("diagnosis_report", draw))

@@ -49,6 +49,7 @@ from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
+    from rotcal.diagnose.static import StaticDiagnosis
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,12 +170,14 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
 
 
 def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
-                   config: RunConfig) -> tuple[Diagnosis | None, tuple[str, ...]]:
+                   config: RunConfig) -> tuple[Diagnosis | StaticDiagnosis | None, tuple[str, ...]]:
     """The diagnosis of a table recording whose segments all have the table
-    angle (its models need it), with its notes."""
+    angle (its models need it), or of a static one, with its notes."""
+    if reductions.static is not None:
+        return static_diagnosis_stage(seg, reductions.static, ds, config), ()
     if reductions.unreferenced_rates:
         return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
-    if not config.diagnosis.enabled or reductions.static is not None:
+    if not config.diagnosis.enabled:
         return None, ()
     from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
@@ -186,7 +189,19 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
     return diagnosis, ()
 
 
-def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | None, ds: Dataset,
+def static_diagnosis_stage(seg: Segmented, static: StaticReduction, ds: Dataset,
+                           config: RunConfig) -> StaticDiagnosis | None:
+    """The diagnosis of a static recording's poses (``diagnose.static``)."""
+    if not config.diagnosis.enabled:
+        return None
+    from rotcal.diagnose.static import diagnose_static  # scipy.stats loads when diagnosing
+
+    t_ns = seg.samples["t_ns"]
+    return diagnose_static(static, None if t_ns.is_empty() else int(t_ns.to_numpy().min()), ds.name, ds.meta.output_unit,
+                           ds.meta.g_local_uncertainty, config.diagnosis)
+
+
+def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis | StaticDiagnosis | None, ds: Dataset,
                     static: StaticReduction | None) -> pl.DataFrame:
     """The ``intrinsic`` rows: baseline (or a static recording's most general
     determined model), its nested models, and refined by the diagnosis."""
@@ -199,19 +214,19 @@ def intrinsic_table(results: tuple[IntrinsicResult, ...], diagnosis: Diagnosis |
     return intrinsic
 
 
-def baseline_reason(diagnosis: Diagnosis | None, reductions: Reductions, config: RunConfig,
+def baseline_reason(diagnosis: Diagnosis | StaticDiagnosis | None, reductions: Reductions, config: RunConfig,
                     diagnosis_notes: tuple[str, ...]) -> str:
     """Why the baseline model is the result when it is: what the diagnosis found, or why it did not run."""
     if diagnosis is not None:
         return "the diagnosis found no effect to model"
-    why = (diagnosis_notes[0] if diagnosis_notes else "static poses (the diagnosis models table rotations)"
-           if reductions.static is not None else "switched off ([diagnosis] enabled = false)"
-           if not config.diagnosis.enabled else "no fitted table segments")
+    why = (diagnosis_notes[0] if diagnosis_notes else "switched off ([diagnosis] enabled = false)"
+           if not config.diagnosis.enabled else "the static poses leave no degree of freedom to test an effect"
+           if reductions.static is not None else "no fitted table segments")
     return f"diagnosis not run: {why.removeprefix('diagnosis skipped: ')}"
 
 
 def recommend_stage(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...], frames: tuple[str, ...],
-                    diagnosis: Diagnosis | None, reductions: Reductions, config: RunConfig,
+                    diagnosis: Diagnosis | StaticDiagnosis | None, reductions: Reductions, config: RunConfig,
                     diagnosis_notes: tuple[str, ...]) -> Recommended:
     """The recommended model with its results (``model.calibration.recommend``):
     refined where the diagnosis modelled effects, a static recording's
@@ -238,14 +253,16 @@ def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset
     return tables + ([Table("correction_temperature", by_temperature)] if not by_temperature.is_empty() else []), tuple(warnings)
 
 
-def recommended_fits(seg: Segmented, diagnosis: Diagnosis | None, chosen: Recommended, ds: Dataset,
+def recommended_fits(seg: Segmented, diagnosis: Diagnosis | StaticDiagnosis | None, chosen: Recommended, ds: Dataset,
                      config: RunConfig) -> pl.DataFrame:
     """The segment fits under the recommended model: under the refined one,
     those of the samples less its modelled effects (``diagnose.corrected``)."""
-    if chosen.model == BASELINE or diagnosis is None:
+    if chosen.model == BASELINE or diagnosis is None or not seg.table:   # a static recording has no segment fits
         return seg.labelled_fits
+    from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.corrected import without_effects
 
+    assert isinstance(diagnosis, Diagnosis)  # a static recording's returned above
     samples = without_effects(seg.samples, seg.segments, seg.fits, diagnosis)
     referenced = seg.segments.filter(pl.col("angle_source") != "none")
     return fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers), seg.segments, ds.name)
