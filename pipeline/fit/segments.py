@@ -24,6 +24,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
+from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.model.physics import CHANNELS
 from rotcal.parallel import cores
@@ -322,32 +323,19 @@ def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[
     channel residual products), and each channel's largest residual
     magnitude and lag-1 residual product sum.
     """
-    n, k = theta_deg.size, len(channels)
+    n = theta_deg.size
     sines = _Sines(theta_deg)
     spans = [(a, min(a + BLOCK_SAMPLES, n)) for a in range(0, n, BLOCK_SAMPLES)]
-    xtx, xty, bases = np.zeros(6), np.zeros((k, 3)), []
+    normal, bases = NormalSums(len(channels)), []
     for a, b in spans:
         s, c = sines(theta_deg[a:b], a)
-        xtx += (b - a, s.sum(), c.sum(), s @ s, s @ c, c @ c)
-        for j, y in enumerate(channels):
-            y = y[a:b]
-            xty[j] += (y.sum(), s @ y, c @ y)
+        normal.add(s, c, [y[a:b] for y in channels])
         bases.append((s, c))
-    xtx_inv = np.linalg.inv(xtx[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3))
-    coef = xty @ xtx_inv
-    rtr, max_abs, lag, last = np.zeros((k, k)), np.zeros(k), np.zeros(k), np.zeros(k)
+    coef, xtx_inv = normal.solve()
+    residual = ResidualSums(coef)
     for (a, b), (s, c) in zip(spans, bases):
-        resid = []
-        for j, y in enumerate(channels):
-            r = y[a:b] - coef[j, 0]
-            r -= coef[j, 1] * s
-            r -= coef[j, 2] * c
-            max_abs[j] = max(max_abs[j], r.max(), -r.min())
-            lag[j] += r[1:] @ r[:-1] + last[j] * r[0]
-            last[j] = r[-1]
-            resid.append(r)
-            for i in range(j + 1):
-                rtr[i, j] += resid[i] @ r
-    rtr = np.where(np.arange(k)[:, None] <= np.arange(k), rtr, rtr.T)  # the lower triangle from the upper
-    cov = (rtr[:, None, :, None] / max(n - 3, 1) * xtx_inv[None, :, None, :]).reshape(3 * k, 3 * k)  # Sigma (x) (X^T X)^-1
+        residual.add(s, c, [y[a:b] for y in channels])
+    rtr = residual.products()
+    cov = coefficient_covariance(rtr, xtx_inv, n)
+    max_abs, lag = residual.max_abs, residual.lag
     return coef, cov, rtr, max_abs, lag

@@ -218,20 +218,24 @@ def add_imu_messages(writer: ChunkedWriter, schema_id: int, topic: str, frame_id
     imu_channel(writer, schema_id, topic, frame_id)(t_ns, acceleration, covariance)
 
 
-def _write_cdr(fh: BinaryIO, blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], table: pl.DataFrame,
+def _write_cdr(fh: BinaryIO, blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], tables: Iterable[pl.DataFrame],
                imu_topic: str, table_topic: str) -> None:
     """Imu and JointState messages in the order ``mcap_ros2`` would be given
-    them: the table's, then the DUT's (the reader sorts by time), the DUT's
-    from ``blocks`` of (t_ns, [u, v, w]) in time order."""
+    them: the table's (from ``tables``, frames of t_ns, axis, rate_hz,
+    angle_deg in time order), then the DUT's (from ``blocks`` of (t_ns, [u,
+    v, w]) in time order; the reader sorts by time)."""
     writer = ChunkedWriter(fh, "ros2", ROS2_LIBRARY)
     imu_schema = register_imu_schema(writer)
     joint_schema = writer.register_schema("sensor_msgs/msg/JointState", "ros2msg", ros2_msgdefs.JOINT_STATE.encode())
-    if table.height:
+    template, lay = ros2_cdr.joint_template("table", (2,), 1, 0)
+    channel = None
+    for table in tables:
+        if not table.height:
+            continue
+        channel = channel or writer.register_channel(table_topic, "cdr", joint_schema)
         t_ns = table["t_ns"].to_numpy()
         axis = table["axis"].to_numpy()
         sign = np.select([axis == a for a in AXES], [JOINT_SIGN[a] for a in AXES])
-        template, lay = ros2_cdr.joint_template("table", (2,), 1, 0)
-        channel = writer.register_channel(table_topic, "cdr", joint_schema)
         writer.add_messages(channel, t_ns, template, [
             *_stamp_fields(lay.stamp, t_ns),
             (lay.names[0], np.array([a.encode() for a in axis], "S1")),
@@ -271,7 +275,7 @@ def write_capture(samples: pl.DataFrame, table: pl.DataFrame, path: Path, encodi
     angle_deg) to ``path``, atomically."""
     if encoding == "cdr":
         blocks = [(samples["t_ns"].to_numpy(), [samples[c].cast(pl.Float64).to_numpy() for c in "uvw"])]
-        return write_cdr_blocks(blocks if samples.height else [], table, path, imu_topic, table_topic)
+        return write_cdr_blocks(blocks if samples.height else [], [table], path, imu_topic, table_topic)
 
     def write(tmp: Path) -> None:
         with tmp.open("wb") as fh:
@@ -281,14 +285,15 @@ def write_capture(samples: pl.DataFrame, table: pl.DataFrame, path: Path, encodi
     return path
 
 
-def write_cdr_blocks(blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], table: pl.DataFrame, path: Path,
+def write_cdr_blocks(blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], tables: Iterable[pl.DataFrame], path: Path,
                      imu_topic: str = "/imu", table_topic: str = "/table/joint_states") -> Path:
-    """A CDR capture written as ``write_capture`` writes it, the DUT's samples
-    a block at a time (t_ns, [u, v, w]): the file's bytes are the same, and
-    only one block is in memory at once."""
+    """A CDR capture written as ``write_capture`` writes it, the table's
+    messages a frame at a time and the DUT's samples a block at a time (t_ns,
+    [u, v, w]): the file's bytes are the same, and only one block is in
+    memory at once."""
     def write(tmp: Path) -> None:
         with tmp.open("wb") as fh:
-            _write_cdr(fh, blocks, table, imu_topic, table_topic)
+            _write_cdr(fh, blocks, tables, imu_topic, table_topic)
 
     atomic_write(path, write)
     return path

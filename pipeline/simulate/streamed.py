@@ -69,12 +69,13 @@ def write_streamed(spec: SimulationSpec, seed: int, directory: Path, device_id: 
     dut_rng, plan_rng, effect_rng, noise_rng, logger_rng = (np.random.default_rng(s) for s in streams)
     dut, mount = draw_dut(spec.dut, dut_rng)
     effects, described = build_effects(spec.effects, effect_rng)
-    # the table's messages come first in the file: one pass over the plan for them, a second
-    # (the same start angles, from the same seed) for the samples
-    table = pl.concat([table_messages(_labels(part)) for part in plan_parts(spec.plan, plan_rng)])
+    # the table's messages come first in the file: one pass over the plan for them (a segment's
+    # messages are in time order and after the last segment's), a second for the samples (the same
+    # start angles: a generator from the same seed)
+    tables = (table_messages(_labels(part)) for part in plan_parts(spec.plan, plan_rng))
+    samples = _blocks(plan_parts(spec.plan, np.random.default_rng(streams[1])), dut, effects, spec.g_local, noise_rng, block)
     directory.mkdir(parents=True, exist_ok=True)
-    parts = plan_parts(spec.plan, np.random.default_rng(streams[1]))
-    write_cdr_blocks(_blocks(parts, dut, effects, spec.g_local, noise_rng, block), table, directory / "capture.mcap")
+    write_cdr_blocks(samples, tables, directory / "capture.mcap")
     # without defects the logger's realised sizes are zeros whatever the samples: two stamps give them
     logger = apply_defects(pl.DataFrame({"t_ns": [0, 1]}), spec.timebase, logger_rng)[1]
     return write_metadata(spec, truth_record(spec, seed, dut, mount, described, [], logger), directory, "mcap-cdr", device_id)
