@@ -9,12 +9,19 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import polars as pl
 import pytest
+from polars.testing import assert_frame_equal
 
+from rotcal.config import FitConfig
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
-from rotcal.fit.segments import sincos_deg, sine3_fit
+from rotcal.fit.segments import fit_segments, fits_frame, sincos_deg, sine3_fit
+from rotcal.ingest import load_dataset
+from rotcal.run.streaming import stream_segments
+from rotcal.segment import segment_by_labels
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 from rotcal.simulate.streamed import streamable, write_streamed
+from rotcal.timebase import repair_timebase
 
 
 def small_spec() -> SimulationSpec:
@@ -71,3 +78,40 @@ def test_normal_equations_accumulate_across_any_chunks():
     np.testing.assert_allclose(residual.lag, lag, rtol=1e-9)
     # and the fit itself: within 5 standard uncertainties of the simulated truth
     assert np.all(np.abs(coef - truth) < 5 * np.sqrt(np.diag(cov)).reshape(3, 3))
+
+
+@pytest.fixture(scope="module")
+def long_capture(tmp_path_factory):
+    """A 300,000-sample MCAP capture of the default plan (rotations of 24,700 samples)."""
+    spec = SimulationSpec()
+    spec = replace(spec, plan=replace(spec.plan, rotation_samples=24_700))
+    return load_dataset(write_streamed(spec, 5, tmp_path_factory.mktemp("long") / "d"))
+
+
+@pytest.mark.parametrize("block", [4999, 1 << 20])
+def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
+    """Segments and fits from the capture's samples read in blocks (4999
+    samples: every segment cut by block boundaries, twice a pass) equal
+    those of the whole table in memory, to 1e-9 relative."""
+    ds = long_capture
+    samples = ds.samples
+    assert samples.height == 300_000
+    config = FitConfig()
+    labelled, segments = segment_by_labels(repair_timebase(samples, ds.name).samples, ds.name, ds.meta.angle_source)
+    fits = fits_frame(fit_segments(labelled, segments.filter(pl.col("angle_source") != "none"), config), segments, ds.name)
+
+    def blocks():
+        return (samples.slice(a, block) for a in range(0, samples.height, block))
+
+    streamed_segments, streamed = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
+    assert_frame_equal(streamed_segments, segments)
+    streamed_fits = fits_frame(streamed, streamed_segments, ds.name)
+    assert streamed_fits.height == fits.height == 3 * 15
+    numbers = [c for c, d in fits.schema.items() if d == pl.Float64]
+    assert_frame_equal(streamed_fits.drop(numbers), fits.drop(numbers))
+    for c in numbers:
+        scale = np.nanmax(np.abs(fits[c].to_numpy()))
+        np.testing.assert_allclose(streamed_fits[c].to_numpy(), fits[c].to_numpy(), rtol=1e-9, atol=1e-9 * scale, err_msg=c)
+    for c in ("cov_u", "cov_v", "cov_w"):
+        ours, theirs = np.vstack(streamed_fits[c].to_list()), np.vstack(fits[c].to_list())
+        np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max(), err_msg=c)

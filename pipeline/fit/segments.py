@@ -91,6 +91,14 @@ def residual_stats(resid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConfig) -> str | None:
     """Why a segment cannot be fitted against the table angle, or None."""
     n = theta_deg.size
+    if angle_source == "none" or n < config.min_samples:
+        return refusal_from(kind, angle_source, n, 0, 0.0, config)
+    steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
+    return refusal_from(kind, angle_source, n, steps, arc_deg(theta_deg), config)
+
+
+def refusal_from(kind: str, angle_source: str, n: int, steps: int, span: float, config: FitConfig) -> str | None:
+    """``refusal`` from a segment's sample count, distinct static angles and arc (``arc_deg``)."""
     if angle_source == "none":
         if kind == "rotation":
             return ("no angle reference: a rotation segment without angle_deg or a table channel "
@@ -98,10 +106,8 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
         return "static steps without angle_deg"
     if n < config.min_samples:
         return f"too short: {n} samples (at least {config.min_samples} needed)"
-    steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
     if kind == "static" and steps < 3:
         return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    span = arc_deg(theta_deg)
     if span < config.min_span_deg:
         return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
     return None
@@ -111,27 +117,45 @@ def arc_deg(theta_deg: np.ndarray) -> float:
     """The arc the angles cover on the circle, not their unwrapped range: a
     rotation sampled at a multiple of its rate (aliased) repeats one angle,
     however many turns it makes. The smaller of the ranges of theta mod 360
-    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole;
-    the reduction in place (one scratch array; ``np.mod`` takes eight times
-    as long on the long rotations)."""
+    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole."""
+    low, high = arc_bounds(theta_deg)
+    return arc_from(low, high)
+
+
+def arc_from(low: np.ndarray, high: np.ndarray) -> float:
+    """The arc from the bounds of ``arc_bounds`` (of one block, or the
+    smallest lows and largest highs of several)."""
+    return float(min(high[0] - low[0], high[1] - low[1]))
+
+
+def arc_bounds(theta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest of theta mod 360 and of (theta + 180) mod
+    360, computed in place (one scratch array; ``np.mod`` takes eight times
+    as long on the long rotations); bounds are additive across blocks."""
     r = theta_deg / 360.0
     np.floor(r, out=r)
     r *= -360.0
     r += theta_deg  # theta mod 360 (the division is exact at whole turns)
-    span = float(np.ptp(r))
+    first = (float(r.min()), float(r.max()))
     r -= 180.0
     r[r < 0.0] += 360.0  # (theta + 180) mod 360
-    return min(span, float(np.ptp(r)))
+    return np.array([first[0], float(r.min())]), np.array([first[1], float(r.max())])
 
 
 def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:
-    """Why a segment's samples cannot be fitted: a channel that holds one
-    value throughout (pinned at full scale, or dead) has no residual
-    scatter, so its fit would claim zero uncertainty and outweigh every
-    other segment in the combination."""
-    for channel, y in zip(CHANNELS, channels):
-        if y.min() == y.max():
-            return f"channel {channel} holds {y[0]:g} in every sample (stuck or saturated): nothing to fit"
+    """Why a segment's samples cannot be fitted (``stuck_from``)."""
+    return stuck_from(np.array([y.min() for y in channels]), np.array([y.max() for y in channels]))
+
+
+def stuck_from(low: np.ndarray, high: np.ndarray) -> str | None:
+    """Why a segment's samples cannot be fitted, from each channel's
+    smallest and largest value: a channel that holds one value throughout
+    (pinned at full scale, or dead) has no residual scatter, so its fit
+    would claim zero uncertainty and outweigh every other segment in the
+    combination."""
+    for channel, lo, hi in zip(CHANNELS, low, high):
+        if lo == hi:
+            return f"channel {channel} holds {lo:g} in every sample (stuck or saturated): nothing to fit"
     return None
 
 
@@ -147,9 +171,13 @@ def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, th
     """The fit, or a failure row where it is not finite: ingest refuses
     non-finite and absurd values, and this second guard keeps any value that
     still overflows the fit from being reported "ok" with NaN coefficients."""
-    fit = _fit(segment, kind, rate_hz, angle_source, theta_deg, channels, config)
+    return finite(_fit(segment, kind, rate_hz, angle_source, theta_deg, channels, config), rate_hz)
+
+
+def finite(fit: SegmentFit, rate_hz: float) -> SegmentFit:
+    """``fit``, or its failure row where an ok fit is not finite."""
     if fit.status == "ok" and not (np.isfinite(fit.coef).all() and np.isfinite(fit.cov).all()):
-        return SegmentFit.failed(segment, fit.n_samples, "the fit is not finite (an angle or sample value too large "
+        return SegmentFit.failed(fit.segment, fit.n_samples, "the fit is not finite (an angle or sample value too large "
                                  "for the sine fit): nothing to fit", rate_hz)
     return fit
 
@@ -169,7 +197,12 @@ def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: 
         sigma = np.sqrt(np.einsum("ij,ij->j", four.resid, four.resid) / (n - 3))
         return SegmentFit(segment, "ok", None, n, four.coef, four.cov, sigma, rms, max_abs, lag1,
                           rate_hz * four.scale, abs(rate_hz) * four.u_scale)
-    coef, cov, rtr, max_abs, lag = sine3_fit(theta_deg, channels)
+    return sine3_result(segment, rate_hz, n, *sine3_fit(theta_deg, channels))
+
+
+def sine3_result(segment: int, rate_hz: float, n: int, coef: np.ndarray, cov: np.ndarray, rtr: np.ndarray,
+                 max_abs: np.ndarray, lag: np.ndarray) -> SegmentFit:
+    """The fit record of the three-parameter fit (``sine3_fit``'s outputs)."""
     ss = np.diag(rtr).copy()
     lag1 = lag / np.where(ss > 0, ss, 1.0)
     return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz)
