@@ -4,9 +4,14 @@ CDR capture block by block (``simulate.streamed``, what ``rotcal simulate``
 does) against the in-memory simulator (``simulate`` + ``write_dataset``) on
 the same spec and seed, each in its own process: time per sample, peak
 resident memory (the process's ``ru_maxrss``), and whether the files are
-the same bytes.
+the same bytes. Then, on that capture read in memory, the segments and
+segment fits streamed (``run.streaming.stream_segments`` over blocks of
+``--block`` samples, two passes) against the in-memory stage
+(``segment_by_labels`` + ``fit_segments``, one thread): time per sample,
+the largest difference between their fits tables, and the peak of memory
+each allocates beyond the sample table (``tracemalloc``).
 
-    python bench/streaming.py [--samples 10000000] [--dir /tmp] [--streamed-only]
+    python bench/streaming.py [--samples 10000000] [--dir /tmp] [--streamed-only] [--block 1048576]
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tracemalloc
 from pathlib import Path
 
 CHILD = """
@@ -51,6 +57,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=10_000_000)
     parser.add_argument("--dir", type=Path, default=Path(tempfile.gettempdir()))
     parser.add_argument("--streamed-only", action="store_true", help="skip the in-memory simulator (captures beyond memory)")
+    parser.add_argument("--block", type=int, default=1 << 20, help="samples a block when the fits are streamed")
     args = parser.parse_args()
     from rotcal.simulate import Plan
 
@@ -69,6 +76,54 @@ def main() -> None:
         same = filecmp.cmp(Path(tmp) / "streamed" / "capture.mcap", Path(tmp) / "memory" / "capture.mcap", shallow=False)
         print(f"simulate, in memory: {n / t_m:,.0f} samples/s, peak {mb_m:,.0f} MB ({mb_m * 1e6 / n:.1f} B/sample)")
         print(f"streamed / in memory: speed {t_m / t_s:.2f}x, peak memory {mb_s / mb_m:.3f}x; same bytes: {same}")
+        fits(Path(tmp) / "streamed", args.block)
+
+
+def traced(fn):
+    """fn's result, seconds and peak traced allocation (MB)."""
+    tracemalloc.start()
+    start = time.perf_counter()
+    out = fn()
+    seconds = time.perf_counter() - start
+    peak = tracemalloc.get_traced_memory()[1] / 1e6
+    tracemalloc.stop()
+    return out, seconds, peak
+
+
+def fits(dataset: Path, block: int) -> None:
+    """Segments and fits, streamed against in memory, on one thread."""
+    import numpy as np
+    import polars as pl
+    from threadpoolctl import threadpool_limits
+
+    from rotcal.config import FitConfig
+    from rotcal.fit.segments import fit_segments, fits_frame
+    from rotcal.ingest import load_dataset
+    from rotcal.run.streaming import stream_segments
+    from rotcal.segment import segment_by_labels
+
+    ds = load_dataset(dataset)
+    samples, config, n = ds.samples, FitConfig(), ds.samples.height
+
+    def in_memory():
+        labelled, segments = segment_by_labels(samples, ds.name, ds.meta.angle_source)
+        return fits_frame(fit_segments(labelled, segments.filter(pl.col("angle_source") != "none"), config, 1), segments, ds.name)
+
+    def streamed():
+        def blocks():
+            return (samples.slice(a, block) for a in range(0, n, block))
+        segments, fitted = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
+        return fits_frame(fitted, segments, ds.name)
+
+    with threadpool_limits(limits=1):
+        ours, t_s, mb_s = traced(streamed)
+        theirs, t_m, mb_m = traced(in_memory)
+    worst = max(float(np.nanmax(np.abs(ours[c].to_numpy() - theirs[c].to_numpy()) / np.maximum(np.abs(theirs[c].to_numpy()), 1e-300)))
+                for c in ("C", "A", "B", "u_C", "sigma", "rms", "max_abs_residual"))
+    print(f"segments + fits, streamed (blocks of {block:,}): {n / t_s:,.0f} samples/s, peak allocated {mb_s:,.0f} MB")
+    print(f"segments + fits, in memory: {n / t_m:,.0f} samples/s, peak allocated {mb_m:,.0f} MB")
+    print(f"streamed / in memory: speed {t_m / t_s:.2f}x, peak allocated {mb_s / mb_m:.3f}x; "
+          f"largest relative difference in the fits table {worst:.1e}")
 
 
 if __name__ == "__main__":
