@@ -29,10 +29,11 @@ def small_spec() -> SimulationSpec:
     return replace(spec, plan=replace(spec.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))
 
 
-@pytest.mark.parametrize("block", [1000, 1 << 20])
+@pytest.mark.parametrize("block", [777, 1 << 20])
 def test_streamed_simulation_writes_the_same_bytes(tmp_path, block):
-    """Blocks of 1000 samples split every rotation (2500 samples) and the
-    static sequences (1200) mid-way; one large block holds each segment whole."""
+    """Blocks of 777 samples split every rotation (2500 samples), the static
+    sequences (1200) and the table's 0.1 s ticks (samples 0.06 s apart)
+    mid-way; one large block holds each segment whole."""
     spec = small_spec()
     assert streamable(spec, "mcap-cdr")
     memory = write_dataset(simulate(spec, 7), spec, tmp_path / "memory", "mcap-cdr", "dut")

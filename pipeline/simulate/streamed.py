@@ -37,11 +37,29 @@ def streamable(spec: SimulationSpec, fmt: str) -> bool:
             and spec.timebase == TimebaseDefects())
 
 
-def _labels(part: dict) -> pl.DataFrame:
-    """One plan segment's per-sample labels, as ``core.schedule`` gives them."""
+def _labels(part: dict, index: np.ndarray | slice = slice(None)) -> pl.DataFrame:
+    """One plan segment's per-sample labels (those at ``index``), as ``core.schedule`` gives them."""
+    t_ns = part["t_ns"][index]
+    n = t_ns.size
+    return pl.DataFrame({"t_ns": t_ns, "axis": np.repeat(part["axis"], n), "rate_hz": np.full(n, part["rate_hz"]),
+                         "angle_deg": part["angle"][index], "plan_segment": np.full(n, part["seg"], np.int32)})
+
+
+def _table_blocks(part: dict, block: int) -> Iterator[pl.DataFrame]:
+    """The table's messages of one plan segment (``writers.table_messages``),
+    a block of samples at a time: a rotation's messages in samples a..b are
+    those ``table_messages`` finds among the segment's first and last
+    samples and samples a-1..b (the sample before tells whether a 0.1 s tick
+    starts at a), kept from a to b."""
     n = part["t_ns"].size
-    return pl.DataFrame({"t_ns": part["t_ns"], "axis": np.repeat(part["axis"], n), "rate_hz": np.full(n, part["rate_hz"]),
-                         "angle_deg": part["angle"], "plan_segment": np.full(n, part["seg"], np.int32)})
+    if part["rate_hz"] == 0 or n <= block:
+        yield table_messages(_labels(part))
+        return
+    t_ns = part["t_ns"]
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        index = np.unique(np.r_[0, np.arange(max(a - 1, 0), b), n - 1])
+        yield table_messages(_labels(part, index)).filter(pl.col("t_ns").is_between(int(t_ns[a]), int(t_ns[b - 1])))
 
 
 def _blocks(parts: Iterator[dict], dut: Dut, effects: Effects, g_local: float, noise_rng: np.random.Generator,
@@ -72,7 +90,7 @@ def write_streamed(spec: SimulationSpec, seed: int, directory: Path, device_id: 
     # the table's messages come first in the file: one pass over the plan for them (a segment's
     # messages are in time order and after the last segment's), a second for the samples (the same
     # start angles: a generator from the same seed)
-    tables = (table_messages(_labels(part)) for part in plan_parts(spec.plan, plan_rng))
+    tables = (table for part in plan_parts(spec.plan, plan_rng) for table in _table_blocks(part, block))
     samples = _blocks(plan_parts(spec.plan, np.random.default_rng(streams[1])), dut, effects, spec.g_local, noise_rng, block)
     directory.mkdir(parents=True, exist_ok=True)
     write_cdr_blocks(samples, tables, directory / "capture.mcap")
