@@ -28,7 +28,7 @@ import polars as pl
 
 from rotcal.config import FitConfig
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
-from rotcal.fit.segments import SegmentFit, arc_bounds, arc_from, finite, refusal_from, sincos_deg, sine3_result, stuck_from
+from rotcal.fit.segments import BLOCK_SAMPLES, SegmentFit, arc_bounds, arc_from, finite, refusal_from, sincos_deg, sine3_result, stuck_from
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.segment.labelled import segments_frame
 
@@ -66,7 +66,8 @@ class _Run:
         self.has_angle &= not np.isnan(angle).any()
         if not self.has_angle:
             return  # never fitted (angle_source "none"): no sums needed
-        self.normal.add(*sincos_deg(angle), channels)
+        for a in range(0, angle.size, BLOCK_SAMPLES):  # pieces that stay in the core's cache, as sine3_fit's
+            self.normal.add(*sincos_deg(angle[a : a + BLOCK_SAMPLES]), [y[a : a + BLOCK_SAMPLES] for y in channels])
         self.low = np.minimum(self.low, [y.min() for y in channels])
         self.high = np.maximum(self.high, [y.max() for y in channels])
         low, high = arc_bounds(angle)
@@ -127,7 +128,9 @@ def residual_pass(blocks: Blocks, runs: list[_Run], coefs: dict[int, np.ndarray]
             _, _, _, angle, channels = _columns(block)
             for run in fitted[lo:hi]:
                 a, b = max(run.first - offset, 0), min(run.first + run.n - offset, m)
-                sums[run.segment].add(*sincos_deg(angle[a:b]), [y[a:b] for y in channels])
+                for p in range(a, b, BLOCK_SAMPLES):
+                    q = min(p + BLOCK_SAMPLES, b)
+                    sums[run.segment].add(*sincos_deg(angle[p:q]), [y[p:q] for y in channels])
         offset += m
     return sums
 
