@@ -174,10 +174,18 @@ def simulate_cmd(
         spec = spec.with_plan(plan)
     from rotcal.report.publish import publish_directory
     from rotcal.simulate import simulate, write_dataset
+    from rotcal.simulate.streamed import streamable, write_streamed
 
-    sim = simulate(spec, seed)
+    if streamable(spec, fmt):  # the same bytes, generated and written a block at a time: any length
+        def write(staging: Path) -> list[Path]:
+            return [write_streamed(spec, seed, staging, target.path.name)]
+    else:
+        sim = simulate(spec, seed)
+
+        def write(staging: Path) -> list[Path]:
+            return [write_dataset(sim, spec, staging, fmt, target.path.name)]
     # no listing: a dataset is the user's once written, so any file in DIR is refused without --replace
-    publish_directory(target, lambda staging: [write_dataset(sim, spec, staging, fmt, target.path.name)], listed=False)
+    publish_directory(target, write, listed=False)
     out.print(f"dataset written to {directory} (truth in {directory / 'truth.json'})", highlight=False, markup=False)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
+from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.model.physics import CHANNELS
 from rotcal.parallel import cores
@@ -90,6 +91,14 @@ def residual_stats(resid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConfig) -> str | None:
     """Why a segment cannot be fitted against the table angle, or None."""
     n = theta_deg.size
+    if angle_source == "none" or n < config.min_samples:
+        return refusal_from(kind, angle_source, n, 0, 0.0, config)
+    steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
+    return refusal_from(kind, angle_source, n, steps, arc_deg(theta_deg), config)
+
+
+def refusal_from(kind: str, angle_source: str, n: int, steps: int, span: float, config: FitConfig) -> str | None:
+    """``refusal`` from a segment's sample count, distinct static angles and arc (``arc_deg``)."""
     if angle_source == "none":
         if kind == "rotation":
             return ("no angle reference: a rotation segment without angle_deg or a table channel "
@@ -97,10 +106,8 @@ def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConf
         return "static steps without angle_deg"
     if n < config.min_samples:
         return f"too short: {n} samples (at least {config.min_samples} needed)"
-    steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
     if kind == "static" and steps < 3:
         return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    span = arc_deg(theta_deg)
     if span < config.min_span_deg:
         return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
     return None
@@ -110,27 +117,45 @@ def arc_deg(theta_deg: np.ndarray) -> float:
     """The arc the angles cover on the circle, not their unwrapped range: a
     rotation sampled at a multiple of its rate (aliased) repeats one angle,
     however many turns it makes. The smaller of the ranges of theta mod 360
-    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole;
-    the reduction in place (one scratch array; ``np.mod`` takes eight times
-    as long on the long rotations)."""
+    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole."""
+    low, high = arc_bounds(theta_deg)
+    return arc_from(low, high)
+
+
+def arc_from(low: np.ndarray, high: np.ndarray) -> float:
+    """The arc from the bounds of ``arc_bounds`` (of one block, or the
+    smallest lows and largest highs of several)."""
+    return float(min(high[0] - low[0], high[1] - low[1]))
+
+
+def arc_bounds(theta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest of theta mod 360 and of (theta + 180) mod
+    360, computed in place (one scratch array; ``np.mod`` takes eight times
+    as long on the long rotations); bounds are additive across blocks."""
     r = theta_deg / 360.0
     np.floor(r, out=r)
     r *= -360.0
     r += theta_deg  # theta mod 360 (the division is exact at whole turns)
-    span = float(np.ptp(r))
+    first = (float(r.min()), float(r.max()))
     r -= 180.0
     r[r < 0.0] += 360.0  # (theta + 180) mod 360
-    return min(span, float(np.ptp(r)))
+    return np.array([first[0], float(r.min())]), np.array([first[1], float(r.max())])
 
 
 def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:
-    """Why a segment's samples cannot be fitted: a channel that holds one
-    value throughout (pinned at full scale, or dead) has no residual
-    scatter, so its fit would claim zero uncertainty and outweigh every
-    other segment in the combination."""
-    for channel, y in zip(CHANNELS, channels):
-        if y.min() == y.max():
-            return f"channel {channel} holds {y[0]:g} in every sample (stuck or saturated): nothing to fit"
+    """Why a segment's samples cannot be fitted (``stuck_from``)."""
+    return stuck_from(np.array([y.min() for y in channels]), np.array([y.max() for y in channels]))
+
+
+def stuck_from(low: np.ndarray, high: np.ndarray) -> str | None:
+    """Why a segment's samples cannot be fitted, from each channel's
+    smallest and largest value: a channel that holds one value throughout
+    (pinned at full scale, or dead) has no residual scatter, so its fit
+    would claim zero uncertainty and outweigh every other segment in the
+    combination."""
+    for channel, lo, hi in zip(CHANNELS, low, high):
+        if lo == hi:
+            return f"channel {channel} holds {lo:g} in every sample (stuck or saturated): nothing to fit"
     return None
 
 
@@ -146,9 +171,13 @@ def _fit_channels(segment: int, kind: str, rate_hz: float, angle_source: str, th
     """The fit, or a failure row where it is not finite: ingest refuses
     non-finite and absurd values, and this second guard keeps any value that
     still overflows the fit from being reported "ok" with NaN coefficients."""
-    fit = _fit(segment, kind, rate_hz, angle_source, theta_deg, channels, config)
+    return finite(_fit(segment, kind, rate_hz, angle_source, theta_deg, channels, config), rate_hz)
+
+
+def finite(fit: SegmentFit, rate_hz: float) -> SegmentFit:
+    """``fit``, or its failure row where an ok fit is not finite."""
     if fit.status == "ok" and not (np.isfinite(fit.coef).all() and np.isfinite(fit.cov).all()):
-        return SegmentFit.failed(segment, fit.n_samples, "the fit is not finite (an angle or sample value too large "
+        return SegmentFit.failed(fit.segment, fit.n_samples, "the fit is not finite (an angle or sample value too large "
                                  "for the sine fit): nothing to fit", rate_hz)
     return fit
 
@@ -168,7 +197,12 @@ def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: 
         sigma = np.sqrt(np.einsum("ij,ij->j", four.resid, four.resid) / (n - 3))
         return SegmentFit(segment, "ok", None, n, four.coef, four.cov, sigma, rms, max_abs, lag1,
                           rate_hz * four.scale, abs(rate_hz) * four.u_scale)
-    coef, cov, rtr, max_abs, lag = sine3_fit(theta_deg, channels)
+    return sine3_result(segment, rate_hz, n, *sine3_fit(theta_deg, channels))
+
+
+def sine3_result(segment: int, rate_hz: float, n: int, coef: np.ndarray, cov: np.ndarray, rtr: np.ndarray,
+                 max_abs: np.ndarray, lag: np.ndarray) -> SegmentFit:
+    """The fit record of the three-parameter fit (``sine3_fit``'s outputs)."""
     ss = np.diag(rtr).copy()
     lag1 = lag / np.where(ss > 0, ss, 1.0)
     return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz)
@@ -322,32 +356,19 @@ def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[
     channel residual products), and each channel's largest residual
     magnitude and lag-1 residual product sum.
     """
-    n, k = theta_deg.size, len(channels)
+    n = theta_deg.size
     sines = _Sines(theta_deg)
     spans = [(a, min(a + BLOCK_SAMPLES, n)) for a in range(0, n, BLOCK_SAMPLES)]
-    xtx, xty, bases = np.zeros(6), np.zeros((k, 3)), []
+    normal, bases = NormalSums(len(channels)), []
     for a, b in spans:
         s, c = sines(theta_deg[a:b], a)
-        xtx += (b - a, s.sum(), c.sum(), s @ s, s @ c, c @ c)
-        for j, y in enumerate(channels):
-            y = y[a:b]
-            xty[j] += (y.sum(), s @ y, c @ y)
+        normal.add(s, c, [y[a:b] for y in channels])
         bases.append((s, c))
-    xtx_inv = np.linalg.inv(xtx[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3))
-    coef = xty @ xtx_inv
-    rtr, max_abs, lag, last = np.zeros((k, k)), np.zeros(k), np.zeros(k), np.zeros(k)
+    coef, xtx_inv = normal.solve()
+    residual = ResidualSums(coef)
     for (a, b), (s, c) in zip(spans, bases):
-        resid = []
-        for j, y in enumerate(channels):
-            r = y[a:b] - coef[j, 0]
-            r -= coef[j, 1] * s
-            r -= coef[j, 2] * c
-            max_abs[j] = max(max_abs[j], r.max(), -r.min())
-            lag[j] += r[1:] @ r[:-1] + last[j] * r[0]
-            last[j] = r[-1]
-            resid.append(r)
-            for i in range(j + 1):
-                rtr[i, j] += resid[i] @ r
-    rtr = np.where(np.arange(k)[:, None] <= np.arange(k), rtr, rtr.T)  # the lower triangle from the upper
-    cov = (rtr[:, None, :, None] / max(n - 3, 1) * xtx_inv[None, :, None, :]).reshape(3 * k, 3 * k)  # Sigma (x) (X^T X)^-1
+        residual.add(s, c, [y[a:b] for y in channels])
+    rtr = residual.products()
+    cov = coefficient_covariance(rtr, xtx_inv, n)
+    max_abs, lag = residual.max_abs, residual.lag
     return coef, cov, rtr, max_abs, lag

@@ -45,20 +45,27 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
     angle_null = frame.select(null_before=pl.col("angle_deg").is_null().cum_sum(), step=pl.col("angle_deg").rle_id())
     at_first, at_last = frame.select("capture", "_kind", "axis", "rate_hz", "t_ns", "label_source", "angle_deg")[first], frame["t_ns"][last]
     n_nulls = angle_null["null_before"][last].to_numpy() - angle_null["null_before"][first].to_numpy() + at_first["angle_deg"].is_null().to_numpy()
-    segments = (
-        pl.DataFrame({
-            "segment": runs["value"],
-            "capture": at_first["capture"],
-            "kind": at_first["_kind"].replace_strict({0: "static", 1: "rotation", 2: "pose"}, return_dtype=pl.String),
-            "axis": at_first["axis"],
-            "rate_hz": at_first["rate_hz"].fill_null(0.0),
-            "t_start_ns": at_first["t_ns"],
-            "t_end_ns": at_last,
-            "n_samples": runs["len"].cast(pl.Int64),
-            "n_steps": pl.Series(angle_null["step"][last].to_numpy() - angle_null["step"][first].to_numpy() + 1),
-            "label_source": at_first["label_source"].fill_null("file"),
-            "has_angle": n_nulls == 0,
-        })
+    return frame.drop("_kind"), segments_frame({
+        "segment": runs["value"],
+        "capture": at_first["capture"],
+        "kind": at_first["_kind"].replace_strict({0: "static", 1: "rotation", 2: "pose"}, return_dtype=pl.String),
+        "axis": at_first["axis"],
+        "rate_hz": at_first["rate_hz"].fill_null(0.0),
+        "t_start_ns": at_first["t_ns"],
+        "t_end_ns": at_last,
+        "n_samples": runs["len"].cast(pl.Int64),
+        "n_steps": pl.Series(angle_null["step"][last].to_numpy() - angle_null["step"][first].to_numpy() + 1),
+        "label_source": at_first["label_source"].fill_null("file"),
+        "has_angle": n_nulls == 0,
+    }, dataset, angle_source)
+
+
+def segments_frame(columns: dict, dataset: str, angle_source: str) -> pl.DataFrame:
+    """The ``segments`` table from each segment's labels at its first sample,
+    its span, sample count, angle runs (``n_steps``, kept for static
+    segments) and whether every sample has an angle (``has_angle``)."""
+    return conform(
+        pl.DataFrame(columns)
         .with_columns(n_steps=pl.when(pl.col("kind") == "rotation").then(0).otherwise(pl.col("n_steps")))
         .with_columns(
             dataset=pl.lit(dataset),
@@ -66,6 +73,4 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
             angle_source=pl.when(pl.col("has_angle")).then(pl.lit(angle_source)).otherwise(pl.lit("none")),
             # what only inferred or own-phase segments have (rotcal.segment.unlabelled)
             rate_measured_hz=None, rate_u_hz=None, axis_offset_deg=None, chi2_reduced=None, t_phase_ns=None,
-        )
-    )
-    return frame.drop("_kind"), conform(segments, "segments")
+        ), "segments")

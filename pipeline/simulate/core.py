@@ -7,6 +7,7 @@ request is a ``SimulationSpec`` (``rotcal.simulate.spec``)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, replace
 
 import numpy as np
@@ -65,26 +66,33 @@ def build_effects(requests: tuple, rng: np.random.Generator) -> tuple[Effects, l
     return Effects(states), described
 
 
-def schedule(plan: Plan, rng: np.random.Generator) -> tuple[Motion, pl.DataFrame]:
-    """Sample times and commanded motion of the plan, with per-sample labels.
+def plan_parts(plan: Plan, rng: np.random.Generator) -> Iterator[dict]:
+    """The plan's segments in order, one at a time: sample times (int64 ns),
+    axis, rate, commanded angles, start angle and segment number.
 
     Per axis: the static steps (logging paused ``step_move_s`` while the table
-    moves), then each rate; logging paused ``pause_s`` between segments.
+    moves), then each rate; logging paused ``pause_s`` between segments. A
+    rotation's start angle is drawn from ``rng`` when its segment is reached.
     """
     dt_ns = int(round(plan.dt_s * 1e9))
-    parts, t_next, seg = [], 0, 0
+    t_next, seg = 0, 0
     for axis in plan.axes:
         steps = np.arange(0.0, 360.0, plan.step_deg)
         step_start = t_next + np.arange(steps.size) * (plan.step_samples * dt_ns + int(plan.step_move_s * 1e9))
         t = (step_start[:, None] + np.arange(plan.step_samples)[None, :] * dt_ns).ravel()
-        parts.append(dict(t_ns=t, axis=axis, rate_hz=0.0, angle=np.repeat(steps, plan.step_samples), theta0=0.0, seg=seg))
+        yield dict(t_ns=t, axis=axis, rate_hz=0.0, angle=np.repeat(steps, plan.step_samples), theta0=0.0, seg=seg)
         t_next, seg = int(t[-1]) + int(plan.pause_s * 1e9), seg + 1
         for rate in plan.rates_hz:
             t = t_next + np.arange(plan.rotation_samples, dtype=np.int64) * dt_ns
             theta0 = rng.uniform(0.0, 360.0)
             angle = theta0 + 360.0 * rate * (t - t[0]) / 1e9
-            parts.append(dict(t_ns=t, axis=axis, rate_hz=rate, angle=angle, theta0=theta0, seg=seg))
+            yield dict(t_ns=t, axis=axis, rate_hz=rate, angle=angle, theta0=theta0, seg=seg)
             t_next, seg = int(t[-1]) + int(plan.pause_s * 1e9), seg + 1
+
+
+def schedule(plan: Plan, rng: np.random.Generator) -> tuple[Motion, pl.DataFrame]:
+    """Sample times and commanded motion of the plan (``plan_parts``), with per-sample labels."""
+    parts = list(plan_parts(plan, rng))
     sizes = [p["t_ns"].size for p in parts]
     t_ns = np.concatenate([p["t_ns"] for p in parts]).astype(np.int64)
     rate = np.repeat([p["rate_hz"] for p in parts], sizes)
@@ -139,7 +147,16 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS)), *logged
     ).select("t_ns", *CHANNELS, "axis", "rate_hz", "angle_deg", "plan_segment", *(s.name for s in logged))
     samples, logger = apply_defects(samples, spec.timebase, logger_rng)
-    truth = {
+    truth = truth_record(spec, seed, dut, mount, described, foreign, logger)
+    if phases is not None:
+        truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
+    return Simulation(samples, truth, dut, effects)
+
+
+def truth_record(spec: SimulationSpec, seed: int, dut: Dut, mount: dict, described: list[dict], foreign: list,
+                 logger: dict) -> dict:
+    """What was simulated (``truth.json``): the DUT, plan, effects and logger defects."""
+    return {
         "rotcal_version": __version__,
         "seed": seed,
         "g_local": spec.g_local,
@@ -153,9 +170,6 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         "foreign": foreign,
         "timebase": logger,
     }
-    if phases is not None:
-        truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
-    return Simulation(samples, truth, dut, effects)
 
 
 def _with_temperature(motion: Motion, described: list[dict]) -> Motion:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -190,43 +190,62 @@ def register_imu_schema(writer: ChunkedWriter) -> int:
     return writer.register_schema("sensor_msgs/msg/Imu", "ros2msg", ros2_msgdefs.IMU.encode())
 
 
-def add_imu_messages(writer: ChunkedWriter, schema_id: int, topic: str, frame_id: str, t_ns: np.ndarray,
-                     acceleration: Sequence[np.ndarray], covariance: Sequence[np.ndarray] = ()) -> None:
-    """A channel of Imu messages stamped (and logged) at ``t_ns``: the three
-    ``linear_acceleration`` columns (x, y, z) and, when given, the nine
-    row-major elements of ``linear_acceleration_covariance`` (all zeros
-    otherwise: "covariance unknown"); orientation and angular velocity marked
-    not provided (``ros2_cdr.imu_template``)."""
+def imu_channel(writer: ChunkedWriter, schema_id: int, topic: str, frame_id: str) -> Callable[..., None]:
+    """A channel of Imu messages; returns the function that adds a block of
+    them, stamped (and logged) at ``t_ns``: the three ``linear_acceleration``
+    columns (x, y, z) and, when given, the nine row-major elements of
+    ``linear_acceleration_covariance`` (all zeros otherwise: "covariance
+    unknown"); orientation and angular velocity marked not provided
+    (``ros2_cdr.imu_template``). Blocks added one after another give the
+    bytes one call with all of them would (the writer's chunks do not see
+    the block boundaries)."""
     template = ros2_cdr.imu_template(frame_id)
     lay = ros2_cdr.imu_layout(len(frame_id.encode()) + 1)
     channel = writer.register_channel(topic, "cdr", schema_id)
     acc_cov = lay.linear_acceleration + 24  # the covariance follows the vector's three float64s
-    fields = [(lay.linear_acceleration + 8 * k, np.asarray(a, "<f8")) for k, a in enumerate(acceleration)]
-    fields += [(acc_cov + 8 * k, np.asarray(c, "<f8")) for k, c in enumerate(covariance)]
-    writer.add_messages(channel, t_ns, template, [*_stamp_fields(lay.stamp, t_ns), *fields])
+
+    def add(t_ns: np.ndarray, acceleration: Sequence[np.ndarray], covariance: Sequence[np.ndarray] = ()) -> None:
+        fields = [(lay.linear_acceleration + 8 * k, np.asarray(a, "<f8")) for k, a in enumerate(acceleration)]
+        fields += [(acc_cov + 8 * k, np.asarray(c, "<f8")) for k, c in enumerate(covariance)]
+        writer.add_messages(channel, t_ns, template, [*_stamp_fields(lay.stamp, t_ns), *fields])
+
+    return add
 
 
-def _write_cdr(fh: BinaryIO, samples: pl.DataFrame, table: pl.DataFrame, imu_topic: str, table_topic: str) -> None:
+def add_imu_messages(writer: ChunkedWriter, schema_id: int, topic: str, frame_id: str, t_ns: np.ndarray,
+                     acceleration: Sequence[np.ndarray], covariance: Sequence[np.ndarray] = ()) -> None:
+    """A channel of Imu messages in one block (``imu_channel``)."""
+    imu_channel(writer, schema_id, topic, frame_id)(t_ns, acceleration, covariance)
+
+
+def _write_cdr(fh: BinaryIO, blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], tables: Iterable[pl.DataFrame],
+               imu_topic: str, table_topic: str) -> None:
     """Imu and JointState messages in the order ``mcap_ros2`` would be given
-    them: the table's, then the DUT's (the reader sorts by time)."""
+    them: the table's (from ``tables``, frames of t_ns, axis, rate_hz,
+    angle_deg in time order), then the DUT's (from ``blocks`` of (t_ns, [u,
+    v, w]) in time order; the reader sorts by time)."""
     writer = ChunkedWriter(fh, "ros2", ROS2_LIBRARY)
     imu_schema = register_imu_schema(writer)
     joint_schema = writer.register_schema("sensor_msgs/msg/JointState", "ros2msg", ros2_msgdefs.JOINT_STATE.encode())
-    if table.height:
+    template, lay = ros2_cdr.joint_template("table", (2,), 1, 0)
+    channel = None
+    for table in tables:
+        if not table.height:
+            continue
+        channel = channel or writer.register_channel(table_topic, "cdr", joint_schema)
         t_ns = table["t_ns"].to_numpy()
         axis = table["axis"].to_numpy()
         sign = np.select([axis == a for a in AXES], [JOINT_SIGN[a] for a in AXES])
-        template, lay = ros2_cdr.joint_template("table", (2,), 1, 0)
-        channel = writer.register_channel(table_topic, "cdr", joint_schema)
         writer.add_messages(channel, t_ns, template, [
             *_stamp_fields(lay.stamp, t_ns),
             (lay.names[0], np.array([a.encode() for a in axis], "S1")),
             (lay.position, sign * np.deg2rad(table["angle_deg"].to_numpy())),
             (lay.velocity, sign * 2 * np.pi * table["rate_hz"].to_numpy()),
         ])
-    if samples.height:
-        add_imu_messages(writer, imu_schema, imu_topic, "dut", samples["t_ns"].to_numpy(),
-                         [samples[c].cast(pl.Float64).to_numpy() for c in "uvw"])
+    add = None
+    for t_ns, acceleration in blocks:
+        add = add or imu_channel(writer, imu_schema, imu_topic, "dut")
+        add(t_ns, acceleration)
     writer.finish()
 
 
@@ -254,12 +273,27 @@ def write_capture(samples: pl.DataFrame, table: pl.DataFrame, path: Path, encodi
                   imu_topic: str = "/imu", table_topic: str = "/table/joint_states") -> Path:
     """Write ``samples`` (t_ns, u, v, w) and ``table`` (t_ns, axis, rate_hz,
     angle_deg) to ``path``, atomically."""
+    if encoding == "cdr":
+        blocks = [(samples["t_ns"].to_numpy(), [samples[c].cast(pl.Float64).to_numpy() for c in "uvw"])]
+        return write_cdr_blocks(blocks if samples.height else [], [table], path, imu_topic, table_topic)
+
     def write(tmp: Path) -> None:
         with tmp.open("wb") as fh:
-            if encoding == "cdr":
-                _write_cdr(fh, samples, table, imu_topic, table_topic)
-            else:
-                _write_json(Writer(fh, compression=CompressionType.ZSTD), samples, table, imu_topic, table_topic)
+            _write_json(Writer(fh, compression=CompressionType.ZSTD), samples, table, imu_topic, table_topic)
+
+    atomic_write(path, write)
+    return path
+
+
+def write_cdr_blocks(blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], tables: Iterable[pl.DataFrame], path: Path,
+                     imu_topic: str = "/imu", table_topic: str = "/table/joint_states") -> Path:
+    """A CDR capture written as ``write_capture`` writes it, the table's
+    messages a frame at a time and the DUT's samples a block at a time (t_ns,
+    [u, v, w]): the file's bytes are the same, and only one block is in
+    memory at once."""
+    def write(tmp: Path) -> None:
+        with tmp.open("wb") as fh:
+            _write_cdr(fh, blocks, tables, imu_topic, table_topic)
 
     atomic_write(path, write)
     return path

@@ -99,6 +99,11 @@ def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: s
         write_csv_single(sim, directory / "recording.csv")
     else:
         raise ConfigError(f"unknown format {fmt!r} (csv, csv-unlabelled, mcap-cdr, mcap-json)")
+    return write_metadata(spec, sim.truth, directory, fmt, device_id)
+
+
+def write_metadata(spec: SimulationSpec, truth: dict, directory: Path, fmt: str, device_id: str | None = None) -> Path:
+    """A simulated dataset's ``dataset.toml`` and ``truth.json``."""
     full_scale = f"full_scale = {spec.dut.full_scale:g}\n" if spec.dut.full_scale else ""
     # a recording without labels (continuous, or the segments in one file) comes with the plan's nominal
     # rates, as a lab would write them down (a plan of static steps only has none to write: dataset.toml's
@@ -109,5 +114,5 @@ def write_dataset(sim: Simulation, spec: SimulationSpec, directory: Path, fmt: s
         f'[device]\nid = "{device_id or directory.name}"\noutput_unit = "{spec.output_unit}"\n{full_scale}'
         f"\n[site]\ng_local = {spec.g_local!r}\ng_local_uncertainty = {spec.g_local_uncertainty!r}\n{plan}"
     )
-    (directory / "truth.json").write_text(json.dumps(sim.truth, indent=2) + "\n")
+    (directory / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
     return directory

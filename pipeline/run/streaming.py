@@ -1,0 +1,174 @@
+"""Segments and segment fits of a labelled capture read block by block, in
+memory bounded by the block, not by the capture (issue 16, item 1).
+
+The segments are the label runs of ``segment.segment_by_labels`` (a run
+is consecutive samples of one table axis and rate; a run starts where
+either changes, so it may cross any block boundary), and each segment's
+three-parameter fit against the table angle (``fit.segments``) is linear in
+(1, sin theta, cos theta): its normal equations are sums over the samples,
+additive across blocks (``fit.normal.NormalSums``). A first pass finds the
+runs and accumulates those sums with what the fit's refusals need (sample
+count, distinct static angles, the arc covered, each channel's range); a
+second pass, at the solved coefficients, accumulates the residual
+statistics (``fit.normal.ResidualSums``). Both give the in-memory tables to
+rounding, whatever the block boundaries.
+
+Blocks are frames of the canonical sample columns (t_ns, u, v, w, axis,
+rate_hz, angle_deg) of one capture in time order; ``blocks()`` yields them
+anew for each pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import polars as pl
+
+from rotcal.config import FitConfig
+from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
+from rotcal.fit.segments import BLOCK_SAMPLES, SegmentFit, arc_bounds, arc_from, finite, refusal_from, sincos_deg, sine3_result, stuck_from
+from rotcal.model.physics import AXES, CHANNELS
+from rotcal.segment.labelled import segments_frame
+
+Blocks = Callable[[], Iterator[pl.DataFrame]]
+
+
+@dataclass(eq=False)
+class _Run:
+    """One segment's labels, span and sums, as far as the blocks have gone."""
+
+    segment: int
+    axis: int
+    rate_hz: float
+    first: int  # the sample number (from the capture's start) of its first sample
+    t_start_ns: int
+    t_end_ns: int = 0
+    n: int = 0
+    angle_runs: int = 0
+    has_angle: bool = True
+    normal: NormalSums = field(default_factory=NormalSums)
+    low: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+    high: np.ndarray = field(default_factory=lambda: np.full(3, -np.inf))
+    arc_low: np.ndarray = field(default_factory=lambda: np.full(2, np.inf))
+    arc_high: np.ndarray = field(default_factory=lambda: np.full(2, -np.inf))
+    angles: set = field(default_factory=set)
+
+    @property
+    def kind(self) -> str:
+        return "static" if self.rate_hz == 0 else "rotation"
+
+    def add(self, t_ns: np.ndarray, angle: np.ndarray, channels: list[np.ndarray], angle_runs: int) -> None:
+        self.t_end_ns = int(t_ns[-1])
+        self.n += t_ns.size
+        self.angle_runs += angle_runs
+        self.has_angle &= not np.isnan(angle).any()
+        if not self.has_angle:
+            return  # never fitted (angle_source "none"): no sums needed
+        for a in range(0, angle.size, BLOCK_SAMPLES):  # pieces that stay in the core's cache, as sine3_fit's
+            self.normal.add(*sincos_deg(angle[a : a + BLOCK_SAMPLES]), [y[a : a + BLOCK_SAMPLES] for y in channels])
+        self.low = np.minimum(self.low, [y.min() for y in channels])
+        self.high = np.maximum(self.high, [y.max() for y in channels])
+        low, high = arc_bounds(angle)
+        self.arc_low, self.arc_high = np.minimum(self.arc_low, low), np.maximum(self.arc_high, high)
+        if self.kind == "static":
+            self.angles.update(np.unique(angle).tolist())
+
+
+def _columns(block: pl.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """t_ns, axis code (-1 null), rate and angle (NaN null), channels of a block."""
+    axis = block["axis"].cast(pl.Enum(AXES)).to_physical().cast(pl.Int64).fill_null(-1).to_numpy()
+    rate, angle = (block[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in ("rate_hz", "angle_deg"))
+    return block["t_ns"].to_numpy(), axis, rate, angle, [block[c].cast(pl.Float64).to_numpy() for c in CHANNELS]
+
+
+def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a != b, NaN equal to NaN (polars' ``ne_missing`` on nulls)."""
+    return (a != b) & ~(np.isnan(a) & np.isnan(b))
+
+
+def label_runs(blocks: Blocks) -> list[_Run]:
+    """The first pass: every labelled run (segment) with its sums."""
+    runs: list[_Run] = []
+    last = (np.int64(-2), np.nan, np.nan)  # the previous sample's axis, rate, angle (none before the first)
+    offset = 0
+    for block in blocks():
+        if block.height == 0:
+            continue
+        t_ns, axis, rate, angle, channels = _columns(block)
+        start = np.r_[axis[0] != last[0], axis[1:] != axis[:-1]] | _differs(rate, np.r_[last[1], rate[:-1]])
+        angle_change = _differs(angle, np.r_[last[2], angle[:-1]])
+        labelled = (axis >= 0) & ~np.isnan(rate)
+        cuts = np.r_[np.flatnonzero(start), axis.size]
+        if cuts[0] != 0:  # the block continues the previous block's run
+            cuts = np.r_[0, cuts]
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if not labelled[a]:
+                continue
+            if start[a]:
+                runs.append(_Run(len(runs), int(axis[a]), float(rate[a]), offset + a, int(t_ns[a])))
+            runs[-1].add(t_ns[a:b], angle[a:b], [y[a:b] for y in channels],
+                         int(np.count_nonzero(angle_change[a + 1 : b])) + (1 if start[a] else int(angle_change[a])))
+        last = (axis[-1], rate[-1], angle[-1])
+        offset += axis.size
+    return runs
+
+
+def residual_pass(blocks: Blocks, runs: list[_Run], coefs: dict[int, np.ndarray]) -> dict[int, ResidualSums]:
+    """The second pass: each fitted segment's residual statistics at its coefficients."""
+    sums = {k: ResidualSums(c) for k, c in coefs.items()}
+    fitted = [r for r in runs if r.segment in sums]
+    starts = np.array([r.first for r in fitted], np.int64)
+    offset = 0
+    for block in blocks():
+        m = block.height
+        lo, hi = np.searchsorted(starts + [r.n for r in fitted], offset, "right"), np.searchsorted(starts, offset + m)
+        if lo < hi:
+            _, _, _, angle, channels = _columns(block)
+            for run in fitted[lo:hi]:
+                a, b = max(run.first - offset, 0), min(run.first + run.n - offset, m)
+                for p in range(a, b, BLOCK_SAMPLES):
+                    q = min(p + BLOCK_SAMPLES, b)
+                    sums[run.segment].add(*sincos_deg(angle[p:q]), [y[p:q] for y in channels])
+        offset += m
+    return sums
+
+
+def stream_segments(blocks: Blocks, capture: str, label_source: str, dataset: str, angle_source: str,
+                    config: FitConfig) -> tuple[pl.DataFrame, list[SegmentFit]]:
+    """The ``segments`` table and the three-parameter fits of the static and
+    rotation segments with an angle reference, as ``segment_by_labels`` and
+    ``fit_segments`` give them for the whole capture in memory."""
+    runs = label_runs(blocks)
+    segments = segments_frame({
+        "segment": pl.Series([r.segment for r in runs], dtype=pl.Int32),
+        "capture": [capture] * len(runs),
+        "kind": [r.kind for r in runs],
+        "axis": pl.Series([AXES[r.axis] for r in runs], dtype=pl.Enum(AXES)),
+        "rate_hz": pl.Series([r.rate_hz for r in runs], dtype=pl.Float64),
+        "t_start_ns": pl.Series([r.t_start_ns for r in runs], dtype=pl.Int64),
+        "t_end_ns": pl.Series([r.t_end_ns for r in runs], dtype=pl.Int64),
+        "n_samples": pl.Series([r.n for r in runs], dtype=pl.Int64),
+        "n_steps": pl.Series([r.angle_runs for r in runs], dtype=pl.Int64),
+        "label_source": [label_source] * len(runs),
+        "has_angle": pl.Series([r.has_angle for r in runs], dtype=pl.Boolean),
+    }, dataset, angle_source)
+    reasons, coefs = {}, {}
+    for r in (r for r in runs if r.has_angle):
+        reasons[r.segment] = (refusal_from(r.kind, angle_source, r.n, len(r.angles), arc_from(r.arc_low, r.arc_high), config)
+                              or stuck_from(r.low, r.high))
+        if reasons[r.segment] is None:
+            coefs[r.segment], _ = r.normal.solve()
+    residuals = residual_pass(blocks, runs, coefs)
+    fits = []
+    for r in (r for r in runs if r.has_angle):
+        if reasons[r.segment] is not None:
+            fits.append(SegmentFit.failed(r.segment, r.n, reasons[r.segment], r.rate_hz))
+            continue
+        coef, xtx_inv = r.normal.solve()
+        res = residuals[r.segment]
+        rtr = res.products()
+        fits.append(finite(sine3_result(r.segment, r.rate_hz, r.n, coef, coefficient_covariance(rtr, xtx_inv, r.n), rtr,
+                                        res.max_abs, res.lag), r.rate_hz))
+    return segments, fits

@@ -1,0 +1,118 @@
+"""Issue 16, item 1: captures reduced and written in bounded memory.
+
+The streamed simulator must write the very bytes the in-memory one does
+(the same random streams drawn in blocks), and the per-segment normal
+equations accumulated chunk by chunk must give the in-memory fit."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from rotcal.config import FitConfig
+from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
+from rotcal.fit.segments import fit_segments, fits_frame, sincos_deg, sine3_fit
+from rotcal.ingest import load_dataset
+from rotcal.run.streaming import stream_segments
+from rotcal.segment import segment_by_labels
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.simulate.streamed import streamable, write_streamed
+from rotcal.timebase import repair_timebase
+
+
+def small_spec() -> SimulationSpec:
+    spec = SimulationSpec()
+    return replace(spec, plan=replace(spec.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))
+
+
+@pytest.mark.parametrize("block", [777, 1 << 20])
+def test_streamed_simulation_writes_the_same_bytes(tmp_path, block):
+    """Blocks of 777 samples split every rotation (2500 samples), the static
+    sequences (1200) and the table's 0.1 s ticks (samples 0.06 s apart)
+    mid-way; one large block holds each segment whole."""
+    spec = small_spec()
+    assert streamable(spec, "mcap-cdr")
+    memory = write_dataset(simulate(spec, 7), spec, tmp_path / "memory", "mcap-cdr", "dut")
+    streamed = write_streamed(spec, 7, tmp_path / "streamed", "dut", block=block)
+    for name in ("capture.mcap", "truth.json", "dataset.toml"):
+        assert (streamed / name).read_bytes() == (memory / name).read_bytes(), name
+
+
+def test_only_plain_plans_are_streamed():
+    spec = small_spec()
+    assert not streamable(spec, "csv")
+    assert not streamable(spec.with_effects("centripetal:axis=x,radius_m=0.2"), "mcap-cdr")
+    assert not streamable(spec.with_timebase("drop_fraction=0.01"), "mcap-cdr")
+    assert not streamable(replace(spec, plan=replace(spec.plan, continuous=True)), "mcap-cdr")
+
+
+def test_normal_equations_accumulate_across_any_chunks():
+    """A rotation segment's samples fed in chunks of random lengths (as a
+    capture's chunks cut it) give the in-memory fit to rounding: the sums
+    are additive and the lag-1 product is carried across the boundaries.
+    The truth of the coefficients is the seeded simulation's own."""
+    rng = np.random.default_rng(11)
+    n = 50_000
+    theta = 123.4 + 360.0 * 0.05 * 0.06 * np.arange(n)
+    truth = np.array([[100.0, 1600.0, -20.0], [-50.0, 30.0, 1650.0], [7.0, -12.0, 9.0]])
+    s, c = np.sin(np.deg2rad(theta)), np.cos(np.deg2rad(theta))
+    channels = tuple(t[0] + t[1] * s + t[2] * c + rng.normal(0.0, 3.0, n) for t in truth)
+    coef, cov, rtr, max_abs, lag = sine3_fit(theta, channels)
+    cuts = np.r_[0, np.sort(rng.choice(np.arange(1, n), 40, replace=False)), n]
+    normal = NormalSums()
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        normal.add(*sincos_deg(theta[a:b]), [y[a:b] for y in channels])
+    streamed, xtx_inv = normal.solve()
+    residual = ResidualSums(streamed)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        residual.add(*sincos_deg(theta[a:b]), [y[a:b] for y in channels])
+    np.testing.assert_allclose(streamed, coef, rtol=1e-9, atol=1e-9 * np.abs(coef).max())
+    # entries zero but for rounding (sin and cos orthogonal over whole turns) compare against the largest
+    np.testing.assert_allclose(coefficient_covariance(residual.products(), xtx_inv, n), cov, rtol=1e-9,
+                               atol=1e-9 * np.abs(cov).max())
+    np.testing.assert_allclose(residual.products(), rtr, rtol=1e-9)
+    np.testing.assert_allclose(residual.max_abs, max_abs, rtol=1e-9)
+    np.testing.assert_allclose(residual.lag, lag, rtol=1e-9)
+    # and the fit itself: within 5 standard uncertainties of the simulated truth
+    assert np.all(np.abs(coef - truth) < 5 * np.sqrt(np.diag(cov)).reshape(3, 3))
+
+
+@pytest.fixture(scope="module")
+def long_capture(tmp_path_factory):
+    """A 300,000-sample MCAP capture of the default plan (rotations of 24,700 samples)."""
+    spec = SimulationSpec()
+    spec = replace(spec, plan=replace(spec.plan, rotation_samples=24_700))
+    return load_dataset(write_streamed(spec, 5, tmp_path_factory.mktemp("long") / "d"))
+
+
+@pytest.mark.parametrize("block", [4999, 1 << 20])
+def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
+    """Segments and fits from the capture's samples read in blocks (4999
+    samples: every segment cut by block boundaries, twice a pass) equal
+    those of the whole table in memory, to 1e-9 relative."""
+    ds = long_capture
+    samples = ds.samples
+    assert samples.height == 300_000
+    config = FitConfig()
+    labelled, segments = segment_by_labels(repair_timebase(samples, ds.name).samples, ds.name, ds.meta.angle_source)
+    fits = fits_frame(fit_segments(labelled, segments.filter(pl.col("angle_source") != "none"), config), segments, ds.name)
+
+    def blocks():
+        return (samples.slice(a, block) for a in range(0, samples.height, block))
+
+    streamed_segments, streamed = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
+    assert_frame_equal(streamed_segments, segments)
+    streamed_fits = fits_frame(streamed, streamed_segments, ds.name)
+    assert streamed_fits.height == fits.height == 3 * 15
+    numbers = [c for c, d in fits.schema.items() if d == pl.Float64]
+    assert_frame_equal(streamed_fits.drop(numbers), fits.drop(numbers))
+    for c in numbers:
+        scale = np.nanmax(np.abs(fits[c].to_numpy()))
+        np.testing.assert_allclose(streamed_fits[c].to_numpy(), fits[c].to_numpy(), rtol=1e-9, atol=1e-9 * scale, err_msg=c)
+    for c in ("cov_u", "cov_v", "cov_w"):
+        ours, theirs = np.vstack(streamed_fits[c].to_list()), np.vstack(fits[c].to_list())
+        np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max(), err_msg=c)
