@@ -167,8 +167,9 @@ def test_six_labelled_poses_end_to_end(cli, tmp_path):
     (data / "dataset.toml").write_text(f'[site]\ng_local = {G_LOCAL}\n\n[format]\npose_column = "part"\n')
     code, out, err = cli("run", data, "--out", tmp_path / "out")
     assert code == 0, err
-    assert "note: static model: orthogonal: the F test of orthogonal axes" in err + out
-    assert "AN4399 15-parameter correction skipped: the positions do not determine gamma" in err + out
+    printed = " ".join((err + out).split())  # the console may wrap long lines
+    assert "note: static model: orthogonal: the F test of orthogonal axes" in printed
+    assert "AN4399 15-parameter correction skipped: the positions do not determine gamma" in printed
     intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet")
     assert intrinsic["model"].to_list() == ["baseline"] * 9 + ["orthogonal"] * 9
     assert intrinsic.filter(pl.col("recommended"))["model"].unique().to_list() == ["orthogonal"]
@@ -186,5 +187,6 @@ def test_jackal_refusal_says_why(cli, tmp_path):
     (not 'did not converge') and the pose table is still written."""
     code, _, err = cli("run", REAL / "jackal_mcap", "--out", tmp_path)
     assert code == ExitCode.UNDETERMINED
-    assert "the poses' gravity lies within 7.4 degrees of one direction" in err and "did not converge" not in err
+    printed = " ".join(err.split())
+    assert "the poses' gravity lies within 7.4 degrees of one direction" in printed and "did not converge" not in printed
     assert pl.read_parquet(tmp_path / "poses.parquet").height == 12

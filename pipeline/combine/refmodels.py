@@ -12,18 +12,22 @@ angles of the sensor frame's rotation relative to the references' frame,
 nine nonlinear parameters: the sensitivities, the offsets and the rotation.
 rotcal fits it by Gauss-Newton on the rotation group (R <- R exp([delta]x)
 each step), started from the polar decomposition of the 12-parameter C (its
-orthogonal factor, and C's row lengths as D), each position's residual
-e_k = m_k - O - C ref_k weighed by (Sigma_k + T)^-1: Sigma_k the noise of
-the pose mean, T the excess scatter of the 12-parameter fit (``lsq.ols``:
-zero unless its residuals show scatter beyond the noise; when the 12
-parameters are not determined, the same moment estimate from the orthogonal
-fit's own residuals). The covariance is (J' W J)^-1 at the solution, the
-sandwich of ``ols`` for these weights; the angles are 90 degrees exactly.
+orthogonal factor, and C's row lengths as D), on the residuals
+e_k = m_k - O - C ref_k. Sigma_k is the noise of the pose mean, T the
+excess scatter of the 12-parameter fit (``lsq.ols``: zero unless its
+residuals show scatter beyond the noise; when the 12 parameters are not
+determined, the same moment estimate from the orthogonal fit's own
+residuals). Ordinary least squares weighs every position alike;
+so does this fit, each channel by 1 / (mean_k Sigma_k + T)_ii. The
+covariance is the sandwich G (Sigma_k + T) G', G = (J' W J)^-1 J' W, as
+``ols``'s, with the degrees of freedom of the fit that estimated T; the
+angles are 90 degrees exactly.
 
 The choice is ``posemodels.f_test`` (q = 3, nu = 3 (n - 4)) between the
-minima of one weighted sum of squares: S_12 the generalised least-squares
-minimum of the linear model, S_9 the orthogonal fit's; the scale known when
-T = 0, else S_12 / nu.
+minima of one weighted sum of squares: S_12 the ordinary least-squares
+minimum of the linear model (the minimum for weights common to all
+positions), S_9 the orthogonal fit's; the scale known when T = 0, else
+S_12 / nu.
 
 Before either fit, the conditioning: when every reference lies within
 ``posemodels.MIN_CONE_DEG`` of one direction, offsets and sensitivities
@@ -171,8 +175,9 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     state_cov = lift @ params_cov @ lift.T
     state = np.concatenate([(s[:, None] * rotation).ravel(), offsets])
     dof = 3 * n - 9
+    # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result states)
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(dof)), state_cov)])
+                                        [(whole_fit_input("positions", float(dof if own else full.dof)), state_cov)])
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 

@@ -3,7 +3,8 @@ poses (imu_tk, ArduPilot style), labelled poses (imucal's ``x_p``, ``x_a``,
 ...) or jig positions (``gx, gy, gz``).
 
 Positions whose reference acceleration is known (labels, jig) are fitted
-with ``poses.reference_fit``; otherwise the still intervals are found by
+with ``poses.reference_fit`` (12 parameters) and its nested model of
+orthogonal axes (``refmodels``); otherwise the still intervals are found by
 ``stillness`` and fitted with ``multiposition.orientation_free``, both the
 nine parameters and the six of orthogonal axes where the poses determine
 them (``posemodels``: the choice, and the angles no pose determines). Either
@@ -115,9 +116,10 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     or of the pose table ``positions`` (``poses.summary_poses``: the
     recording given as pose summaries): the most general model its
     positions determine, with the nested orthogonal model and the choice
-    between them (``posemodels``) for poses of unknown orientation; a
-    refusal with the pose table when not even the six parameters of
-    orthogonal axes are determined."""
+    between them (``refmodels`` with known references, ``posemodels``
+    without); a refusal with the pose table when not even the orthogonal
+    model is determined, its reason the poses' narrow gravity cone when
+    they have one."""
     if positions is None:
         positions = labelled_poses(samples, segments)
     single = positions.filter(pl.col("n_samples") < 2)
