@@ -24,6 +24,12 @@ An angle is determined by poses whose gravity mixes its two axes: a pose
 least 15 degrees from both axes in their plane, at most 75). With none, the
 angle rests only on the poses' small tilts, and the advice names the pose
 that would fix it.
+
+``f_test`` is the one home of the test for every nested static model (also
+``refmodels``, the models of positions of known reference).
+``gravity_cone``: poses whose gravity lies within ``MIN_CONE_DEG`` of one
+direction determine neither model (with known references checked before
+either fit; without, the reason given when neither is determined).
 """
 
 from __future__ import annotations
