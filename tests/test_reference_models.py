@@ -132,7 +132,7 @@ def test_references_in_one_plane_determine_only_the_orthogonal_model():
     assert reference_advice(plane) == [
         "the references lie in one plane (normal (0.00, 0.00, 1.00) in the references' frame): they do not determine "
         "the 12 parameters, and the orthogonal model takes every angle as 90 degrees; a pose with gravity along that "
-        "normal (up or down) determines phi_uv, phi_vw and phi_wu"]
+        "normal (up or down) determines phi_uv, phi_vw and phi_wu, and the sensitivity of an axis near it"]
 
 
 def test_references_within_a_narrow_cone_are_refused_with_the_reason():

@@ -122,7 +122,8 @@ def _own_excess(e: np.ndarray, jac: np.ndarray, cov: np.ndarray, dof: int) -> np
     """T from the orthogonal fit's own residuals when the 12 parameters are
     not determined: ``ols``'s moment estimate, the leverage of a position
     the trace of its 3 x 3 block of the hat matrix over three."""
-    chi2 = float(np.einsum("ki,kij,kj->", e, np.linalg.inv(cov), e))
+    ok = np.linalg.det(cov) > 0  # a summary's zero scatter: no known noise, any residual is excess
+    chi2 = float(np.einsum("ki,kij,kj->", e[ok], np.linalg.inv(cov[ok]), e[ok])) if ok.all() else float("inf")
     if not excess_is_significant(chi2, dof):
         return np.zeros((3, 3))
     flat = jac.reshape(-1, 9)
@@ -223,4 +224,4 @@ def reference_advice(ref: np.ndarray) -> list[str]:
     axis = ", ".join(f"{c:.2f}" for c in normal + 0.0)
     return [f"the references lie in one plane (normal ({axis}) in the references' frame): they do not determine the 12 "
             "parameters, and the orthogonal model takes every angle as 90 degrees; a pose with gravity along that normal "
-            "(up or down) determines phi_uv, phi_vw and phi_wu"]
+            "(up or down) determines phi_uv, phi_vw and phi_wu, and the sensitivity of an axis near it"]
