@@ -35,18 +35,14 @@ either fit; without, the reason given when neither is determined).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import polars as pl
 
 from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free
+from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit
 from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure
-
-if TYPE_CHECKING:
-    from rotcal.combine.poses import ReferenceFit
-    from rotcal.combine.refmodels import OrthogonalReferenceFit
 
 MIN_CONE_DEG = 15.0  # poses whose gravity lies within it of one direction determine neither model
 SELECTION_LEVEL = 0.01  # the orthogonal model is rejected when the F test's p-value falls below it

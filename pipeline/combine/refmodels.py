@@ -36,39 +36,20 @@ along it cannot be told apart, and neither model is determined.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import polars as pl
 
 from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
 from rotcal.combine.posemodels import SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
-from rotcal.combine.poses import ReferenceFit, reference_fit, references
+from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
 from rotcal.fit.lsq import CONDITION_LIMIT, excess_is_significant, psd_part
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
 MAX_ITERATIONS = 50
 STEP_TOLERANCE = 1e-12  # of the relative sensitivity, angle (rad) and offset steps
 MIN_POSITIONS = 4  # nine parameters and three residual degrees of freedom
-
-
-@dataclass(frozen=True, eq=False)
-class OrthogonalReferenceFit:
-    """The fit of orthogonal axes to positions of known reference: the
-    intrinsic result (angles 90 degrees), the rotation R, the residuals
-    (n, 3) in output units, their degrees of freedom (3 n - 9), the excess
-    covariance T in the weights and the weighted sum of squares."""
-
-    result: IntrinsicResult
-    rotation: np.ndarray
-    residuals: np.ndarray
-    dof: int
-    excess_cov: np.ndarray
-    weights: np.ndarray
-
-    @property
-    def sum_sq(self) -> float:
-        return float(np.sum(self.residuals**2 * self.weights))
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

@@ -27,8 +27,17 @@ import polars as pl
 
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.posemodels import ModelChoice, advice, choose_model, determines, gravity_cone
-from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, references, still_poses
-from rotcal.combine.refmodels import OrthogonalReferenceFit, choose_reference_model, orthogonal_reference_fit, reference_advice
+from rotcal.combine.poses import (
+    CorrectedPoses,
+    OrthogonalReferenceFit,
+    ReferenceFit,
+    correct_poses,
+    labelled_poses,
+    reference_fit,
+    references,
+    still_poses,
+)
+from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.tables import conform
