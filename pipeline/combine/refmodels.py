@@ -108,7 +108,7 @@ def _own_excess(e: np.ndarray, jac: np.ndarray, cov: np.ndarray, dof: int) -> np
     if not excess_is_significant(chi2, dof):
         return np.zeros((3, 3))
     flat = jac.reshape(-1, 9)
-    hat = flat @ np.linalg.solve(flat.T @ flat, flat.T)
+    hat = flat @ np.linalg.pinv(flat)  # pinv: a singular fit is refused after this, not here
     leverage = np.einsum("kiki->k", hat.reshape(len(e), 3, len(e), 3)) / 3.0
     return psd_part((e.T @ e - np.einsum("k,kij->ij", 1.0 - leverage, cov)) / (dof / 3.0))
 
@@ -141,10 +141,14 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
         if own:
             excess = _own_excess(e, jac * root_w[None, :, None], cov, 3 * n - 9)
     wj = (jac * root_w[None, :, None]).reshape(-1, 9)
-    sv = np.linalg.svd(wj / np.linalg.norm(wj, axis=0), compute_uv=False)
-    if not converged or np.any(s <= 0) or sv[-1] <= sv[0] / CONDITION_LIMIT:
-        return Failure(0.0, "the references do not determine the orthogonal model's 9 parameters (its fit is "
-                            f"singular or did not converge: condition number {sv[0] / max(sv[-1], 1e-300):.2g})")
+    finite = bool(np.all(np.isfinite(wj)) and np.all(np.linalg.norm(wj, axis=0) > 0))
+    sv = np.linalg.svd(wj / np.linalg.norm(wj, axis=0), compute_uv=False) if finite else np.array([1.0, 0.0])
+    condition = sv[0] / max(sv[-1], 1e-300)
+    why = (f"its Jacobian's condition number is {condition:.2g}" if condition >= CONDITION_LIMIT
+           else "its fit did not converge" if not converged
+           else "its fit gives a sensitivity <= 0 (an axis the references barely excite)" if np.any(s <= 0) else "")
+    if why:
+        return Failure(0.0, f"the references do not determine the orthogonal model's 9 parameters: {why}")
     # the sandwich G (Sigma_k + T) G', G = (J' W J)^-1 J' W: d(parameters)/d(position means)
     gain = np.linalg.solve(wj.T @ wj, wj.T).reshape(9, n, 3) * root_w
     params_cov = np.einsum("pki,kij,qkj->pq", gain, cov + excess[None], gain)
