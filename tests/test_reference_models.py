@@ -118,12 +118,13 @@ def test_hand_poses_choose_orthogonal_and_non_orthogonal_jig_the_twelve():
 
 
 def test_references_in_one_plane_determine_only_the_orthogonal_model():
-    """Six poses with gravity in the references' x-y plane: the 12
+    """Six poses with gravity in the references' x-y plane, the DUT turned
+    50 degrees about (1, 1, 1) (every axis sees gravity in some pose): the 12
     parameters are not determined (C's z column unseen), the orthogonal
     model is (its rotation's third row follows from the other two), and the
     advice names the pose along the plane's normal, z."""
     D = np.array([400.0, 410.0, 390.0])
-    R = rotation_matrix(np.array([0.0, 1.0, 1.0]), 3.0)
+    R = rotation_matrix(np.array([1.0, 1.0, 1.0]), 50.0)
     r = np.sqrt(0.5)
     plane = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [r, r, 0], [-r, r, 0]])
     choice = choose_reference_model(_exact_poses(plane, D[:, None] * R, np.array([5.0, 6.0, 7.0])), G_LOCAL, 0.0)
@@ -190,3 +191,18 @@ def test_jackal_refusal_says_why(cli, tmp_path):
     printed = " ".join(err.split())
     assert "the poses' gravity lies within 7.4 degrees of one direction" in printed and "did not converge" not in printed
     assert pl.read_parquet(tmp_path / "poses.parquet").height == 12
+
+
+def test_references_that_determine_neither_model_are_refused_with_reasons():
+    """Up and down along x only (the other axes' responses never seen), and
+    the four faces +-x, +-y (w never excited, its sensitivity free): neither
+    model is determined, each says why, and nothing raises."""
+    for reference, orthogonal_reason in (
+            (np.array([[1.0, 0, 0], [-1, 0, 0]] * 3), "its Jacobian's condition number is"),
+            (FACES[:4], "no pose has gravity within 75 degrees of axis w, so its sensitivity is not determined")):
+        noisy = _exact_poses(reference, np.diag([400.0, 410.0, 390.0]), np.array([5.0, 6.0, 7.0]), noise=0.5)
+        noisy = noisy.with_columns(**{f"mean_{c}": noisy[f"mean_{c}"] + np.random.default_rng(1).normal(0, 2.0, len(reference))
+                                      for c in "uvw"})
+        choice = choose_reference_model(noisy, G_LOCAL, 0.0)
+        assert isinstance(choice.full, Failure) and "do not determine the 12 parameters" in choice.full.reason
+        assert isinstance(choice.orthogonal, Failure) and orthogonal_reason in choice.orthogonal.reason

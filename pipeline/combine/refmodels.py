@@ -42,9 +42,10 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
-from rotcal.combine.posemodels import SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
+from rotcal.combine.posemodels import MIN_CONE_DEG, SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
 from rotcal.fit.lsq import CONDITION_LIMIT, excess_is_significant, psd_part
+from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
 MAX_ITERATIONS = 50
@@ -144,9 +145,13 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     finite = bool(np.all(np.isfinite(wj)) and np.all(np.linalg.norm(wj, axis=0) > 0))
     sv = np.linalg.svd(wj / np.linalg.norm(wj, axis=0), compute_uv=False) if finite else np.array([1.0, 0.0])
     condition = sv[0] / max(sv[-1], 1e-300)
+    # each axis needs gravity along it in some pose: sin(elevation from the axis' perpendicular plane)
+    excitation = np.abs(ref @ rotation.T).max(axis=0) / np.linalg.norm(ref, axis=1).max()
+    idle = [CHANNELS[i] for i in np.flatnonzero(excitation < np.sin(np.radians(MIN_CONE_DEG)))]
     why = (f"its Jacobian's condition number is {condition:.2g}" if condition >= CONDITION_LIMIT
            else "its fit did not converge" if not converged
-           else "its fit gives a sensitivity <= 0 (an axis the references barely excite)" if np.any(s <= 0) else "")
+           else f"no pose has gravity within {90 - MIN_CONE_DEG:g} degrees of axis {', '.join(idle)}, so its sensitivity "
+                "is not determined" if idle or np.any(s <= 0) else "")
     if why:
         return Failure(0.0, f"the references do not determine the orthogonal model's 9 parameters: {why}")
     # the sandwich G (Sigma_k + T) G', G = (J' W J)^-1 J' W: d(parameters)/d(position means)
