@@ -92,3 +92,12 @@ def tilted(directions: np.ndarray, seed: int, tilt_deg: float = 3.0) -> np.ndarr
     ``tilt_deg`` standard deviation: a hand never places a pose exactly."""
     rng = np.random.default_rng(10_000 + seed)
     return np.array([rotation_matrix(rng.standard_normal(3), rng.normal(0.0, tilt_deg)) @ d for d in directions])
+
+
+def reference_pose_table(sim: HandPlaced, reference: np.ndarray) -> pl.DataFrame:
+    """The pose table of ``sim`` with each pose's known reference
+    (``ref_x, ref_y, ref_z``; the nominal direction a label or jig states)."""
+    from rotcal.combine.multiposition import pose_table
+
+    poses = pose_table(sim.t_ns, sim.y, *pose_bounds(sim))
+    return poses.with_columns(**{name: reference[:, i] for i, name in enumerate(("ref_x", "ref_y", "ref_z"))})

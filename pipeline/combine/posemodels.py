@@ -24,6 +24,12 @@ An angle is determined by poses whose gravity mixes its two axes: a pose
 least 15 degrees from both axes in their plane, at most 75). With none, the
 angle rests only on the poses' small tilts, and the advice names the pose
 that would fix it.
+
+``f_test`` is the one home of the test for every nested static model (also
+``refmodels``, the models of positions of known reference).
+``gravity_cone``: poses whose gravity lies within ``MIN_CONE_DEG`` of one
+direction determine neither model (with known references checked before
+either fit; without, the reason given when neither is determined).
 """
 
 from __future__ import annotations
@@ -34,9 +40,11 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free
+from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit
 from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure
 
+MIN_CONE_DEG = 15.0  # poses whose gravity lies within it of one direction determine neither model
 SELECTION_LEVEL = 0.01  # the orthogonal model is rejected when the F test's p-value falls below it
 MIXING = 0.5  # a pose mixes axes i and j when 2 |a_i a_j| / |a|^2 reaches it (15 to 75 degrees in their plane)
 ANGLES = INTRINSIC[3:6]
@@ -48,8 +56,8 @@ class ModelChoice:
     chosen model's name, and the F test between them (NaN when only one is
     determined)."""
 
-    full: OrientationFreeFit | Failure
-    orthogonal: OrientationFreeFit | Failure
+    full: OrientationFreeFit | ReferenceFit | Failure
+    orthogonal: OrientationFreeFit | OrthogonalReferenceFit | Failure
     chosen: str
     f_statistic: float = float("nan")
     p_value: float = float("nan")
@@ -74,18 +82,30 @@ class ModelChoice:
         return f"static model: {self.chosen}: {self.reason}{both}"
 
 
-def f_test(full: OrientationFreeFit, restricted: OrientationFreeFit, g_local: float) -> tuple[float, float, float]:
-    """F, its p-value and the denominator's degrees of freedom (module docstring)."""
+def f_test(reduction: float, q: int, scale: float, denominator_dof: float) -> tuple[float, float, float]:
+    """F = (reduction / q) / scale of a nested restriction by ``q``
+    parameters that raises the weighted sum of squares by ``reduction``,
+    its p-value and the denominator's degrees of freedom: F(q, inf) =
+    chi-square(q) / q when the scale is known (``denominator_dof`` inf),
+    F(q, nu) when it is estimated from the residuals (module docstring).
+    The one home of the test for every nested static model."""
     from scipy.special import chdtrc, fdtrc  # here: scipy's import would slow every CLI start
 
+    f = max(reduction, 0.0) / q / scale
+    if np.isinf(denominator_dof):
+        return f, float(chdtrc(q, q * f)), float("inf")
+    return f, float(fdtrc(q, denominator_dof, f)), float(denominator_dof)
+
+
+def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFreeFit, g_local: float) -> tuple[float, float, float]:
+    """``f_test`` of the orthogonal orientation-free model against the nine
+    parameters, both weighed by the nine-parameter fit's variances (S_9 = nu
+    when the excess scatter is estimated, so the scale is one either way)."""
     assert restricted.noise_var is not None
-    q = full.parameters - restricted.parameters
     s_full = float(np.sum((full.magnitude - g_local) ** 2 / full.variance))
     s_restricted = float(np.sum((restricted.magnitude - g_local) ** 2 / (restricted.noise_var + full.excess_std**2)))
-    f = max(s_restricted - s_full, 0.0) / q
-    if full.excess_std == 0.0:
-        return f, float(chdtrc(q, q * f)), float("inf")
-    return f, float(fdtrc(q, full.dof, f)), float(full.dof)
+    return f_test(s_restricted - s_full, full.parameters - restricted.parameters, 1.0,
+                  float("inf") if full.excess_std == 0.0 else float(full.dof))
 
 
 def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ModelChoice:
@@ -94,8 +114,25 @@ def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> M
     orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):
         return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")
-    f, p, dof = f_test(full, orthogonal, g_local)
+    f, p, dof = orientation_free_f_test(full, orthogonal, g_local)
     return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
+
+
+def gravity_cone(directions: np.ndarray) -> str | None:
+    """Why the poses determine neither model when their gravity directions
+    (n, 3; any length) all lie within ``MIN_CONE_DEG`` of their mean
+    direction, else None: along that direction offsets and sensitivities
+    cannot be told apart (one pose's worth of information, repeated)."""
+    d = directions / np.linalg.norm(directions, axis=1)[:, None]
+    mean = d.mean(axis=0)
+    if not np.all(np.isfinite(mean)) or np.linalg.norm(mean) == 0.0:
+        return None
+    spread = float(np.degrees(np.arccos(np.clip(d @ (mean / np.linalg.norm(mean)), -1.0, 1.0))).max())
+    if spread >= MIN_CONE_DEG:
+        return None
+    return (f"the poses' gravity lies within {spread:.2g} degrees of one direction (at least {MIN_CONE_DEG:g} are needed): "
+            "along it offsets and sensitivities cannot be told apart, so the poses determine neither the nine intrinsic "
+            "parameters nor the six of orthogonal axes; add poses with gravity along each axis, up and down")
 
 
 def mixing(directions: np.ndarray) -> np.ndarray:

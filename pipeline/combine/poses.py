@@ -180,6 +180,26 @@ class ReferenceFit:
         return np.sqrt(np.diag(self.excess_cov))
 
 
+@dataclass(frozen=True, eq=False)
+class OrthogonalReferenceFit:
+    """The nested fit of orthogonal axes, C = D R (``refmodels``): the
+    intrinsic result (angles 90 degrees), the rotation R, the residuals
+    (n, 3) in output units, their degrees of freedom (3 n - 9), the excess
+    covariance T and the channels' common weights (their weighted sum of
+    squares ``sum_sq``)."""
+
+    result: IntrinsicResult
+    rotation: np.ndarray
+    residuals: np.ndarray
+    dof: int
+    excess_cov: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def sum_sq(self) -> float:
+        return float(np.sum(self.residuals**2 * self.weights))
+
+
 def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | Failure:
     """Responsivity rows and offsets from positions of known reference
     acceleration (Geist 2017 Eq. 19; ordinary least squares on the pose

@@ -3,7 +3,8 @@ poses (imu_tk, ArduPilot style), labelled poses (imucal's ``x_p``, ``x_a``,
 ...) or jig positions (``gx, gy, gz``).
 
 Positions whose reference acceleration is known (labels, jig) are fitted
-with ``poses.reference_fit``; otherwise the still intervals are found by
+with ``poses.reference_fit`` (12 parameters) and its nested model of
+orthogonal axes (``refmodels``); otherwise the still intervals are found by
 ``stillness`` and fitted with ``multiposition.orientation_free``, both the
 nine parameters and the six of orthogonal axes where the poses determine
 them (``posemodels``: the choice, and the angles no pose determines). Either
@@ -19,18 +20,31 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import TypeAlias
 
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
-from rotcal.combine.posemodels import advice, choose_model, determines
-from rotcal.combine.poses import CorrectedPoses, ReferenceFit, correct_poses, labelled_poses, reference_fit, still_poses
+from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
+from rotcal.combine.posemodels import ModelChoice, advice, choose_model, determines, gravity_cone
+from rotcal.combine.poses import (
+    CorrectedPoses,
+    OrthogonalReferenceFit,
+    ReferenceFit,
+    correct_poses,
+    labelled_poses,
+    reference_fit,
+    references,
+    still_poses,
+)
+from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.tables import conform
 
 FRAMES = {"label": "pose", "jig": "jig", "stillness": "intrinsic"}
+FULL_PARAMETERS = {"reference": "12 parameters", "orientation-free": "nine parameters"}
+ORTHOGONAL_PARAMETERS = {"reference": "nine parameters with the rotation", "orientation-free": "six parameters"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +59,7 @@ class StaticReduction(Reduction):
     refusal has no result, its failure, and the pose table (``fit`` None)."""
 
     method: str
-    fit: ReferenceFit | OrientationFreeFit | None
+    fit: StaticFit | None
     positions: pl.DataFrame
     check: pl.DataFrame
     model: str = "baseline"
@@ -58,19 +72,20 @@ class StaticReduction(Reduction):
         return self.results[0]
 
 
-Fitter = Callable[[pl.DataFrame, float, float], ReferenceFit | OrientationFreeFit | Failure]
+StaticFit: TypeAlias = ReferenceFit | OrthogonalReferenceFit | OrientationFreeFit
+Fitter = Callable[[pl.DataFrame, float, float], StaticFit | Failure]
 
 
-def _predict(fit: ReferenceFit | OrientationFreeFit, positions: pl.DataFrame) -> CorrectedPoses:
+def _predict(fit: StaticFit, positions: pl.DataFrame) -> CorrectedPoses:
     """|a| of ``positions`` under ``fit``, the excess scatter per position
     included (a new position scatters as much as the fitted ones did)."""
     m, cov = pose_arrays(positions)
-    if isinstance(fit, ReferenceFit):
-        return correct_poses(fit.result, m, cov + fit.excess_cov[None])
-    return correct_poses(fit.result, m, cov, fit.excess_std**2)
+    if isinstance(fit, OrientationFreeFit):
+        return correct_poses(fit.result, m, cov, fit.excess_std**2)
+    return correct_poses(fit.result, m, cov + fit.excess_cov[None])
 
 
-def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: ReferenceFit | OrientationFreeFit | None,
+def _check(positions: pl.DataFrame, dataset: str, fitter: Fitter, fit: StaticFit | None,
            g_local: float, g_uncertainty: float) -> pl.DataFrame:
     """The ``poses`` table: every position with the |a| check under ``fit``
     and under the fits to each half (NaN where there is no fit), and the
@@ -110,9 +125,10 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     or of the pose table ``positions`` (``poses.summary_poses``: the
     recording given as pose summaries): the most general model its
     positions determine, with the nested orthogonal model and the choice
-    between them (``posemodels``) for poses of unknown orientation; a
-    refusal with the pose table when not even the six parameters of
-    orthogonal axes are determined."""
+    between them (``refmodels`` with known references, ``posemodels``
+    without); a refusal with the pose table when not even the orthogonal
+    model is determined, its reason the poses' narrow gravity cone when
+    they have one."""
     if positions is None:
         positions = labelled_poses(samples, segments)
     single = positions.filter(pl.col("n_samples") < 2)
@@ -125,25 +141,36 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         if positions.height == 0:
             return Failure(0.0, "no still intervals found")
     source = positions["source"][0]
-    frame = FRAMES[source]
     if source != "stillness":
-        fit = reference_fit(positions, g_local, g_uncertainty)
-        if isinstance(fit, Failure):
-            check = _check(positions, dataset, reference_fit, None, g_local, g_uncertainty)
-            return StaticReduction(frame, (), (fit,), (Table("poses", check),), (), "reference", None, positions, check)
-        check = _check(positions, dataset, reference_fit, fit, g_local, g_uncertainty)
-        return StaticReduction(frame, (fit.result,), (), (Table("poses", check),), (), "reference", fit, positions, check)
+        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty), "reference",
+                       {"baseline": reference_fit, "orthogonal": orthogonal_reference_fit}, g_local, g_uncertainty)
+    # the raw means' directions: gravity's when the offsets are small beside g (the refusal's reason only)
+    cone = gravity_cone(pose_arrays(positions)[0])
     choice = choose_model(positions, g_local, g_uncertainty)
-    general, free, model = ((choice.full, FULL, "baseline") if not isinstance(choice.full, Failure)
-                            else (choice.orthogonal, ORTHOGONAL, "orthogonal"))
-    fitter: Fitter = partial(orientation_free, free=free)
-    if isinstance(general, Failure):
-        check = _check(positions, dataset, fitter, None, g_local, g_uncertainty)
-        full = choice.full.reason if isinstance(choice.full, Failure) else ""
-        refusal = Failure(0.0, f"orthogonal axes (six parameters): {general.reason}; nine parameters: {full}")
-        return StaticReduction(frame, (), (refusal,), (Table("poses", check),), (), "orientation-free", None, positions, check)
-    check = _check(positions, dataset, fitter, general, g_local, g_uncertainty)
-    directions = check.select(f"a_{s}" for s in AXES).to_numpy()
+    if cone is not None and isinstance(choice.full, Failure) and isinstance(choice.orthogonal, Failure):
+        return _chosen(positions, dataset, Failure(0.0, cone), "orientation-free", {}, g_local, g_uncertainty)
+    return _chosen(positions, dataset, choice, "orientation-free",
+                   {"baseline": orientation_free, "orthogonal": partial(orientation_free, free=ORTHOGONAL)}, g_local, g_uncertainty)
+
+
+def _chosen(positions: pl.DataFrame, dataset: str, choice: ModelChoice | Failure, method: str, fitters: dict[str, Fitter],
+            g_local: float, g_uncertainty: float) -> StaticReduction:
+    """The reduction of ``choice``: the most general determined model's
+    result with the nested orthogonal one beside it, the choice's note and
+    the advice on undetermined angles; or the refusal with the pose table."""
+    frame = FRAMES[positions["source"][0]]
+    general = (choice if isinstance(choice, Failure) else choice.full if not isinstance(choice.full, Failure)
+               else choice.orthogonal)
+    model = "baseline" if not isinstance(choice, Failure) and general is choice.full else "orthogonal"
+    if isinstance(choice, Failure) or isinstance(general, Failure):
+        check = _check(positions, dataset, fitters.get(model, reference_fit), None, g_local, g_uncertainty)
+        refusal = choice if isinstance(choice, Failure) else Failure(0.0, (
+            f"orthogonal axes ({ORTHOGONAL_PARAMETERS[method]}): {getattr(choice.orthogonal, 'reason', '')}; "
+            f"{FULL_PARAMETERS[method]}: {getattr(choice.full, 'reason', '')}"))
+        return StaticReduction(frame, (), (refusal,), (Table("poses", check),), (), method, None, positions, check)
+    check = _check(positions, dataset, fitters[model], general, g_local, g_uncertainty)
+    told = (advice(check.select(f"a_{s}" for s in AXES).to_numpy()) if method == "orientation-free"
+            else reference_advice(references(positions)) if isinstance(choice.full, Failure) else [])
     nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
-    return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(advice(directions)),
-                           "orientation-free", general, positions, check, model, nested, (choice.note,), (choice.chosen, choice.reason))
+    return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(told), method, general,
+                           positions, check, model, nested, (choice.note,), (choice.chosen, choice.reason))

@@ -236,7 +236,7 @@ def recommend_stage(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...
     return recommend(intrinsic, results, frames, others,
                      tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
                      baseline_reason(diagnosis, reductions, config, diagnosis_notes),
-                     static.chosen if static and static.method == "orientation-free" else None)
+                     static.chosen if static else None)
 
 
 def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:
