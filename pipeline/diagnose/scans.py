@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gammaln
-from scipy.stats import chi2, gamma, norm, normaltest
+from scipy.stats import gamma, norm, normaltest
 
+from rotcal.diagnose.fitting import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS
 
 
@@ -195,7 +196,7 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
                 on = seg_axis == ax
                 stat = float(x2[on].sum())
                 amps = np.hypot(coef[on, 0], coef[on, 1]) * res.sigma[r]
-                tests.append((chi2.sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
+                tests.append((chi2_sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
     out = []
     for p, r, channel, ax, k, stat, amps, m in tests:
         p_family = min(1.0, p * len(tests))
@@ -238,7 +239,7 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
             continue
         total = sum(st[0] for st in stats)
         dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
-        p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
+        p = min(1.0, chi2_sf(total, max(dof, 1)) * 2)
         if p >= alpha:
             continue
         _, _, sid, part, r, coef = max(stats, key=lambda st: st[0])

@@ -72,7 +72,7 @@ def diagnosis_outputs(diagnosis: Diagnosis | None, fits: pl.DataFrame, results: 
                                      Table("effect_parameters", diagnosis.parameters)]
     if config.diagnosis.report:
         def draw(out: Path) -> Path:
-            from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
+            from rotcal.report.diagnosis import write_report  # the diagnosis report's module only when a report is wanted
 
             return write_report(diagnosis, fits, results, ds.name, ds.meta.output_unit, out, config.report.figures)
 
@@ -86,9 +86,10 @@ def certificate_output(config: RunConfig) -> Figure:
     def draw(out: Path) -> Path | None:
         if not (out / "calibration.json").is_file():
             return None
-        from rotcal.report.certificate import write_certificate  # matplotlib only when there is a page to draw
+        from rotcal.report.certificate import write_certificate
 
-        return write_certificate(out, config.report.figures)
+        # calibration_output wrote and validated calibration.json in this same publish
+        return write_certificate(out, config.report.figures, written=True)
 
     return Figure("certificate", draw)
 
