@@ -160,7 +160,12 @@ def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple
     standardised residuals ``e`` explained by regressing them on ``basis``
     (n, q), and the coefficients: normal equations summed per segment."""
     q = basis.shape[1]
-    gram = np.add.reduceat(basis[:, :, None] * basis[:, None, :], starts, axis=0)
+    # the products of each pair of basis columns once (the Gram matrices are symmetric)
+    i, j = np.triu_indices(q)
+    sums = np.add.reduceat(basis[:, i] * basis[:, j], starts, axis=0)
+    gram = np.empty((starts.size, q, q))
+    gram[:, i, j] = sums
+    gram[:, j, i] = sums
     rhs = np.add.reduceat(basis * e[:, None], starts, axis=0)
     coef = np.linalg.solve(gram + np.eye(q)[None] * 1e-12, rhs[..., None])[..., 0]
     return np.einsum("ki,ki->k", coef, rhs), coef
