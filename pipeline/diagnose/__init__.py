@@ -25,12 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.stats import chi2
 
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
-from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
+from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
 from rotcal.diagnose.scans import (
     Residuals,
@@ -232,7 +231,7 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
         wald = []
         for c in fit.active:
             value, block = fit.param_block(c)
-            wald.append((float(chi2.sf(value @ np.linalg.pinv(block) @ value, value.size)), c.key, c))
+            wald.append((chi2_sf(value @ np.linalg.pinv(block) @ value, value.size), c.key, c))
         p, _, worst = max(wald)
         if p < alpha:
             break
@@ -258,7 +257,7 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
         jac[rows, pos[0]] -= np.eye(9)
     cov_diff = jac @ cov @ jac.T
     stat = float(diff @ np.linalg.pinv(cov_diff) @ diff)
-    p = float(chi2.sf(stat, diff.size))
+    p = chi2_sf(stat, diff.size)
     if p >= alpha:
         return []
     z = diff / np.sqrt(np.diag(cov_diff))

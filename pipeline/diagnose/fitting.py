@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtrc
 
 from rotcal.diagnose.candidates import Candidate
 from rotcal.diagnose.model import Evaluation, Layout, Observations, Structure, evaluate, rss_after, solve, weighted
@@ -60,6 +60,13 @@ class ModelFit:
         """(values, covariance) of an active extension's parameters."""
         pos = np.searchsorted(self.idx, self.layout.params(cand))
         return self.beta[self.layout.params(cand)], self.covariance()[np.ix_(pos, pos)]
+
+
+def chi2_sf(x: float, dof: float) -> float:
+    """The chi-square survival function, as ``scipy.stats.chi2.sf`` (1 below
+    the support) without its per-call argument handling: the selection
+    evaluates it hundreds of times per dataset (0.1 ms each through ``chi2.sf``)."""
+    return float(chdtrc(dof, max(x, 0.0)))
 
 
 def bic(rss: np.ndarray, n_used: np.ndarray, k: int, n_total: int, floor: np.ndarray) -> float:
@@ -133,7 +140,7 @@ def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = N
     rss = np.maximum(rss_after(ev, step, idx), 1e-300)
     k = extra.size + extra_params
     dbic = bic(rss, ev.n_used, fit.n_params + k, fit.n_total, fit.obs.noise_floor) - fit.bic
-    p = float(chi2.sf(dchi, extra.size)) if p_value is None else p_value
+    p = chi2_sf(dchi, extra.size) if p_value is None else p_value
     return Score(cands[0], dchi, p, dbic, rss)
 
 

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gammaln
-from scipy.stats import chi2, gamma, norm, normaltest
+from scipy.stats import gamma, norm, normaltest
 
+from rotcal.diagnose.fitting import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS
 
 
@@ -159,7 +160,12 @@ def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple
     standardised residuals ``e`` explained by regressing them on ``basis``
     (n, q), and the coefficients: normal equations summed per segment."""
     q = basis.shape[1]
-    gram = np.add.reduceat(basis[:, :, None] * basis[:, None, :], starts, axis=0)
+    # the products of each pair of basis columns once (the Gram matrices are symmetric)
+    i, j = np.triu_indices(q)
+    sums = np.add.reduceat(basis[:, i] * basis[:, j], starts, axis=0)
+    gram = np.empty((starts.size, q, q))
+    gram[:, i, j] = sums
+    gram[:, j, i] = sums
     rhs = np.add.reduceat(basis * e[:, None], starts, axis=0)
     coef = np.linalg.solve(gram + np.eye(q)[None] * 1e-12, rhs[..., None])[..., 0]
     return np.einsum("ki,ki->k", coef, rhs), coef
@@ -195,7 +201,7 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
                 on = seg_axis == ax
                 stat = float(x2[on].sum())
                 amps = np.hypot(coef[on, 0], coef[on, 1]) * res.sigma[r]
-                tests.append((chi2.sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
+                tests.append((chi2_sf(stat, 2 * on.sum()), r, channel, int(ax), k, stat, amps, int(on.sum())))
     out = []
     for p, r, channel, ax, k, stat, amps, m in tests:
         p_family = min(1.0, p * len(tests))
@@ -238,7 +244,7 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
             continue
         total = sum(st[0] for st in stats)
         dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
-        p = min(1.0, float(chi2.sf(total, max(dof, 1))) * 2)
+        p = min(1.0, chi2_sf(total, max(dof, 1)) * 2)
         if p >= alpha:
             continue
         _, _, sid, part, r, coef = max(stats, key=lambda st: st[0])

@@ -279,6 +279,11 @@ class Calibration:
         if errors:
             where = "/".join(str(p) for p in errors[0].absolute_path) or "document"
             raise InputError(f"not a rotcal calibration: {where}: {errors[0].message}", path=path)
+        return cls.from_dict(doc)
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> Calibration:
+        """The calibration of a document already valid against ``schemas/calibration.json``."""
         g = doc["g_local"]
         return cls(doc["dataset"], doc["device"], doc["output_unit"], float(g["value"]), float(g["std_uncertainty"]),
                    g["source"], tuple(doc["inputs"]), doc["configuration"], doc["rotcal_version"], doc["created_utc"],

@@ -12,26 +12,34 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import polars as pl
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import polars as pl  # noqa: E402
-
-from rotcal.combine.labelled import units  # noqa: E402
-from rotcal.diagnose import Diagnosis  # noqa: E402
-from rotcal.model.physics import AXES, CHANNELS, INTRINSIC  # noqa: E402
-from rotcal.model.results import IntrinsicResult  # noqa: E402
-from rotcal.report.rounding import gum_round, gum_text  # noqa: E402
-from rotcal.tables import atomic_write  # noqa: E402
+from rotcal.combine.labelled import units
+from rotcal.diagnose import Diagnosis
+from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
+from rotcal.model.results import IntrinsicResult
+from rotcal.report.rounding import gum_round, gum_text
+from rotcal.tables import atomic_write
 
 COLORS = ("tab:red", "tab:green", "tab:blue")
 
 
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported when a figure is
+    drawn: a batch writes report.md without figures, and each worker would
+    otherwise spend about a second importing it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _save(fig, path: Path) -> None:
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None}))
-    plt.close(fig)
+    _pyplot().close(fig)
 
 
 def _binned(t: np.ndarray, r: np.ndarray, bins: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -57,7 +65,7 @@ def residual_figure(diag: Diagnosis, name: str, path: Path, output_unit: str) ->
     seg = int(np.argmax(gain))
     at = obs.segment == seg
     t = obs.motion.t_s[at]
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fig, axes = _pyplot().subplots(2, 1, figsize=(8, 5), sharex=True)
     for ax, resid, title in ((axes[0], before, f"without {name}"), (axes[1], after, "final model")):
         for r, c in enumerate(CHANNELS):
             keep = use[at, r]
@@ -85,7 +93,7 @@ def offsets_figure(diag: Diagnosis, fits: pl.DataFrame, path: Path, output_unit:
     final, layout = diag.final, diag.final.layout
     values = layout.values(final.beta, final.active)
     ok = fits.filter(pl.col("status") == "ok")
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.6), sharey=True)
+    fig, axes = _pyplot().subplots(1, 3, figsize=(11, 3.6), sharey=True)
     for a, axis in enumerate(AXES):
         part = ok.filter(pl.col("axis") == axis)
         static = part.filter(pl.col("rate_hz") == 0)

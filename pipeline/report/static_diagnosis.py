@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rotcal.diagnose.static import StaticDiagnosis, limit_text
 from rotcal.model.results import IntrinsicResult
-from rotcal.report.diagnosis import _comparison, _save, _table, plt
+from rotcal.report.diagnosis import _comparison, _pyplot, _save, _table
 from rotcal.report.rounding import gum_round
 from rotcal.tables import atomic_write
 
@@ -21,7 +21,7 @@ def residual_figure(diag: StaticDiagnosis, name: str, path: Path) -> str:
     uncertainty) against what ``name`` follows, without it and with the
     final model; returns what they are drawn against."""
     label, x, r = diag.against[name]
-    fig, axes = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    fig, axes = _pyplot().subplots(2, 1, figsize=(7, 5), sharex=True)
     for ax, residuals, title in ((axes[0], diag.before[name], f"without {name}"), (axes[1], diag.after, "final model")):
         ax.plot(x, diag.channel(residuals, r), "o", ms=4, color="tab:blue")
         ax.axhline(0, color="k", lw=0.5)

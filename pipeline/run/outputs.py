@@ -74,7 +74,7 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
     if config.diagnosis.report:
         def draw(out: Path) -> Path:
             from rotcal.diagnose.static import StaticDiagnosis
-            from rotcal.report.diagnosis import write_report  # matplotlib only when a report is wanted
+            from rotcal.report.diagnosis import write_report  # the report modules only when a report is wanted
             from rotcal.report.static_diagnosis import write_static_report
 
             if isinstance(diagnosis, StaticDiagnosis):
@@ -91,9 +91,10 @@ def certificate_output(config: RunConfig) -> Figure:
     def draw(out: Path) -> Path | None:
         if not (out / "calibration.json").is_file():
             return None
-        from rotcal.report.certificate import write_certificate  # matplotlib only when there is a page to draw
+        from rotcal.report.certificate import write_certificate
 
-        return write_certificate(out, config.report.figures)
+        # calibration_output wrote and validated calibration.json in this same publish
+        return write_certificate(out, config.report.figures, written=True)
 
     return Figure("certificate", draw)
 
