@@ -1,32 +1,47 @@
 """MCAP ingest, messages per second: rotcal's ingest of a simulated capture
 (``sensor_msgs/msg/Imu`` in CDR, zstd chunks; and JSON messages) against
-the reference path a user would write: ``mcap.reader.make_reader`` with the
-``mcap_ros2`` decoder (json.loads for JSON), one message at a time into
-Python lists. rotcal's figure includes everything ingest does (table channel
-mapped onto the samples, validation, canonical columns); the reference only
-decodes the DUT topic.
+two references measured in the same run:
 
-    python bench/mcap_ingest.py [--rotation-samples 20000] [--repeats 3]
+- the path a user would write: ``mcap.reader.make_reader`` with the
+  ``mcap_ros2`` decoder (json.loads for JSON), one message at a time into
+  Python lists, decoding the DUT topic only;
+- the decompression bound: zstd alone over the same chunks (already read
+  into memory) into one buffer allocated beforehand, on the cores the run
+  may use (``parallel.cores``): no file reading, no CRC, no decoding.
+
+rotcal's figure includes everything ingest does (file reading, chunk CRCs,
+the table channel mapped onto the samples, validation, canonical columns),
+and, on its own line, the decoding into columns alone (``mcap_fast.read_topics``).
+
+    python bench/mcap_ingest.py [--rotation-samples 20000] [--repeats 3] [--workers 0]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import struct
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import zstandard  # noqa: E402
 from common import best_of, report  # noqa: E402
+from mcap.opcode import Opcode  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from rotcal.config import Limits  # noqa: E402
+from rotcal.ingest.mcap_fast import read_topics  # noqa: E402
+from rotcal.ingest.mcap_records import McapFile, top_records  # noqa: E402
 from rotcal.ingest.mcap_source import read_mcap_capture  # noqa: E402
 from rotcal.ingest.meta import load_meta  # noqa: E402
+from rotcal.parallel import cores  # noqa: E402
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402
 
 
@@ -53,11 +68,35 @@ def reference_json(path: Path) -> list:
     return u
 
 
+def compressed_chunks(path: Path) -> list[tuple[memoryview, int]]:
+    """Each chunk's compressed records, read into memory, and the bytes it expands to."""
+    payloads = []
+    with path.open("rb") as fh:
+        for opcode, _, length in top_records(fh, McapFile(path, Limits())):
+            if opcode == Opcode.CHUNK:
+                body = fh.read(length)
+                start = 32 + struct.unpack_from("<I", body, 28)[0] + 8  # past the header and the compression name
+                payloads.append((memoryview(body)[start:], struct.unpack_from("<Q", body, 16)[0]))
+    return payloads
+
+
+def decompress_all(pool: ThreadPoolExecutor, payloads: list[tuple[memoryview, int]], out: memoryview) -> None:
+    """zstd alone: every chunk into its place in one buffer allocated beforehand."""
+    bases = [0, *itertools.accumulate(size for _, size in payloads)]
+
+    def one(k: int) -> int:
+        return zstandard.ZstdDecompressor().stream_reader(payloads[k][0]).readinto(out[bases[k] : bases[k + 1]])
+
+    assert sum(pool.map(one, range(len(payloads)))) == bases[-1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rotation-samples", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workers", type=int, default=0, help="cores the run may use (0: all)")
     args = parser.parse_args()
+    threads = cores(args.workers)
     spec = SimulationSpec(plan=Plan(rotation_samples=args.rotation_samples))
     sim = simulate(spec, 1)
     n = sim.samples.height
@@ -66,10 +105,18 @@ def main() -> None:
         for encoding, reference in (("cdr", reference_cdr), ("json", reference_json)):
             path = write_mcap(sim, Path(tmp) / f"{encoding}.mcap", encoding=encoding)
             assert len(reference(path)) == n
-            ours = best_of(partial(read_mcap_capture, path, meta, None, Limits()), args.repeats)
+            what = f"MCAP {encoding.upper()} ingest ({n:,} Imu messages, {path.stat().st_size / 1e6:.1f} MB, {threads} cores)"
+            ours = best_of(partial(read_mcap_capture, path, meta, None, Limits(), args.workers), args.repeats)
             theirs = best_of(partial(reference, path), args.repeats)
-            report(f"MCAP {encoding.upper()} ingest ({n:,} Imu messages, {path.stat().st_size / 1e6:.1f} MB)",
-                   n, "messages", ours, "make_reader + per-message decode", theirs)
+            report(what, n, "messages", ours, "make_reader + per-message decode", theirs)
+            if encoding == "cdr":
+                payloads = compressed_chunks(path)
+                with ThreadPoolExecutor(threads) as pool:
+                    out = memoryview(bytearray(sum(size for _, size in payloads)))
+                    bound = best_of(partial(decompress_all, pool, payloads, out), args.repeats)
+                columns = best_of(partial(read_topics, path, {"/imu"}, Limits(), args.workers), args.repeats)
+                report(what, n, "messages", ours, "zstd alone (the bound)", bound)
+                report("  decoding into columns alone (read_topics)", n, "messages", columns, "zstd alone (the bound)", bound)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast, mcap_source, ros2_cdr, ros2_msgdefs
+from rotcal.ingest import mcap_columns, mcap_fast, mcap_source, ros2_cdr, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap
 
@@ -340,3 +340,23 @@ def test_the_command_line_says_one_line_and_exits_2(capture, cli, tmp_path, kind
     status, _, err = cli("run", dataset, "--out", tmp_path / "out")
     lines = err.strip().splitlines()
     assert status == 2 and len(lines) == 1 and "capture.mcap" in lines[0] and "Traceback" not in err, (status, err)
+
+
+def _message_into_next_chunk(k, raw):
+    """The last record of the first chunk made 16 bytes longer than what
+    remains of it: in the fast path's batch buffer the next chunk follows,
+    so the record would read that chunk's first bytes as its own."""
+    if k == 0:
+        at = messages(raw, IMU)[-1]
+        length = struct.unpack_from("<Q", raw, at + 1)[0]
+        assert at + 9 + length == len(raw)  # the last record of the chunk
+        raw[at + 1 : at + 9] = struct.pack("<Q", length + 16)
+
+
+def test_a_message_running_into_the_next_chunk_is_refused(capture, tmp_path):
+    """Both chunks are decompressed side by side into one buffer: a record
+    may not span them (mcap_fast declines; the per-message path words it)."""
+    path = rewrite(capture, tmp_path / "spanning.mcap", _message_into_next_chunk)
+    with pytest.raises(mcap_columns.Unsupported):
+        mcap_fast.read_topics(path, {"/imu"}, Limits())
+    refused(path, "corrupt MCAP: a record at byte", "of the chunk at byte 70 declares", "bytes where")

@@ -1,6 +1,7 @@
 """MCAP messages of fixed layout into columns, without a Python call per
 message: ``mcap_fast`` hands over each kept channel's messages in a
-decompressed chunk, and they become columns by strided gathers:
+decompressed chunk, and their fields become columns by strided views
+or gathers (``fields``), each value copied once:
 
 - ``sensor_msgs/msg/Imu`` in CDR whose ``frame_id`` keeps one length within
   a chunk (``ros2_cdr.imu_layout``);
@@ -26,7 +27,7 @@ from rotcal.ingest.ros2_cdr import CDR_LE, imu_layout, joint_layout
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 
 MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
-_CDR_LE = np.frombuffer(CDR_LE, np.uint8)
+_CDR_LE = int(np.frombuffer(CDR_LE, "<u4")[0])
 
 
 class Unsupported(Exception):
@@ -95,41 +96,46 @@ class DecodedTopic:
         return columns
 
 
-def gather(raw: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
-    """The ``width`` bytes from each start, as an (n, width) array: a strided
-    view where the starts are evenly spaced (one channel's run of messages
-    of one size), else a gather."""
-    step = int(starts[1] - starts[0]) if starts.size > 1 else 0
-    if starts.size > 1 and step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and np.all(np.diff(starts) == step):
-        view = np.lib.stride_tricks.as_strided(raw[starts[0] :], (starts.size, width), (step, 1), writeable=False)
-        return view.copy()
-    return raw[starts[:, None] + np.arange(width)]
+def fields(raw: np.ndarray, starts: np.ndarray, offset: int, dtype: str, count: int = 1) -> np.ndarray:
+    """``count`` values of ``dtype`` at byte ``offset`` of each record (its
+    start in ``starts``) of the decompressed chunk ``raw``, as an (n,) or
+    (n, count) array: a strided view of ``raw`` where the records are evenly
+    spaced (one channel's run of messages of one size), else gathered through
+    a view with a row at every byte; no record is copied whole, so each value
+    is copied once, into its column (``DecodedTopic.add``)."""
+    kind = np.dtype(dtype)
+    width = kind.itemsize * count
+    shape = (starts.size,) if count == 1 else (starts.size, count)
+    if starts.size == 0 or width == 0:
+        return np.zeros(shape, kind)
+    step = int(starts[1] - starts[0]) if starts.size > 1 else 1
+    if step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and np.all(np.diff(starts) == step):
+        first = int(starts[0]) + offset
+        return np.ndarray(shape, kind, raw, first, (step, kind.itemsize)[: len(shape)])
+    window = np.ndarray((raw.size - width + 1, count), kind, raw, 0, (1, kind.itemsize))
+    return window[starts + offset].reshape(shape)
 
 
-def _field(data: np.ndarray, offset: int, dtype: str) -> np.ndarray:
-    """Column ``offset`` of every message (rows of ``data``) as ``dtype``."""
-    width = np.dtype(dtype).itemsize
-    return np.ascontiguousarray(data[:, offset : offset + width]).view(dtype).ravel()
-
-
-def _stamp_or_log(data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
-    t_ns = _field(data, stamp_offset, "<i4").astype(np.int64) * 1_000_000_000 + _field(data, stamp_offset + 4, "<u4")
+def _stamp_or_log(raw: np.ndarray, data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
+    t_ns = fields(raw, data, stamp_offset, "<i4").astype(np.int64) * 1_000_000_000 + fields(raw, data, stamp_offset + 4, "<u4")
     return np.where(t_ns == 0, log_ns, t_ns)
 
 
-def _check_cdr(data: np.ndarray) -> None:
-    if np.any(data[:, :4] != _CDR_LE):
+def _check_cdr(raw: np.ndarray, data: np.ndarray) -> None:
+    if np.any(fields(raw, data, 0, "<u4") != _CDR_LE):
         raise Unsupported("CDR messages in another byte order")
 
 
-def _decode_imu(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """Imu messages of one size (rows of ``data``) into columns."""
-    lay = imu_layout(int(_field(data[:1], 12, "<u4")[0]))
-    _check_cdr(data)
-    if data.shape[1] != lay.size or np.any(_field(data, 12, "<u4") != lay.frame_id_len):
+def _decode_imu(raw: np.ndarray, data: np.ndarray, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """Imu messages of one ``size`` (their data at ``data`` in ``raw``) into columns."""
+    if size < 16:  # the encapsulation, the stamp and the frame_id length
+        raise Unsupported("Imu message shorter than its header")
+    lay = imu_layout(int(fields(raw, data[:1], 12, "<u4")[0]))
+    _check_cdr(raw, data)
+    if size != lay.size or np.any(fields(raw, data, 12, "<u4") != lay.frame_id_len):
         raise Unsupported("Imu frame_id of varying length")
-    acc = np.ascontiguousarray(data[:, lay.linear_acceleration : lay.linear_acceleration + 24]).view("<f8")
-    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+    acc = fields(raw, data, lay.linear_acceleration, "<f8", 3)
+    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
 
 
 def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
@@ -154,21 +160,23 @@ def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
     return frame_len, tuple(lens), counts[1], counts[2]
 
 
-def _decode_joint(data: np.ndarray, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """JointState messages of one size (rows of ``data``) into columns."""
+def _decode_joint(raw: np.ndarray, data: np.ndarray, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """JointState messages of one ``size`` (their data at ``data`` in ``raw``) into columns."""
     try:
-        shape = _joint_shape(data[0].tobytes())
+        shape = _joint_shape(raw[data[0] : data[0] + size].tobytes())
     except struct.error:
         raise Unsupported("JointState message shorter than its fields") from None
     lay = joint_layout(*shape)
-    _check_cdr(data)
-    if data.shape[1] != lay.size or any(np.any(_field(data, o, "<u4") != v) for o, v in lay.counts):
+    if size != lay.size:
         raise Unsupported("JointState messages of varying layout")
-    n, n_vel = len(lay.names), shape[2]
-    names = np.column_stack([_field(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
-    position = np.ascontiguousarray(data[:, lay.position : lay.position + 8 * n]).view("<f8")
-    velocity = np.ascontiguousarray(data[:, lay.velocity : lay.velocity + 8 * n_vel]).view("<f8").reshape(-1, n_vel)
-    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
+    _check_cdr(raw, data)
+    if any(np.any(fields(raw, data, o, "<u4") != v) for o, v in lay.counts):
+        raise Unsupported("JointState messages of varying layout")
+    n_vel = shape[2]
+    names = np.column_stack([fields(raw, data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
+    position = fields(raw, data, lay.position, "<f8", len(lay.names)).reshape(data.size, -1)
+    velocity = fields(raw, data, lay.velocity, "<f8", n_vel).reshape(data.size, n_vel)
+    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
 
 
 def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
@@ -201,21 +209,20 @@ def decode_messages(topic: DecodedTopic, raw: np.ndarray, offsets: np.ndarray, c
     """Add the messages of one channel at ``offsets`` in a decompressed
     chunk ``raw`` (each a complete record, by ``mcap_fast``) to ``topic``;
     the chunks of the file expand to ``chunk_bytes``."""
-    sizes = gather(raw, offsets + 1, 8).view("<u8").ravel().astype(np.int64) + 9
+    sizes = fields(raw, offsets, 1, "<u8").astype(np.int64) - (MESSAGE_HEADER - 9)  # each message's data
     # message indexes can claim any number of messages; the chunks hold no more than this many of this size
-    topic.capacity = min(topic.capacity, chunk_bytes // int(sizes[0]))
-    if topic.kind == "json":
-        head = gather(raw, offsets, MESSAGE_HEADER)
-    elif np.all(sizes == sizes[0]):  # fixed layout: each record copied once, fields are its columns
-        head = gather(raw, offsets, int(sizes[0]))
-    else:
+    topic.capacity = min(topic.capacity, chunk_bytes // (int(sizes[0]) + MESSAGE_HEADER))
+    if np.any(sizes < 0):
+        raise Unsupported("message record shorter than its header")
+    if topic.kind != "json" and np.any(sizes != sizes[0]):
         raise Unsupported("CDR messages of varying size")
-    if np.any(_field(head, 9, "<u2") != channel_id):
+    if np.any(fields(raw, offsets, 9, "<u2") != channel_id):
         raise Unsupported("message index of another channel")
-    log_ns = _field(head, 15, "<i8")
+    log_ns = fields(raw, offsets, 15, "<i8")
+    data = offsets + MESSAGE_HEADER
     if topic.kind == "json":
-        topic.add_json(log_ns, _json_lines(raw, offsets + MESSAGE_HEADER, sizes - MESSAGE_HEADER))
+        topic.add_json(log_ns.copy(), _json_lines(raw, data, sizes))
     elif topic.kind == "imu":
-        topic.add(_decode_imu(head[:, MESSAGE_HEADER:], log_ns))
+        topic.add(_decode_imu(raw, data, int(sizes[0]), log_ns))
     else:
-        topic.add(_decode_joint(head[:, MESSAGE_HEADER:], log_ns))
+        topic.add(_decode_joint(raw, data, int(sizes[0]), log_ns))

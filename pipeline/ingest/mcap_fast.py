@@ -18,7 +18,7 @@ error, so both paths give the same samples and the same messages.
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -30,14 +30,15 @@ from mcap.records import Schema
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_columns import MESSAGE_HEADER, DecodedTopic, Unsupported, decode_messages, gather
+from rotcal.ingest.mcap_columns import MESSAGE_HEADER, DecodedTopic, Unsupported, decode_messages, fields
 from rotcal.ingest.mcap_records import McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
 # Chunks are decompressed together (on a thread pool) up to this many bytes,
-# compressed and decompressed, counted from their declared sizes; a batch
-# holds one chunk at least (at most the record limit).
+# compressed and decompressed, counted from their declared sizes, in two
+# batches (one decoded while the next is decompressed); a batch holds one
+# chunk at least (at most the record limit).
 BATCH_BYTES = 32 * 1024 * 1024
 
 
@@ -47,6 +48,9 @@ class _State:
     topics: set[str]
     counts: dict[int, int]
     chunk_bytes: int
+    # two batches' decompressed chunks: one decoded while the next is decompressed
+    buffers: list[np.ndarray] = field(default_factory=lambda: [np.empty(0, np.uint8)] * 2)
+    turn: int = 0
     schemas: dict[int, Schema] = field(default_factory=dict)
     found: dict[str, DecodedTopic] = field(default_factory=dict)
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
@@ -81,55 +85,118 @@ class _Batch:
     size: int = 0
 
     def fits(self, body: bytes) -> bool:
-        return not self.chunks or self.size + _footprint(body) <= BATCH_BYTES
+        return not self.chunks or self.size + len(body) + _declared(body) <= BATCH_BYTES // 2  # two in flight
 
     def add(self, offset: int, body: bytes) -> None:
         self.chunks.append((offset, body, []))
-        self.size += _footprint(body)
+        self.size += len(body) + _declared(body)
 
 
-def _footprint(body: bytes) -> int:
-    """A chunk record's bytes and the bytes it declares it expands to (its
-    ``uncompressed_size``, checked against the limit when it is decompressed)."""
-    return len(body) + (struct.unpack_from("<Q", body, 16)[0] if len(body) >= 24 else 0)
+def _declared(body: bytes) -> int:
+    """The bytes a chunk record declares it expands to (its ``uncompressed_size``)."""
+    return struct.unpack_from("<Q", body, 16)[0] if len(body) >= 24 else 0
 
 
-def _inflate(chunk: tuple[int, bytes, list[bytes]], where: McapFile) -> np.ndarray:
+def _inflate(out: memoryview, chunk: tuple[int, bytes, list[bytes]], where: McapFile) -> None:
     offset, body, _ = chunk
-    return np.frombuffer(chunk_data(body, offset, where), np.uint8)
+    chunk_data(body, offset, where, out)
 
 
-def _chunks(state: _State, batch: _Batch, mapper: Callable) -> None:
-    """Decompress a batch of chunks with ``mapper`` (a thread pool's map:
-    zstd, lz4 and crc32 release the GIL), then decode them in file order."""
-    for raw, (offset, _, indexes) in zip(mapper(_inflate, batch.chunks, [state.where] * len(batch.chunks)), batch.chunks):
-        _chunk(state, raw, offset, indexes)
-    batch.chunks.clear()
-    batch.size = 0
+@dataclass
+class _Flight:
+    """A batch whose chunks are being decompressed side by side into ``raw``
+    (chunk ``c`` from ``bases[c]``): ``done`` yields as each one is."""
+
+    raw: np.ndarray
+    bases: np.ndarray
+    indexes: list[list[bytes]]
+    done: Iterator
+    size: int
 
 
-def _chunk(state: _State, raw: np.ndarray, offset: int, indexes: list[bytes]) -> None:
-    """Decode one chunk's messages of the kept channels."""
-    size = raw.size
-    by_channel = {}
-    for index in indexes:
-        channel_id, length = struct.unpack_from("<HI", index, 0)
-        pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
-        by_channel[channel_id] = np.sort(pairs[:, 1].astype(np.int64))
-    starts = np.sort(np.concatenate([np.zeros(0, np.int64), *by_channel.values()]))
-    if starts.size and (starts[0] < 0 or starts[-1] > size - MESSAGE_HEADER):
-        raise Unsupported("message index points outside its chunk")
+def _launch(state: _State, batch: _Batch, mapper: Callable, overlap: bool) -> _Flight:
+    """Start decompressing a batch with ``mapper`` (a thread pool's map, which
+    submits every chunk at once: zstd and crc32 release the GIL) into a
+    buffer: the other one of two where a batch in flight is to be decoded
+    meanwhile (``overlap``), else the one last used (the other is freed)."""
+    sizes = [_declared(body) for _, body, _ in batch.chunks]
+    if max(sizes) > state.where.limits.max_mcap_record_bytes:
+        raise Unsupported("a chunk declares more than the record limit")  # the per-message path says so
+    bases = np.r_[0, np.cumsum(sizes, dtype=np.int64)]
+    if overlap:
+        state.turn ^= 1
+    else:
+        state.buffers[state.turn ^ 1] = np.empty(0, np.uint8)  # one batch at a time: one buffer
+    if state.buffers[state.turn].size < bases[-1]:
+        state.buffers[state.turn] = np.empty(int(bases[-1]), np.uint8)
+    raw = state.buffers[state.turn][: bases[-1]]
+    view = raw.data
+    outs = [view[lo:hi] for lo, hi in zip(bases[:-1].tolist(), bases[1:].tolist())]
+    chunks, size, batch.chunks, batch.size = batch.chunks, batch.size, [], 0
+    done = mapper(_inflate, outs, chunks, [state.where] * len(chunks))
+    return _Flight(raw, bases, [indexes for _, _, indexes in chunks], done, size)
+
+
+def _relay(state: _State, batch: _Batch, mapper: Callable, flight: _Flight | None) -> _Flight:
+    """Launch ``batch`` and decode the one in ``flight`` meanwhile, when both
+    fit in ``BATCH_BYTES`` (else one after the other)."""
+    if flight is not None and flight.size + batch.size > BATCH_BYTES:
+        _land(state, flight)
+        flight = None
+    launched = _launch(state, batch, mapper, overlap=flight is not None)
+    _land(state, flight)
+    return launched
+
+
+def _land(state: _State, flight: _Flight | None) -> None:
+    """Wait for a batch's chunks, then decode their messages together."""
+    if flight is not None:
+        for _ in flight.done:
+            pass
+        _decode(state, flight.raw, flight.bases, flight.indexes)
+
+
+def _ascending(offsets: np.ndarray) -> np.ndarray:
+    """``offsets`` in ascending order: as writers index them, or sorted
+    (stable sort: a merge of ascending runs, such as channels' concatenated offsets)."""
+    return offsets if np.all(offsets[1:] > offsets[:-1]) else np.sort(offsets, kind="stable")
+
+
+def _indexed(bases: np.ndarray, indexes: list[list[bytes]]) -> dict[int, np.ndarray]:
+    """Each channel's message offsets in the batch's buffer (chunk ``c`` at
+    ``bases[c]``), from the chunks' message indexes, each inside its chunk."""
+    parts: dict[int, list[np.ndarray]] = {}
+    for base, end, chunk_indexes in zip(bases[:-1].tolist(), bases[1:].tolist(), indexes):
+        for index in chunk_indexes:
+            channel_id, length = struct.unpack_from("<HI", index, 0)
+            pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
+            offsets = _ascending(pairs[:, 1].astype(np.int64))
+            if offsets.size and (offsets[0] < 0 or offsets[-1] > end - base - MESSAGE_HEADER):
+                raise Unsupported("message index points outside its chunk")
+            parts.setdefault(channel_id, []).append(offsets + base)
+    return {channel_id: np.concatenate(p) for channel_id, p in parts.items()}
+
+
+def _decode(state: _State, raw: np.ndarray, bases: np.ndarray, indexes: list[list[bytes]]) -> None:
+    """Decode the messages of the kept channels in the decompressed chunks
+    side by side in ``raw`` (chunk ``c`` from ``bases[c]``), checking that
+    the indexed messages and the records between them tile each chunk."""
+    by_channel = _indexed(bases, indexes)
+    starts = _ascending(np.concatenate([np.zeros(0, np.int64), *by_channel.values()]))
     if np.any(raw[starts] != Opcode.MESSAGE):
         raise Unsupported("message index points at something other than a message")
-    ends = starts + 9 + gather(raw, starts + 1, 8).view("<u8").ravel().astype(np.int64)
-    if np.any(ends[:-1] > starts[1:]) or (ends.size and ends[-1] > size) or np.any(ends < starts):
+    ends = starts + 9 + fields(raw, starts, 1, "<u8").astype(np.int64)
+    # each chunk's bounds as empty records, so that no record spans two chunks and each gap lies in one
+    at = np.searchsorted(starts, bases)
+    starts, ends = np.insert(starts, at, bases), np.insert(ends, at, bases)
+    if np.any(ends[:-1] > starts[1:]) or np.any(ends < starts):
         raise Unsupported("overlapping message records")
     # the other records (schemas, channels) sit in the gaps between messages
-    gap_starts, gap_ends = np.r_[0, ends], np.r_[starts, size]
+    gap = np.flatnonzero(ends[:-1] < starts[1:])
     defined_at = {}
     view = raw.data
-    for lo, hi in zip(gap_starts[gap_starts < gap_ends].tolist(), gap_ends[gap_starts < gap_ends].tolist()):
-        for opcode, pos, record in chunk_records(view[lo:hi], offset, state.where):
+    for lo, hi in zip(ends[gap].tolist(), starts[gap + 1].tolist()):
+        for opcode, pos, record in chunk_records(view[lo:hi], 0, state.where):
             if opcode == Opcode.MESSAGE:
                 raise Unsupported("chunk record outside the message index")
             if opcode == Opcode.SCHEMA:
@@ -174,13 +241,13 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
     """Every channel by topic, with the messages of ``topics`` and of any Imu
     or JointState channel decoded into columns; chunks are decompressed on
     ``parallel.cores(workers)`` threads (one: in this thread, no pool), at
-    most ``BATCH_BYTES`` at a time.
+    most ``BATCH_BYTES`` at a time, while the batch before is decoded.
 
     Raises ``Unsupported`` for anything but a chunked, indexed file of
     layouts this module decodes, damaged files included (the per-message
     path words their errors).
     """
-    batch = _Batch()
+    batch, flight = _Batch(), None
     where = McapFile(path, limits)
     try:
         threads = cores(workers)
@@ -196,7 +263,10 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
                     batch.add(offset, body)
                     continue
                 if batch.chunks:
-                    _chunks(state, batch, mapper)
+                    flight = _relay(state, batch, mapper, flight)
+                if opcode != Opcode.CHUNK:  # a record outside chunks comes after the chunks before it
+                    flight, landing = None, flight
+                    _land(state, landing)
                 if opcode == Opcode.CHUNK:
                     batch.add(offset, body)
                 elif opcode == Opcode.SCHEMA:

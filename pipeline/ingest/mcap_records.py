@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import struct
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ import lz4.frame
 import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Channel, Schema
+from zlib_ng import zlib_ng
 
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
@@ -87,9 +87,11 @@ def top_records(fh: BinaryIO, where: McapFile) -> Iterator[tuple[int, int, int]]
             return
 
 
-def chunk_data(body: bytes, offset: int, where: McapFile) -> bytes:
-    """A chunk record's records, decompressed within the limit and checked
-    against the chunk's CRC (when not zero, as the MCAP specification says)."""
+def chunk_data(body: bytes, offset: int, where: McapFile, out: memoryview | None = None) -> memoryview:
+    """A chunk record's records, decompressed within the limit into ``out``
+    (a buffer of the size the chunk declares; by default a new one) and
+    checked against the chunk's CRC (when not zero, as the MCAP
+    specification says)."""
     if len(body) < _CHUNK_HEAD.size + 4:
         raise where.corrupt(f"the chunk at byte {offset} is shorter than its header")
     _, _, size, crc = _CHUNK_HEAD.unpack_from(body)
@@ -105,36 +107,38 @@ def chunk_data(body: bytes, offset: int, where: McapFile) -> bytes:
     if data_len > len(body) - start:  # fewer is allowed: records may gain fields at their end
         raise where.corrupt(f"the chunk at byte {offset} declares {data_len} bytes of records where it holds "
                             f"{len(body) - start}")
+    out = memoryview(bytearray(size)) if out is None else out
     try:
-        data = decompress(compression, memoryview(body)[start : start + data_len], size)
+        decompress(compression, memoryview(body)[start : start + data_len], out)
     except (zstandard.ZstdError, RuntimeError) as exc:
         raise where.corrupt(f"the chunk at byte {offset} does not decompress ({exc})") from None
     except ValueError as exc:
         raise where.corrupt(f"{exc}") from None
-    if crc and zlib.crc32(data) != crc:
+    if crc and zlib_ng.crc32(out) != crc:
         raise where.corrupt(f"the chunk at byte {offset} fails its CRC check")
-    return data
+    return out
 
 
-def decompress(compression: str, data: memoryview, size: int) -> bytes:
-    """Decompressed to at most ``size`` + 1 bytes whatever the compressed
-    frame claims (a frame header can declare any content size); raises
-    ValueError if that is not exactly ``size`` bytes."""
+def decompress(compression: str, data: memoryview, out: memoryview) -> None:
+    """Decompressed into ``out`` (zstd: in place, no copy, the GIL released),
+    reading at most one byte more whatever the compressed frame claims (a
+    frame header can declare any content size); raises ValueError if that
+    is not exactly ``len(out)`` bytes."""
+    size = len(out)
     if compression == "zstd":
-        reader, parts, got = zstandard.ZstdDecompressor().stream_reader(data), [], 0
-        while got <= size and (block := reader.read(size + 1 - got)):
-            parts.append(block)
-            got += len(block)
-        out = b"".join(parts)
-    elif compression == "lz4":
-        out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
-    elif compression == "":
-        out = bytes(data)
+        reader, got = zstandard.ZstdDecompressor().stream_reader(data), 0
+        while got < size and (n := reader.readinto(out[got:])):
+            got += n
+        got += len(reader.read(1)) if got == size else 0
+    elif compression in ("lz4", ""):
+        whole = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1) if compression else data
+        got = len(whole)
+        if got == size:
+            out[:] = whole
     else:
         raise ValueError(f"chunk compression {compression!r}")
-    if len(out) != size:
-        raise ValueError(f"a chunk holds {len(out)} bytes where it declares {size}")
-    return out
+    if got != size:
+        raise ValueError(f"a chunk holds {got} bytes where it declares {size}")
 
 
 def chunk_records(data: bytes | memoryview, offset: int, where: McapFile) -> Iterator[tuple[int, int, memoryview]]:
