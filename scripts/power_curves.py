@@ -147,16 +147,16 @@ def clip_request(job: Job) -> str:
 
 
 def pilot_jobs(sizes: dict[str, float], stage: int, workdir: str) -> list[Job]:
-    """One dataset per effect (but clipping) at ``sizes[name]``."""
+    """One dataset per effect of ``sizes`` at its size."""
     return [Job(name, sizes[name], request(name, sizes[name], np.random.default_rng([k, 0])), 10000 + 100 * stage + k,
-                workdir) for k, name in enumerate(names()) if name != "clipping"]
+                workdir) for k, name in enumerate(names()) if name in sizes]
 
 
-def centres(pool: ProcessPoolExecutor, workdir: str) -> dict[str, float]:
+def centres(pool: ProcessPoolExecutor, effects: set[str], workdir: str) -> dict[str, float]:
     """Each effect's ``centre`` from a pilot at the low end of its catalogue
     range, refined by a second pilot there (far above the limit, the
     statistic of a misfit grows faster than the size squared)."""
-    sizes = {name: effect_named(name).sizes[0] for name in names() if name != "clipping"}
+    sizes = {name: effect_named(name).sizes[0] for name in names() if name in effects - {"clipping"}}
     for stage in range(2):
         sizes = {r["effect"]: centre(r) for r in pool.map(run_job, pilot_jobs(sizes, stage, workdir))}
     return sizes
@@ -172,7 +172,8 @@ def centre(pilot: dict) -> float:
     return pilot["size"] * float(np.sqrt(need / max(pilot["glr"] - k, 1.0)))
 
 
-def jobs(centres: dict[str, float], n_seeds: int, n_points: int, n_clean: int, workdir: str) -> list[Job]:
+def jobs(effects: set[str], centres: dict[str, float], n_seeds: int, n_points: int, n_clean: int,
+         workdir: str) -> list[Job]:
     """The grid of every effect, ``n_points`` sizes from ``SPAN[0]`` below to
     ``SPAN[1]`` above its pilot centre (clipping: limits ``CLIP_SIGMAS``
     above its largest output), shapes drawn per seed (the same across sizes);
@@ -181,6 +182,8 @@ def jobs(centres: dict[str, float], n_seeds: int, n_points: int, n_clean: int, w
     out = [Job("", 0.0, "", 1000 + s, workdir) for s in range(n_clean - n_clean // 3)]
     out += [Job("", 0.0, "thermal:tco_u=0,tcs_u=0", 1500 + s, workdir) for s in range(n_clean // 3)]
     for k, name in enumerate(names()):
+        if name not in effects:
+            continue
         grid = (np.linspace(*CLIP_SIGMAS, n_points) if name == "clipping"
                 else centres[name] * np.geomspace(1 / SPAN[0], SPAN[1], n_points))
         for i, size in enumerate(grid):
@@ -240,6 +243,8 @@ def curves(results: list[dict], clip_threshold: float) -> dict[str, dict]:
     out = {}
     for name in names():
         rs = [r for r in results if r["effect"] == name]
+        if not rs:
+            continue
         sizes = np.array([r["size"] for r in rs])
         rot = np.array([r["named"] for r in rs], float)
         if name == "clipping":
@@ -300,6 +305,16 @@ def plot(curve: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def loaded(paths: list[Path]) -> list[dict]:
+    """Saved outcomes: each effect's from the last file holding it, the clean
+    ones from the file holding most (a rerun of some effects keeps the
+    larger calibration)."""
+    files = [json.loads(p.read_text()) for p in paths]
+    clean = max(([r for r in f if not r["effect"]] for f in files), key=len)
+    chosen = {r["effect"]: f for f in files for r in f if r["effect"]}
+    return clean + [r for name, f in chosen.items() for r in f if r["effect"] == name]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=8, help="datasets per effect and size")
@@ -309,12 +324,21 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="a smoke test: 1 seed, 2 sizes, 2 clean datasets")
     parser.add_argument("--plot", type=Path, default=Path("docs/power_curves.png"))
     parser.add_argument("--json", type=Path, help="also write every dataset's outcome here")
+    parser.add_argument("--effects", nargs="+", choices=names(), default=list(names()), help="only these effects")
+    parser.add_argument("--load", type=Path, nargs="+",
+                        help="tabulate saved outcomes (--json) instead of simulating: each effect's rows from the "
+                             "last file holding it, the clean rows from the file holding most")
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.points, args.clean = 1, 2, 2
     began = time.perf_counter()
-    with tempfile.TemporaryDirectory() as workdir, ProcessPoolExecutor(args.workers) as pool:
-        results = list(pool.map(run_job, jobs(centres(pool, workdir), args.seeds, args.points, args.clean, workdir)))
+    if args.load:
+        results = loaded(args.load)
+    else:
+        with tempfile.TemporaryDirectory() as workdir, ProcessPoolExecutor(args.workers) as pool:
+            effects = set(args.effects)
+            results = list(pool.map(run_job, jobs(effects, centres(pool, effects, workdir), args.seeds, args.points,
+                                                  args.clean, workdir)))
     clean = [r for r in results if not r["effect"]]
     threshold = clip_threshold(clean)
     curve = curves([r for r in results if r["effect"]], threshold)

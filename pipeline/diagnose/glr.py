@@ -20,15 +20,15 @@ Clipping is not a smooth extension: its GLR is that of quantized samples
 with an output limit c at the largest output (its maximum-likelihood value),
 each sample at c censored (probability P(x >= c - q/2)) rather than in its
 quantum bin (P(c - q/2 <= x < c + q/2)), x ~ N(mu, sigma^2) the null model's
-prediction and noise. Its null distribution is not chi-square; it is drawn
-by Monte Carlo (``clipping_threshold``).
+prediction and noise (``clipping.censoring_gain``). Its null distribution
+is not chi-square; it is drawn by Monte Carlo (``clipping_threshold``).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import log_ndtr
 
+from rotcal.diagnose.clipping import censoring_gain
 from rotcal.diagnose.fitting import ModelFit, fit_model
 from rotcal.diagnose.model import Layout, Observations, Structure
 from rotcal.model.effects.base import Candidate
@@ -48,14 +48,6 @@ def glr(null: ModelFit, true: tuple[Candidate, ...]) -> tuple[float, int]:
     return max(stat, 0.0), sum(len(c.names) for c in true)
 
 
-def _censoring_gain(mu: np.ndarray, sigma: np.ndarray, limit: float, q: float) -> np.ndarray:
-    """Per sample at ``limit``, ln P(x >= limit - q/2) - ln P(x in its bin):
-    -ln(1 - P(x >= limit + q/2) / P(x >= limit - q/2)), computed in the tail."""
-    lower = (limit - q / 2 - mu) / sigma
-    upper = lower + q / sigma
-    return -np.log1p(-np.exp(log_ndtr(-upper) - log_ndtr(-lower)))
-
-
 def clipping_glr(null: ModelFit, q: float) -> float:
     """Lambda of an upper output limit at the largest output value (common to
     every channel, as the converter's limit is), given the null model's
@@ -64,7 +56,7 @@ def clipping_glr(null: ModelFit, q: float) -> float:
     limit = float(y.max())
     at = y == limit
     sigma = np.broadcast_to(null.sigma[None, :], y.shape)
-    return float(2 * _censoring_gain(null.ev.pred[at], sigma[at], limit, q).sum())
+    return float(2 * censoring_gain(null.ev.pred[at], sigma[at], limit, q).sum())
 
 
 def clipping_threshold(null: ModelFit, q: float, alpha: float, draws: int, rng: np.random.Generator,
@@ -80,6 +72,6 @@ def clipping_threshold(null: ModelFit, q: float, alpha: float, draws: int, rng: 
     for start in range(0, draws, chunk):
         x = q * np.round((mu[None, :] + sigma[None, :] * rng.standard_normal((min(chunk, draws - start), mu.size))) / q)
         top = x.max(axis=1, keepdims=True)
-        gain = np.where(x == top, _censoring_gain(mu[None, :], sigma[None, :], top, q), 0.0)
+        gain = np.where(x == top, censoring_gain(mu[None, :], sigma[None, :], top, q), 0.0)
         stats.append(2 * gain.sum(axis=1))
     return float(np.quantile(np.concatenate(stats), 1 - alpha))
