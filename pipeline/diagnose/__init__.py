@@ -318,7 +318,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
                     np.ones_like(obs.y, bool))
     q = quantum(obs.y)
-    evidence = stuck_values(obs.y, q, fit.ev.pred, fit.sigma)
+    evidence = stuck_values(obs.y, q)
     clip = clip_limits(evidence, alpha)
     if any(v is not None for v in clip):
         for _ in range(2):

@@ -3,20 +3,10 @@
 Without clipping, the largest value a channel takes is an extreme of the
 noise and is rarely repeated; the density of values falls towards it. A
 converter that saturates piles every sample beyond its limit onto one value.
-Two tests, the smaller p-value doubled (Bonferroni). The count at the
-extreme value against the count one output quantum inside it: under no
-clipping the extreme is no more likely than its neighbour, so a one-sided
-binomial test at p = 1/2 bounds the false-alarm rate; it needs no model.
-And, given the null model's predictions mu and noise sigma, the censoring
-likelihood ratio: of the samples that reach the extreme's bin (x >= c - q/2),
-none went beyond it, an event of probability prod pi_i under no clipping,
-pi_i = 1 - P(x_i >= c + q/2) / P(x_i >= c - q/2); that product is its
-p-value (for a given c, P(reject) = P(event and prod <= t) <= t; taking c
-at the extreme only lowers the rate: on the default plan the Monte Carlo
-1e-4 point of -2 ln prod is 16, below -2 ln 1e-4 = 18.4). It uses where the
-model puts each sample, so clipped samples that sit well above the model's
-noise weigh more than a pile counted against its neighbour: on the default
-plan it needs about a fifth as many clipped samples (docs/power.md).
+The test compares the count at the extreme value with the count one output
+quantum inside it: under no clipping the extreme is no more likely than its
+neighbour, so a one-sided binomial test at p = 1/2 bounds the false-alarm
+rate.
 """
 
 from __future__ import annotations
@@ -24,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import log_ndtr
 from scipy.stats import binom
 
 from rotcal.model.physics import CHANNELS
@@ -37,7 +26,7 @@ class StuckValue:
     value: float
     count: int
     neighbour_count: int
-    p_value: float     # the two tests' smaller p-value, doubled
+    p_value: float
 
 
 def quantum(y: np.ndarray) -> float:
@@ -48,30 +37,17 @@ def quantum(y: np.ndarray) -> float:
     return float(steps[steps > 0].min()) if steps.size else 1.0
 
 
-def censoring_gain(mu: np.ndarray, sigma: np.ndarray, limit: np.ndarray | float, q: float) -> np.ndarray:
-    """Per sample at an upper ``limit``, -ln pi = ln P(x >= limit - q/2) - ln
-    P(x in limit's bin), x ~ N(mu, sigma^2): what censoring at the limit
-    gains over the quantized sample, computed in the tail (log_ndtr)."""
-    lower = (limit - q / 2 - mu) / sigma
-    upper = lower + q / sigma
-    return -np.log1p(-np.exp(log_ndtr(-upper) - log_ndtr(-lower)))
-
-
-def stuck_values(y: np.ndarray, q: float, pred: np.ndarray, sigma: np.ndarray) -> list[StuckValue]:
-    """Per channel and side, the extreme value with its evidence, ``pred``
-    and ``sigma`` the null model's predictions (n, 3) and noise (3,)."""
+def stuck_values(y: np.ndarray, q: float) -> list[StuckValue]:
+    """Per channel and side, the extreme value with its evidence."""
     out = []
     for r, channel in enumerate(CHANNELS):
         col = y[:, r]
         for side, value, inner in (("high", col.max(), -q), ("low", col.min(), q)):
-            at = col == value
-            count = int(np.count_nonzero(at))
+            count = int(np.count_nonzero(col == value))
             lo, hi = sorted((value + inner, value))
             neighbour = int(np.count_nonzero((col >= lo) & (col <= hi))) - count
-            binomial = float(binom.sf(count - 1, count + neighbour, 0.5))
-            sign = 1.0 if side == "high" else -1.0   # the low side mirrored
-            censored = float(np.exp(-censoring_gain(sign * pred[at, r], sigma[r], sign * value, q).sum()))
-            out.append(StuckValue(channel, side, float(value), count, neighbour, min(1.0, 2 * min(binomial, censored))))
+            p = float(binom.sf(count - 1, count + neighbour, 0.5))
+            out.append(StuckValue(channel, side, float(value), count, neighbour, p))
     return out
 
 
