@@ -1,0 +1,358 @@
+"""Power curves of the diagnosis against the best test (issue 15 item 4).
+
+For every catalogue effect, simulated on the default plan (a labelled table
+run) at sizes from well below the catalogue's range (``sizes``) to its upper
+end: the fraction of datasets in which rotcal's diagnosis (the default
+configuration) names the effect, and the fraction in which the generalized
+likelihood-ratio test of the true nested model (``rotcal.diagnose.glr``:
+the baseline plus the effect's exact extension, on its true axis or channel)
+rejects the baseline, both at rotcal's false-alarm rate per effect test
+(``[diagnosis] false_alarm``). A probit in log size fitted to each gives the
+sizes at 50 % and 80 % power. Clean datasets calibrate both tests.
+
+    python scripts/power_curves.py [--seeds 8] [--points 7] [--clean 24] [--workers 2] [--quick]
+
+Prints the Markdown table (docs/power.md, docs/measured.md) and writes the
+plot (``--plot``, default docs/power_curves.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.stats import chi2, norm
+from threadpoolctl import threadpool_limits
+
+from rotcal.config import DiagnosisConfig, RunConfig, RunSection
+from rotcal.diagnose import Diagnosis, _start
+from rotcal.diagnose.clipping import quantum
+from rotcal.diagnose.fitting import score
+from rotcal.diagnose.glr import clipping_glr, clipping_threshold, glr, null_fit
+from rotcal.ingest import load_dataset
+from rotcal.model.effects import effect_named, names
+from rotcal.model.physics import AXES, CHANNELS
+from rotcal.model.results import IntrinsicResult
+from rotcal.run.stages import Reductions, determined, diagnose_stage, reduce, segment_and_fit
+from rotcal.simulate import SimulationSpec, simulate, write_dataset
+
+SPAN = (2.5, 4.0)   # the grid from this factor below to this factor above the GLR's estimated 50 % size
+CLIP_SIGMAS = (1.0, 4.0)   # clipping: limits from 1 to 4 noise standard deviations above the largest output
+CLIP_MEASURE = "expected samples beyond the limit"
+# Option keys that give an effect's shape, not its size: kept as drawn when the size is scaled.
+SHAPE = frozenset({"axis", "ripple_phase_deg", "warmup_k", "tau_frac", "start_c", "step_k", "step_frac"})
+ALPHA = DiagnosisConfig().false_alarm
+CLIP_CALIBRATIONS = 3   # clean datasets whose null model calibrates the clipping GLR by Monte Carlo
+
+
+def request(name: str, size: float, rng: np.random.Generator) -> str:
+    """The effect ``name`` drawn as the acceptance scenarios draw it
+    (``scenarios.draw_effect``: sign, axis, channel and shape), its size
+    measure (``size_of``) then scaled to ``size`` with every other magnitude
+    in proportion (thermal's tcs with its tco; channel_delay's delays, the
+    largest being the size)."""
+    effect = effect_named(name)
+    low, high = effect.sizes
+    drawn = effect.draw(rng.uniform(low, high), rng.choice([-1.0, 1.0]), rng.choice(AXES),
+                        rng.choice(("u", "v", "w")), rng)
+    head, body = drawn.split(":", 1)
+    params = dict(kv.split("=") for kv in body.split(","))
+    measure = [k for k in params if k not in SHAPE and not k.startswith("tcs_")]
+    factor = size / max(abs(float(params[k])) for k in measure)
+    scaled = {k: v if k in SHAPE else f"{float(v) * factor:.6g}" for k, v in params.items()}
+    return head + ":" + ",".join(f"{k}={v}" for k, v in scaled.items())
+
+
+def true_candidates(layout, name: str, req: str) -> tuple:
+    """The diagnosis's extensions of the simulated effect where it acts: its
+    axis, or each channel it was given on (every channel for a dataset-wide one)."""
+    params = dict(kv.split("=") for kv in req.split(":", 1)[1].split(","))
+    axis = params.get("axis")
+    on = {c for c in CHANNELS if any(k.endswith(f"_{c}") or k.endswith(f"_{c}_s") for k in params)}
+    return tuple(c for c in layout.candidates if c.effect == name
+                 and (c.scope == "" or c.scope == axis or c.scope in on))
+
+
+@dataclass(frozen=True)
+class Job:
+    effect: str       # the simulated effect, "" for a clean dataset
+    size: float
+    req: str          # the simulator request ("" for none)
+    seed: int
+    workdir: str
+
+
+def diagnosed(path: Path) -> tuple[tuple[IntrinsicResult, ...], Diagnosis]:
+    """The baseline results and the diagnosis of a dataset: ``run_dataset``'s
+    stages up to the diagnosis, with the default configuration (the stages
+    after it, metrology and the written outputs, do not change it)."""
+    config = RunConfig(run=RunSection(workers=1))
+    with threadpool_limits(limits=1, user_api="blas"):
+        ds = load_dataset(path, None, config.limits, 1)
+        seg = segment_and_fit(ds, config)
+        reductions = reduce(seg, ds)
+        results, _, _ = determined(reductions, seg, path)
+        assert isinstance(reductions, Reductions)
+        diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
+    assert diagnosis is not None
+    return results, diagnosis
+
+
+def run_job(job: Job) -> dict:
+    """Simulate one dataset, run rotcal on it, and compute the GLR statistic
+    of its true extension (and, clean, each candidate's score p-value)."""
+    req = clip_request(job) if job.effect == "clipping" else job.req
+    spec = SimulationSpec().with_effects(*([req] if req else []))
+    data = Path(job.workdir) / f"{job.effect or 'clean'}_{job.seed}_{job.size:.6g}"
+    write_dataset(simulate(spec, job.seed), spec, data / "data")
+    results, diagnosis = diagnosed(data / "data")
+    found = diagnosis.findings.filter(diagnosis.findings["detected"])["effect"].to_list()
+    out = {"effect": job.effect, "size": job.size, "req": req, "seed": job.seed,
+           "named": job.effect in found, "findings": found}
+    with threadpool_limits(limits=1, user_api="blas"):
+        final = diagnosis.final
+        null = null_fit(final.obs, final.layout, _start(final.layout, sorted(
+            results, key=lambda r: (abs(r.rate_hz), r.rate_hz))))
+        if job.effect == "clipping" or not job.effect:
+            out["clip_glr"] = clipping_glr(null, quantum(final.obs.y))
+        if job.effect == "clipping":   # its size: the expected number of samples beyond the limit
+            limit = float(req.split("=")[1])
+            out["size"] = float(norm.sf((limit - null.ev.pred) / null.sigma[None, :]).sum())
+        if job.effect and job.effect != "clipping":
+            out["glr"], out["k"] = glr(null, true_candidates(final.layout, job.effect, req))
+        if not job.effect:   # calibration: every candidate's score p-value and GLR on clean data
+            out["clean_p"] = {c.key: score(null, (c,)).p_value for c in final.layout.candidates}
+            out["clean_glr"] = {c.key: glr(null, (c,))[0] for c in final.layout.candidates}
+            out["k_of"] = {c.key: len(c.names) for c in final.layout.candidates}
+            if job.seed < 1000 + CLIP_CALIBRATIONS:
+                out["clip_threshold"] = clipping_threshold(null, quantum(final.obs.y), ALPHA, 200_000,
+                                                           np.random.default_rng(job.seed))
+    return out
+
+
+def clip_request(job: Job) -> str:
+    """A limit ``job.size`` noise standard deviations above the largest
+    noise-free output (the simulator's ``below_max=0`` puts it at that
+    output, rounded down): clipping fades as the limit rises above the noise."""
+    spec = SimulationSpec().with_effects("clipping:below_max=0")
+    peak = simulate(spec, job.seed).truth["effects"][0]["parameters"]["clip_high"] + 0.5
+    return f"clipping:clip_high={np.floor(peak + job.size * SimulationSpec().dut.noise_std):.0f}"
+
+
+def pilot_jobs(sizes: dict[str, float], stage: int, workdir: str) -> list[Job]:
+    """One dataset per effect of ``sizes`` at its size."""
+    return [Job(name, sizes[name], request(name, sizes[name], np.random.default_rng([k, 0])), 10000 + 100 * stage + k,
+                workdir) for k, name in enumerate(names()) if name in sizes]
+
+
+def centres(pool: ProcessPoolExecutor, effects: set[str], workdir: str) -> dict[str, float]:
+    """Each effect's ``centre`` from a pilot at the low end of its catalogue
+    range, refined by a second pilot there (far above the limit, the
+    statistic of a misfit grows faster than the size squared)."""
+    sizes = {name: effect_named(name).sizes[0] for name in names() if name in effects - {"clipping"}}
+    for stage in range(2):
+        sizes = {r["effect"]: centre(r) for r in pool.map(run_job, pilot_jobs(sizes, stage, workdir))}
+    return sizes
+
+
+def centre(pilot: dict) -> float:
+    """The size where the GLR test has about 50 % power, from one pilot
+    dataset: its statistic's noncentrality (Lambda - k) grows as the size
+    squared, and 50 % power needs a noncentrality of about the threshold
+    less k - 1 (the median of a noncentral chi-square lies near its mean)."""
+    k = pilot["k"]
+    need = chi2.isf(ALPHA, k) - k + 1
+    return pilot["size"] * float(np.sqrt(need / max(pilot["glr"] - k, 1.0)))
+
+
+def jobs(effects: set[str], centres: dict[str, float], n_seeds: int, n_points: int, n_clean: int,
+         workdir: str) -> list[Job]:
+    """The grid of every effect, ``n_points`` sizes from ``SPAN[0]`` below to
+    ``SPAN[1]`` above its pilot centre (clipping: limits ``CLIP_SIGMAS``
+    above its largest output), shapes drawn per seed (the same across sizes);
+    and the clean datasets, the last third of them with a logged warm-up
+    (thermal with zero coefficients) so that the thermal test is calibrated too."""
+    out = [Job("", 0.0, "", 1000 + s, workdir) for s in range(n_clean - n_clean // 3)]
+    out += [Job("", 0.0, "thermal:tco_u=0,tcs_u=0", 1500 + s, workdir) for s in range(n_clean // 3)]
+    for k, name in enumerate(names()):
+        if name not in effects:
+            continue
+        grid = (np.linspace(*CLIP_SIGMAS, n_points) if name == "clipping"
+                else centres[name] * np.geomspace(1 / SPAN[0], SPAN[1], n_points))
+        for i, size in enumerate(grid):
+            for s in range(n_seeds):
+                req = "" if name == "clipping" else request(name, float(size), np.random.default_rng([k, s]))
+                out.append(Job(name, float(size), req, 20000 + 1000 * k + 100 * i + s, workdir))
+    return out
+
+
+def probit(sizes: np.ndarray, hits: np.ndarray) -> tuple[float, float]:
+    """(ln s50, w) of P(s) = Phi((ln s - ln s50) / w) by maximum likelihood
+    over the binomial outcomes ``hits`` (0/1 per dataset)."""
+    x = np.log(sizes)
+
+    def nll(p: np.ndarray) -> float:
+        prob = np.clip(norm.cdf((x - p[0]) / np.exp(p[1])), 1e-12, 1 - 1e-12)
+        return -float(np.sum(hits * np.log(prob) + (1 - hits) * np.log1p(-prob)))
+    start = np.array([np.median(x), np.log(0.5)])
+    best = minimize(nll, start, method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 4000})
+    return float(best.x[0]), float(np.exp(best.x[1]))
+
+
+def clip_threshold(clean: list[dict]) -> float:
+    """The clipping GLR's threshold at rotcal's false-alarm rate ``ALPHA``:
+    the Monte Carlo quantile of its null distribution (``glr.clipping_threshold``),
+    the median over the calibrating datasets. Every other effect's GLR
+    threshold is chi-square(k)'s upper ``ALPHA`` quantile, k its parameters
+    (its calibration on clean data is reported by ``calibration``)."""
+    return float(np.median([r["clip_threshold"] for r in clean if "clip_threshold" in r]))
+
+
+def calibration(clean: list[dict], clip_threshold: float) -> list[str]:
+    """Clean datasets against the nominal rates: datasets with any finding;
+    the diagnosis's per-test score p-values and the GLR statistics of every
+    candidate (probability-integral transform against chi-square(k))."""
+    p = np.array([v for r in clean for v in r["clean_p"].values()])
+    u = np.array([chi2.sf(r["clean_glr"][key], r["k_of"][key]) for r in clean for key in r["clean_glr"]])
+    clip = np.array([r["clip_glr"] for r in clean])
+    any_finding = sum(bool(r["findings"]) for r in clean)
+    warm = sum(any(k.startswith("thermal") for k in r["clean_glr"]) for r in clean)
+    lines = [f"- clean datasets: {len(clean)}, {any_finding} with any finding ({warm} of them with a logged "
+             "warm-up, where thermal is tested too)"]
+    for name, values in (("diagnosis score test", p), ("GLR of each candidate", u)):
+        rates = ", ".join(f"{np.mean(values < a):.3f} at {a:g}" for a in (0.1, 0.01, 0.001))
+        lines.append(f"- {name}: {values.size} per-test p-values on clean data, fraction below level: {rates}; "
+                     f"none below {ALPHA:g}: {int(np.sum(values < ALPHA))} of {values.size}")
+    lines.append(f"- clipping GLR: Monte Carlo threshold {clip_threshold:.2f} at {ALPHA:g}; clean statistics "
+                 f"median {np.median(clip):.2f}, largest {clip.max():.2f}, {int(np.sum(clip > clip_threshold))} "
+                 f"of {clip.size} above it")
+    return lines
+
+
+def curves(results: list[dict], clip_threshold: float) -> dict[str, dict]:
+    """Per effect: sizes, rotcal's and the GLR's detections (0/1), the
+    probit fits and the 50 % and 80 % power sizes."""
+    z80 = norm.ppf(0.8)
+    out = {}
+    for name in names():
+        rs = [r for r in results if r["effect"] == name]
+        if not rs:
+            continue
+        sizes = np.array([r["size"] for r in rs])
+        rot = np.array([r["named"] for r in rs], float)
+        if name == "clipping":
+            best = np.array([r["clip_glr"] > clip_threshold for r in rs], float)
+        else:
+            best = np.array([r["glr"] > chi2.isf(ALPHA, r["k"]) for r in rs], float)
+        fits = {kind: probit(sizes, hits) for kind, hits in (("rotcal", rot), ("glr", best))}
+        out[name] = {"sizes": sizes, "rotcal": rot, "glr": best, "fits": fits,
+                     "k": rs[0].get("k", 1),
+                     "s50": {kind: float(np.exp(m)) for kind, (m, w) in fits.items()},
+                     "s80": {kind: float(np.exp(m + z80 * w)) for kind, (m, w) in fits.items()}}
+    return out
+
+
+def table(curve: dict[str, dict]) -> str:
+    lines = ["| effect | size measure | catalogue range | k | rotcal s50 | GLR s50 | ratio s50 | rotcal s80 | GLR s80 | ratio s80 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, c in curve.items():
+        e = effect_named(name)
+        s50, s80 = c["s50"], c["s80"]
+        measure, catalogued = ((CLIP_MEASURE, "-") if name == "clipping"
+                               else (e.size_of.split(" (")[0], f"{e.sizes[0]:g} to {e.sizes[1]:g}"))
+        lines.append(f"| {name} | {measure} | {catalogued} | "
+                     f"{c['k'] if name != 'clipping' else '-'} | {s50['rotcal']:.3g} | {s50['glr']:.3g} | "
+                     f"{s50['rotcal'] / s50['glr']:.2f} | {s80['rotcal']:.3g} | {s80['glr']:.3g} | "
+                     f"{s80['rotcal'] / s80['glr']:.2f} |")
+    return "\n".join(lines)
+
+
+def plot(curve: dict[str, dict], path: Path) -> None:
+    """One panel per effect: observed detection fractions per size and the
+    fitted probits, rotcal against the GLR, the catalogue range shaded."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 5, figsize=(17, 6.5), sharey=True)
+    for ax, (name, c) in zip(axes.flat, curve.items()):
+        grid = np.unique(c["sizes"])
+        fine = np.geomspace(grid[0], grid[-1], 200)
+        if name != "clipping":
+            ax.axvspan(*effect_named(name).sizes, color="0.92")
+        for kind, colour, label in (("rotcal", "C0", "rotcal diagnosis"), ("glr", "C3", "GLR, true model")):
+            m, w = c["fits"][kind]
+            frac = [c[kind][c["sizes"] == s].mean() for s in grid]
+            ax.plot(grid, frac, "o", color=colour, ms=4)
+            ax.plot(fine, norm.cdf((np.log(fine) - m) / w), "-", color=colour, label=label)
+        ax.set_xscale("log")
+        ax.axhline(0.5, color="0.6", lw=0.6)
+        ax.set_title(f"{name}: ratio {c['s50']['rotcal'] / c['s50']['glr']:.2f}", fontsize=9)
+        ax.set_xlabel(CLIP_MEASURE if name == "clipping" else effect_named(name).size_of.split(" (")[0], fontsize=7)
+        ax.tick_params(labelsize=7)
+    axes[0, 0].set_ylabel("detection probability")
+    axes[1, 0].set_ylabel("detection probability")
+    axes[0, 0].legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, format="png", metadata={"Software": None})
+    plt.close(fig)
+
+
+def loaded(paths: list[Path]) -> list[dict]:
+    """Saved outcomes: each effect's from the last file holding it, the clean
+    ones from the file holding most (a rerun of some effects keeps the
+    larger calibration)."""
+    files = [json.loads(p.read_text()) for p in paths]
+    clean = max(([r for r in f if not r["effect"]] for f in files), key=len)
+    chosen = {r["effect"]: f for f in files for r in f if r["effect"]}
+    return clean + [r for name, f in chosen.items() for r in f if r["effect"] == name]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=8, help="datasets per effect and size")
+    parser.add_argument("--points", type=int, default=7, help="sizes per effect")
+    parser.add_argument("--clean", type=int, default=24, help="clean calibration datasets")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--quick", action="store_true", help="a smoke test: 1 seed, 2 sizes, 2 clean datasets")
+    parser.add_argument("--plot", type=Path, default=Path("docs/power_curves.png"))
+    parser.add_argument("--json", type=Path, help="also write every dataset's outcome here")
+    parser.add_argument("--effects", nargs="+", choices=names(), default=list(names()), help="only these effects")
+    parser.add_argument("--load", type=Path, nargs="+",
+                        help="tabulate saved outcomes (--json) instead of simulating: each effect's rows from the "
+                             "last file holding it, the clean rows from the file holding most")
+    args = parser.parse_args()
+    if args.quick:
+        args.seeds, args.points, args.clean = 1, 2, 2
+    began = time.perf_counter()
+    if args.load:
+        results = loaded(args.load)
+    else:
+        with tempfile.TemporaryDirectory() as workdir, ProcessPoolExecutor(args.workers) as pool:
+            effects = set(args.effects)
+            results = list(pool.map(run_job, jobs(effects, centres(pool, effects, workdir), args.seeds, args.points,
+                                                  args.clean, workdir)))
+    clean = [r for r in results if not r["effect"]]
+    threshold = clip_threshold(clean)
+    curve = curves([r for r in results if r["effect"]], threshold)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=str))
+    plot(curve, args.plot)
+    print(table(curve))
+    print()
+    print(f"Per-test false-alarm rate {ALPHA:g} for both tests; {args.seeds} datasets per size, {args.points} sizes "
+          f"per effect from {SPAN[0]:g}x below to {SPAN[1]:g}x above the GLR's pilot 50 % size "
+          f"(clipping: limits {CLIP_SIGMAS[0]:g} to {CLIP_SIGMAS[1]:g} noise sd above the largest output).")
+    print("\n".join(calibration(clean, threshold)))
+    print(f"- runtime {time.perf_counter() - began:.0f} s with {args.workers} workers")
+
+
+if __name__ == "__main__":
+    main()
