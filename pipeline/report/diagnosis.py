@@ -54,6 +54,7 @@ def residual_figure(diag: Diagnosis, name: str, path: Path, output_unit: str) ->
     use = final.use
     gain = np.zeros(int(obs.segment.max()) + 1)
     np.add.at(gain, obs.segment, ((before**2 - after**2) * use).sum(axis=1))
+    gain[np.setdiff1d(np.arange(gain.size), obs.segment)] = -np.inf  # numbers of segments not modelled (dwells)
     seg = int(np.argmax(gain))
     at = obs.segment == seg
     t = obs.motion.t_s[at]
