@@ -32,7 +32,7 @@ from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
 from rotcal.diagnose.fitting import ModelFit, Score, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
-from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_reconstructed_angles
+from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
     Unexplained,
@@ -341,6 +341,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     final = _select(fit, cands, alpha)
     if any(v is not None for v in clip):
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
+    if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
+        final = with_phases_free(final, phases["segment"].to_numpy())
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order

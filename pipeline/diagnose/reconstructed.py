@@ -18,7 +18,13 @@ recording can show").
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import numpy as np
 import polars as pl
+
+from rotcal.diagnose.fitting import ModelFit
+from rotcal.diagnose.model import predict
 
 # effects the reconstructed angle absorbs: the own-phase fit's rate is the true one (rate_error)
 ABSORBED_BY_OWN_PHASE = frozenset({"rate_error"})
@@ -51,3 +57,33 @@ def with_reconstructed_angles(samples: pl.DataFrame, segments: pl.DataFrame, pha
     anchored = (segments.join(first, on="segment", how="left", maintain_order="left")
                 .with_columns(t_start_ns=pl.coalesce("first_ns", "t_start_ns")).drop("first_ns"))
     return out, anchored
+
+
+def with_phases_free(fit: ModelFit, segments: np.ndarray, step_deg: float = 1e-3) -> ModelFit:
+    """``fit`` whose normal matrix is the information left on its parameters
+    when the reconstructed segments' phases are free as well (the Schur
+    complement G - I_bt I_tt^-1 I_tb, Jacobian columns of the phases by
+    central differences of the model): the phases come from the same
+    samples, and held fixed they would leave their uncertainty out of every
+    covariance (the cross-axis responsivities' by a fifth)."""
+    obs, motion = fit.obs, fit.obs.motion
+    columns = []
+    for k in segments:
+        on = obs.segment == k
+        shifted = [predict(replace(obs, motion=replace(motion, theta0_deg=np.where(on, motion.theta0_deg + h, motion.theta0_deg))),
+                           fit.beta, fit.layout, fit.active, (None, None), fit.structure) for h in (step_deg, -step_deg)]
+        columns.append((shifted[0] - shifted[1]) / (2 * np.radians(step_deg)))
+    jac = np.stack(columns, axis=2)  # (n, 3, K): d output / d theta_k (per radian)
+    p = fit.G.shape[0]
+    cross = np.zeros((p, len(segments)))
+    info = np.zeros((len(segments), len(segments)))
+    for r, d in enumerate(fit.ev.designs):
+        w = 1.0 / fit.sigma[r] ** 2
+        e = jac[d.rows, r, :]
+        info += w * e.T @ e
+        cross[d.ext] += w * d.X[:, 4:].T @ e
+        cuts = np.searchsorted(d.rate_idx, np.arange(len(d.base) + 1))
+        for f, base in enumerate(d.base):
+            at = slice(cuts[f], cuts[f + 1])
+            cross[base] += w * d.X[at, :4].T @ e[at]
+    return replace(fit, G=fit.G - cross @ np.linalg.solve(info, cross.T))
