@@ -155,6 +155,9 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
         lines += ["", f"The model used {diag.final.obs.n:,} of the {diag.samples_available:,} samples of the fitted "
                   "segments (long segments thinned evenly, `[diagnosis] max_samples`): effects smaller than the "
                   "thinned data can resolve may go unnamed."]
+    if diag.phases is not None and diag.phases.height:
+        lines += ["", f"The table angles of {diag.phases.height} rotation segments are reconstructed from their solved "
+                  "phases (no angle was recorded); a rate error is not tested, since the fitted rates absorb it."]
     lines += ["", "## Findings", "",
               _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
                       for e, d, w, ev, b, a, bic in findings.select(

@@ -21,6 +21,7 @@ from rotcal.combine import (
     summary_poses,
     table_step_poses,
 )
+from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
@@ -186,7 +187,6 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
     diagnosed."""
     if not config.diagnosis.enabled or reductions.static is not None:
         return None, ()
-    from rotcal.combine.unreferenced import segment_phases
     from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
     in_table = {rate for r in reductions.all if r.frame == "table" for rate in r.rates}
