@@ -5,7 +5,7 @@ pairs; sizes from the upper two thirds of each effect's range (its
 ``sizes``: docs/effects.md).
 
     nice python scripts/unlabelled_diagnosis_acceptance.py [--seeds 10] [--clean 20] [--workers 2]
-        [--recording unlabelled|continuous] [--json FILE]
+        [--recording unlabelled|continuous] [--only LABEL ...] [--workdir DIR] [--json FILE]
 
 Each dataset is simulated and run by ``diagnosis_acceptance.case`` (issue
 4's machinery) as an unlabelled (or continuous) recording. Prints a
@@ -19,6 +19,7 @@ import json
 import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -88,8 +89,9 @@ def main() -> None:
     parser.add_argument("--recording", choices=("unlabelled", "continuous"), default="unlabelled")
     parser.add_argument("--only", nargs="*", help="only these scenario labels")
     parser.add_argument("--json", type=Path, help="also write every case's details here")
+    parser.add_argument("--workdir", type=Path, help="keep the datasets here (those already run are read back)")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as workdir:
+    with tempfile.TemporaryDirectory() if args.workdir is None else nullcontext(str(args.workdir)) as workdir:
         jobs = [j for j in scenarios(args.seeds, args.clean, workdir, args.recording)
                 if not args.only or j[0] in args.only]
         with ProcessPoolExecutor(args.workers) as pool:
