@@ -5,7 +5,7 @@ pairs; sizes from the upper two thirds of each effect's range (its
 ``sizes``: docs/effects.md).
 
     nice python scripts/unlabelled_diagnosis_acceptance.py [--seeds 10] [--clean 20] [--workers 2]
-        [--recording unlabelled|continuous] [--only LABEL ...] [--workdir DIR] [--json FILE]
+        [--recording unlabelled|continuous] [--only LABEL ...] [--workdir DIR [--done-only]] [--json FILE]
 
 Each dataset is simulated and run by ``diagnosis_acceptance.case`` (issue
 4's machinery) as an unlabelled (or continuous) recording. Prints a
@@ -90,10 +90,12 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="only these scenario labels")
     parser.add_argument("--json", type=Path, help="also write every case's details here")
     parser.add_argument("--workdir", type=Path, help="keep the datasets here (those already run are read back)")
+    parser.add_argument("--done-only", action="store_true", help="only the datasets already run in --workdir")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() if args.workdir is None else nullcontext(str(args.workdir)) as workdir:
         jobs = [j for j in scenarios(args.seeds, args.clean, workdir, args.recording)
-                if not args.only or j[0] in args.only]
+                if (not args.only or j[0] in args.only)
+                and (not args.done_only or (Path(workdir) / f"{j[0]}_{j[1]}" / "out" / "intrinsic.parquet").is_file())]
         with ProcessPoolExecutor(args.workers) as pool:
             results = list(pool.map(case, jobs))
             left = [r for r in results if r["biased"][3]]
