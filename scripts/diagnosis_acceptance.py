@@ -14,6 +14,7 @@ import argparse
 import json
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +30,27 @@ PAIRS = (("centripetal", "channel_delay"), ("cubic_nonlinearity", "axis_tilt"),
          ("quadratic_nonlinearity", "rate_ripple"), ("offset_drift", "axis_tilt"), ("rate_error", "clipping"))
 
 
+RECORDINGS = ("labelled", "unlabelled", "continuous")
+
+
 def case(args: tuple) -> dict:
-    """Simulate one dataset, run rotcal on it, and compare with the truth."""
-    label, seed, effects, foreign, workdir = args
+    """Simulate one dataset, run rotcal on it, and compare with the truth.
+    An optional sixth element names the recording (``RECORDINGS``): labelled
+    segment files (the default), or t, u, v, w only in one file, of the
+    plan's segments or of a continuous recording (transitions, ramps, hand
+    reorientations), without ``[plan]`` rates."""
+    label, seed, effects, foreign, workdir, *how = args
+    recording = how[0] if how else "labelled"
     spec = SimulationSpec().with_effects(*effects).with_foreign(*foreign)
+    if recording == "continuous":
+        spec = replace(spec, plan=replace(spec.plan, continuous=True))
     data = Path(workdir) / f"{label}_{seed}"
-    write_dataset(simulate(spec, seed), spec, data / "data")
-    run_dataset(data / "data", data / "out", config=RunConfig(run=RunSection(workers=1)))
+    if not (data / "out" / "intrinsic.parquet").is_file():  # a run published in a kept ``workdir`` is read back
+        write_dataset(simulate(spec, seed), spec, data / "data", "csv" if recording == "labelled" else "csv-unlabelled")
+        if recording != "labelled":  # no nominal rates: the recording alone
+            toml = data / "data" / "dataset.toml"
+            toml.write_text(toml.read_text().split("\n[plan]")[0])
+        run_dataset(data / "data", data / "out", config=RunConfig(run=RunSection(workers=1)))
     truth = json.loads((data / "data" / "truth.json").read_text())
     findings = pl.read_parquet(data / "out" / "diagnosis.parquet").filter(pl.col("detected"))
     params = pl.read_parquet(data / "out" / "effect_parameters.parquet")
@@ -55,7 +70,7 @@ def case(args: tuple) -> dict:
             else:
                 param_z.append((eff["effect"], name, None))
     return {
-        "label": label, "seed": seed, "effects": effects, "foreign": foreign,
+        "label": label, "seed": seed, "recording": recording, "effects": effects, "foreign": foreign,
         "named": sorted(set(findings["effect"].to_list())),
         "where": findings["where"].to_list(), "evidence": findings["evidence"].to_list(),
         "param_z": param_z,
@@ -90,9 +105,11 @@ def twin_z(result: dict, workdir: str) -> list[tuple]:
     effect's modelling, put the refined value there."""
     if not result["biased"][3]:
         return []
-    clean = case(("twin", result["seed"], (), (), workdir))
+    clean = case(("twin", result["seed"], (), (), workdir, result["recording"]))
     wide = {(r, p): z for r, p, z in clean["baseline_z"]}
-    return [(r, p, z, wide[(r, p)]) for r, p, z in result["biased"][3]]
+    rates = {r for r, _ in wide}
+    # without nominal rates each rate is named by its measured mean, which differs between the two simulations
+    return [(r, p, z, wide[(min(rates, key=lambda q: abs(q - r)), p)]) for r, p, z in result["biased"][3]]
 
 
 def scenarios(n_seeds: int, n_clean: int, workdir: str) -> list[tuple]:

@@ -213,8 +213,10 @@ def test_sections_follow_the_kind_of_run(runs):
     assert f"every pose, dwell and segment ({poses})" in static and "Not applicable" in static
     dwells = pl.read_parquet(runs["unlabelled"] / "dwells.parquet").height
     assert "unlabelled recording" in unlabelled and f"<td>dwell</td><td class=\"num\">{dwells}</td>" in unlabelled
-    # static poses are diagnosed too (diagnose.static): their findings table is the section
-    assert "This run was not diagnosed" not in static and "This run was not diagnosed" in unlabelled
+    # static poses are diagnosed (diagnose.static), and rotations without a table angle on their
+    # reconstructed angles (issue 15 items 1 and 2): their findings tables are the section
+    assert "This run was not diagnosed" not in static and "This run was not diagnosed" not in unlabelled
+    assert "residual RMS before → after" in unlabelled
 
 
 def test_optional_tables_absent_and_rerendered_by_the_command(runs, tmp_path, cli):

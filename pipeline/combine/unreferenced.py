@@ -17,10 +17,23 @@ from scipy.special import chdtrc
 
 from rotcal.combine.labelled import segment_coefficients
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free
-from rotcal.combine.phasefree import PhaseSegment, solve_phase_free
+from rotcal.combine.phasefree import PhaseFreeFit, PhaseSegment, solve_phase_free
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 
 CONSISTENCY = 1e-3  # chi-square p-value below which the components measured twice disagree
+
+
+def _phase_free_fits(fits: pl.DataFrame, own_phase: frozenset[int], g_local: float, g_uncertainty: float
+                     ) -> list[tuple[float, list[PhaseSegment], PhaseFreeFit | Failure]]:
+    """Per rate with rotation segments fitted against their own phase: the
+    rate, its segments (those with a table angle fixed) and their solution."""
+    rotating = fits.filter((pl.col("kind") == "rotation") & (pl.col("status") == "ok"))
+    solved = []
+    for rate in sorted(set(rotating.filter(pl.col("segment").is_in(list(own_phase)))["rate_hz"].to_list())):
+        segs = [PhaseSegment(s.segment, s.axis, s.coef, s.cov, s.segment not in own_phase, s.dof)
+                for s in segment_coefficients(rotating.filter(pl.col("rate_hz") == rate))]
+        solved.append((rate, segs, solve_phase_free(rate, segs, g_local, g_uncertainty)))
+    return solved
 
 
 def reduce_phase_free(fits: pl.DataFrame, own_phase: frozenset[int], g_local: float, g_uncertainty: float) -> Reduction:
@@ -29,11 +42,7 @@ def reduce_phase_free(fits: pl.DataFrame, own_phase: frozenset[int], g_local: fl
     results: list[IntrinsicResult] = []
     failures: list[Failure] = []
     warnings = []
-    rotating = fits.filter((pl.col("kind") == "rotation") & (pl.col("status") == "ok"))
-    for rate in sorted(set(rotating.filter(pl.col("segment").is_in(list(own_phase)))["rate_hz"].to_list())):
-        segs = segment_coefficients(rotating.filter(pl.col("rate_hz") == rate))
-        solved = solve_phase_free(rate, [PhaseSegment(s.segment, s.axis, s.coef, s.cov, s.segment not in own_phase, s.dof)
-                                         for s in segs], g_local, g_uncertainty)
+    for rate, _, solved in _phase_free_fits(fits, own_phase, g_local, g_uncertainty):
         if isinstance(solved, Failure):
             failures.append(solved)
             continue
@@ -42,6 +51,25 @@ def reduce_phase_free(fits: pl.DataFrame, own_phase: frozenset[int], g_local: fl
             warnings.append(f"rate {rate:g} Hz: the components measured twice disagree beyond their uncertainties "
                             f"(chi-square {solved.chi2:.3g} on {solved.dof} degrees of freedom)")
     return Reduction("table", tuple(results), tuple(failures), (), tuple(warnings))
+
+
+def segment_phases(fits: pl.DataFrame, segments: pl.DataFrame, own_phase: frozenset[int], g_local: float,
+                   g_uncertainty: float, clock_factor: float) -> pl.DataFrame:
+    """Each own-phase rotation segment's table angle as the phase-free
+    solution gives it: theta = sigma_k (theta_k + phi), phi = 360 f (t -
+    t_phase) the segment's own phase (``rotcal.fit.sinefit``; f the rate it
+    was fitted at, before the clock correction ``clock_factor`` the fits'
+    rates carry) and theta_k, sigma_k solved by ``rotcal.combine.phasefree``.
+    Columns segment, theta_k_deg, theta_k_u_deg, sigma (+-1), phase_rate_hz
+    (f) and t_phase_ns; rates whose solution failed have no rows."""
+    rows = [(s.segment, float(solved.theta_deg[k]), float(solved.theta_u_deg[k]), -1.0 if solved.reflected[k] else 1.0)
+            for _, segs, solved in _phase_free_fits(fits, own_phase, g_local, g_uncertainty)
+            if isinstance(solved, PhaseFreeFit) for k, s in enumerate(segs) if not s.fixed]
+    solved = pl.DataFrame(rows, schema={"segment": pl.Int32, "theta_k_deg": pl.Float64, "theta_k_u_deg": pl.Float64,
+                                        "sigma": pl.Float64}, orient="row")
+    rate = fits.unique("segment", keep="first").select("segment", phase_rate_hz=pl.col("rate_fit_hz") / clock_factor)
+    return (solved.join(rate, on="segment", how="left")
+            .join(segments.select("segment", "t_phase_ns"), on="segment", how="left").sort("segment"))
 
 
 def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float) -> Reduction:

@@ -31,6 +31,7 @@ from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
+from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
     Unexplained,
@@ -60,6 +61,7 @@ class Diagnosis:
     final: ModelFit
     before: dict[str, np.ndarray]   # finding -> residuals of the model without it
     samples_available: int          # in the fitted segments; the model's are ``final.obs.n``
+    phases: pl.DataFrame | None = None  # the segments whose angles were reconstructed (``reconstructed``)
 
 
 def kept_per_segment(counts: np.ndarray, max_samples: int) -> np.ndarray:
@@ -84,7 +86,9 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     Beyond ``max_samples`` each long segment is thinned to evenly spaced
     samples (``kept_per_segment``): the model stays exact, the noise of its
     estimates grows as the square root of the thinning, and memory stays
-    bounded on captures of millions of samples.
+    bounded on captures of millions of samples. The model's rotation runs
+    at ``phase_rate_hz`` where the samples have it (angles reconstructed
+    from a fitted phase, ``reconstructed``), at ``rate_hz`` otherwise.
     """
     ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique().sort()
     seg = segments.filter(pl.col("segment").is_in(ok.implode()))
@@ -94,7 +98,9 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
     index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
-    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", "temperature_c", *CHANNELS)[index]
+    motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
+    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", "temperature_c", *CHANNELS,
+                            motion_rate_hz=motion_rate)[index]
              .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
              .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
                            step=pl.when(pl.col("kind") == "static")
@@ -110,7 +116,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
         theta_cmd_deg=frame["angle_deg"].to_numpy(),
         theta0_deg=frame["theta0"].to_numpy(),
         t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
-        rate_hz=frame["rate_hz"].to_numpy(),
+        rate_hz=frame["motion_rate_hz"].to_numpy(),
         t0_s=int(samples["t_ns"].to_numpy().min()) / 1e9,
         temperature_c=logged_temperature(frame["temperature_c"]),
     )
@@ -139,7 +145,8 @@ def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
 
 def _residuals(fit: ModelFit, output_unit: str) -> Residuals:
     m = fit.obs.motion
-    return Residuals(m.t_s, fit.ev.resid, fit.use, fit.sigma, fit.obs.segment, m.axis_idx, m.rate_hz,
+    # each sample's rate as its result names it (a reconstructed rotation runs at its segment's own fitted rate)
+    return Residuals(m.t_s, fit.ev.resid, fit.use, fit.sigma, fit.obs.segment, m.axis_idx, fit.obs.rates[fit.obs.rate_idx],
                      m.rotating, m.theta_cmd_deg, output_unit)
 
 
@@ -294,15 +301,23 @@ def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tu
 
 def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
              results: tuple[IntrinsicResult, ...], dataset: str, output_unit: str,
-             g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig) -> Diagnosis | None:
+             g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig,
+             phases: pl.DataFrame | None = None) -> Diagnosis | None:
     """Diagnose one dataset from its samples, segments, fits and baseline
-    results; None when it has no fitted table segments."""
+    results; None when it has no fitted table segments. ``phases``: the
+    rotation segments without a table angle, whose angles are reconstructed
+    from their solved phases (``reconstructed``); the effects those angles
+    absorb are then not tested."""
     from rotcal.diagnose.findings import catalogue_rows, limit_rows, scan_row, step_row
 
     results = tuple(sorted(results, key=lambda r: (abs(r.rate_hz), r.rate_hz)))
     if not results:
         return None
     g_local = results[0].g_local
+    absorbed: frozenset[str] = frozenset()
+    if phases is not None and phases.height:
+        samples, segments = with_reconstructed_angles(samples, segments, phases)
+        absorbed = ABSORBED_BY_OWN_PHASE
     built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local, config.max_samples)
     if built is None:
         return None
@@ -311,7 +326,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     rotating_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx[m.rotating].tolist())))
     all_axes = tuple(AXES[a] for a in sorted(set(m.axis_idx.tolist())))
     logged = frozenset() if m.temperature_c is None else frozenset({"temperature_c"})
-    cands = extensions(rotating_axes, all_axes, angles_measured, logged)
+    cands = tuple(c for c in extensions(rotating_axes, all_axes, angles_measured, logged) if c.effect not in absorbed)
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
     fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
@@ -325,6 +340,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     final = _select(fit, cands, alpha)
     if any(v is not None for v in clip):
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
+    if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
+        final = with_phases_free(final, phases["segment"].to_numpy())
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
@@ -336,7 +353,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
                 unclipped = predict(obs, final.beta, layout, final.active, (None, None), final.structure)
                 before[effect.name] = obs.y - unclipped
         else:
-            row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit)
+            row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit,
+                                               effect.name in absorbed)
             if reduced is not None:
                 before[effect.name] = reduced.ev.resid
         rows.append(row)
@@ -355,4 +373,4 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     findings = conform(pl.DataFrame(rows, schema=schema("diagnosis").polars_schema), "diagnosis")
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
-    return Diagnosis(findings, parameters, refined, final, before, n_all)
+    return Diagnosis(findings, parameters, refined, final, before, n_all, phases)

@@ -17,6 +17,7 @@ import polars as pl
 
 from rotcal.diagnose import Diagnosis, observations
 from rotcal.diagnose.model import Structure, predict
+from rotcal.diagnose.reconstructed import with_reconstructed_angles
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import CHANNELS
 
@@ -26,7 +27,10 @@ def without_effects(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
     """``samples`` less the modelled effects' contribution (every sample of
     the diagnosed segments, none thinned; the others unchanged)."""
     final = diagnosis.final
-    built = observations(samples, segments, fits, final.obs.rates.tolist(), final.obs.g_local, samples.height)
+    angled = samples  # the model's samples: with the reconstructed angles where the diagnosis had them
+    if diagnosis.phases is not None and diagnosis.phases.height:
+        angled, segments = with_reconstructed_angles(samples, segments, diagnosis.phases)
+    built = observations(angled, segments, fits, final.obs.rates.tolist(), final.obs.g_local, samples.height)
     if built is None:
         return samples
     obs = built[0]
@@ -38,3 +42,4 @@ def without_effects(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
     y = samples.select(CHANNELS).to_numpy().copy()
     y[sample_rows] -= effect[np.argsort(obs.segment, kind="stable")]
     return samples.with_columns(pl.Series(c, y[:, i]) for i, c in enumerate(CHANNELS))
+

@@ -31,11 +31,15 @@ def _row(dataset, effect, detected, where, evidence, before, after, dbic, p) -> 
 
 
 def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: str, alpha: float,
-                   dataset: str, output_unit: str) -> tuple[dict, list[dict], ModelFit | None]:
+                   dataset: str, output_unit: str, absorbed: bool = False) -> tuple[dict, list[dict], ModelFit | None]:
     """The diagnosis row of one catalogue effect and, if detected, its
-    parameters and the model refitted without it (the "before")."""
+    parameters and the model refitted without it (the "before");
+    ``absorbed``: the reconstructed table angles absorb it (not tested)."""
     granules = [c for c in candidates if c.effect == effect]
     found = [c for c in final.active if c.effect == effect]
+    if absorbed:
+        return _row(dataset, effect, False, "not testable here", "the table angles are reconstructed from the "
+                    "segments' fitted phases and rates, which absorb it", final.rms, final.rms, 0.0, 1.0), [], None
     if not granules:
         return _row(dataset, effect, False, "not testable here", "the dataset has no segments this effect acts on",
                     final.rms, final.rms, 0.0, 1.0), [], None

@@ -11,12 +11,13 @@ from rotcal.model.effects import effect_named
 from rotcal.model.physics import AXES
 
 
-def draw_effect(name: str, rng: np.random.Generator) -> str:
-    """One effect of ``name`` with a size drawn across its range, in the
+def draw_effect(name: str, rng: np.random.Generator, part: tuple[float, float] = (0.0, 1.0)) -> str:
+    """One effect of ``name`` with a size drawn across the ``part`` of its
+    range (fractions from its low end; the whole range by default), in the
     simulator's ``NAME:key=value`` form."""
     effect = effect_named(name)
     low, high = effect.sizes
-    size = rng.uniform(low, high)
+    size = low + (high - low) * rng.uniform(*part)
     sign = rng.choice([-1.0, 1.0])
     axis = rng.choice(AXES)
     channel = rng.choice(("u", "v", "w"))

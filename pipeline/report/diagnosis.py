@@ -62,6 +62,7 @@ def residual_figure(diag: Diagnosis, name: str, path: Path, output_unit: str) ->
     use = final.use
     gain = np.zeros(int(obs.segment.max()) + 1)
     np.add.at(gain, obs.segment, ((before**2 - after**2) * use).sum(axis=1))
+    gain[np.setdiff1d(np.arange(gain.size), obs.segment)] = -np.inf  # numbers of segments not modelled (dwells)
     seg = int(np.argmax(gain))
     at = obs.segment == seg
     t = obs.motion.t_s[at]
@@ -162,6 +163,9 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
         lines += ["", f"The model used {diag.final.obs.n:,} of the {diag.samples_available:,} samples of the fitted "
                   "segments (long segments thinned evenly, `[diagnosis] max_samples`): effects smaller than the "
                   "thinned data can resolve may go unnamed."]
+    if diag.phases is not None and diag.phases.height:
+        lines += ["", f"The table angles of {diag.phases.height} rotation segments are reconstructed from their solved "
+                  "phases (no angle was recorded); a rate error is not tested, since the fitted rates absorb it."]
     lines += ["", "## Findings", "",
               _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
                       for e, d, w, ev, b, a, bic in findings.select(

@@ -5,6 +5,7 @@ tables or results for the next."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -20,6 +21,7 @@ from rotcal.combine import (
     summary_poses,
     table_step_poses,
 )
+from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
@@ -169,24 +171,55 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
     return tuple(r for r, _ in framed), tuple(f for _, f in framed), warnings
 
 
+def _clock_factor(seg: Segmented) -> float:
+    """What the fitted rates were multiplied by to be on the table's clock
+    (1 unless a clock drift was detected and corrected)."""
+    timebase = next(t.data for t in seg.tables if t.name == "timebase")
+    drift = timebase.filter((pl.col("check") == "clock_drift") & pl.col("detected"))
+    return 1.0 + float(drift["value"][0]) * 1e-6 if drift.height else 1.0
+
+
 def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
                    config: RunConfig) -> tuple[Diagnosis | StaticDiagnosis | None, tuple[str, ...]]:
-    """The diagnosis of a table recording whose segments all have the table
-    angle (its models need it), or of a static one, with its notes."""
+    """The diagnosis of a recording, with its notes: a static one's from its
+    poses (``diagnose.static``); a table recording's from its segments, where
+    rotation segments without a table angle enter with the angle
+    reconstructed from their solved phases (``diagnose.reconstructed``) and
+    results in another frame than the table's (static dwells of unknown
+    orientation) are not diagnosed."""
     if reductions.static is not None:
         return static_diagnosis_stage(seg, reductions.static, ds, config), ()
-    if reductions.unreferenced_rates:
-        return None, ("diagnosis skipped: segments without a table angle (its models need the angle)",)
     if not config.diagnosis.enabled:
         return None, ()
     from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
 
-    diagnosis = diagnose(seg.samples, seg.segments, seg.fits, results, ds.name, ds.meta.output_unit,
-                         ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
-    if diagnosis is not None and diagnosis.final.obs.n < diagnosis.samples_available:
-        return diagnosis, (f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
-                           f"samples (long segments thinned evenly; [diagnosis] max_samples)",)
-    return diagnosis, ()
+    in_table = {rate for r in reductions.all if r.frame == "table" for rate in r.rates}
+    notes = []
+    if len(in_table) < len(results):
+        notes.append("diagnosis without the static dwells of unknown orientation (their result is not in the table frame)")
+    phases = None
+    if reductions.unreferenced_rates & in_table:
+        g, u_g, clock = ds.meta.g_local, ds.meta.g_local_uncertainty, _clock_factor(seg)
+        phases = segment_phases(seg.fits, seg.segments, seg.own_phase, g, u_g, clock)
+        notes.append(f"diagnosis on table angles reconstructed from the solved phases of {phases.height} rotation "
+                     "segment(s) without one; rate_error not tested (the fitted rates absorb it)")
+    diagnose_with = partial(diagnose, seg.samples, seg.segments, seg.fits,
+                            tuple(r for r in results if r.rate_hz in in_table), ds.name, ds.meta.output_unit,
+                            ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
+    if phases is None:
+        diagnosis = diagnose_with(None)
+    else:
+        from rotcal.diagnose.phases import jointly_diagnosed, phases_without_effects
+
+        diagnosis = jointly_diagnosed(diagnose_with, partial(phases_without_effects, seg.samples, seg.segments, seg.fits,
+                                                             own_phase=seg.own_phase, g_local=g, g_uncertainty=u_g,
+                                                             clock_factor=clock), phases)
+    if diagnosis is None:
+        return None, ()
+    if diagnosis.final.obs.n < diagnosis.samples_available:
+        notes.append(f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
+                     f"samples (long segments thinned evenly; [diagnosis] max_samples)")
+    return diagnosis, tuple(notes)
 
 
 def static_diagnosis_stage(seg: Segmented, static: StaticReduction, ds: Dataset,
