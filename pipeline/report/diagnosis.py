@@ -147,6 +147,22 @@ def _comparison(baseline: tuple[IntrinsicResult, ...], refined: tuple[IntrinsicR
                          "shift / u(baseline)", "unit"]) + "\n"
 
 
+def found_line(found: pl.DataFrame) -> str:
+    """The report's one-line summary of the detected findings."""
+    return (f"{found.height} finding{'s' if found.height > 1 else ''}: "
+            + "; ".join(f"**{e}** ({w})" for e, w in found.select("effect", "where").iter_rows()) + ".")
+
+
+def findings_section(findings: pl.DataFrame, output_unit: str) -> list[str]:
+    """The report's findings table: every effect tested, detected or not, with its evidence."""
+    return ["", "## Findings", "",
+            _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
+                    for e, d, w, ev, b, a, bic in findings.select(
+                        "effect", "detected", "where", "evidence", "rms_before", "rms_after", "delta_bic").iter_rows()],
+                   ["effect", "detected", "where", "evidence", f"RMS before -> after ({output_unit})", "BIC change"]),
+            ""]
+
+
 def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicResult, ...], dataset: str,
                  output_unit: str, out: Path, draw: bool = True) -> Path:
     """Write ``report.md`` into ``out``, and its figures when ``draw``."""
@@ -157,8 +173,7 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
         lines.append("No finding: the recording agrees with the papers' model within its noise; every catalogue "
                      "effect was tested (table below).")
     else:
-        lines.append(f"{found.height} finding{'s' if found.height > 1 else ''}: "
-                     + "; ".join(f"**{e}** ({w})" for e, w in found.select("effect", "where").iter_rows()) + ".")
+        lines.append(found_line(found))
     if diag.final.obs.n < diag.samples_available:
         lines += ["", f"The model used {diag.final.obs.n:,} of the {diag.samples_available:,} samples of the fitted "
                   "segments (long segments thinned evenly, `[diagnosis] max_samples`): effects smaller than the "
@@ -166,12 +181,7 @@ def write_report(diag: Diagnosis, fits: pl.DataFrame, baseline: tuple[IntrinsicR
     if diag.phases is not None and diag.phases.height:
         lines += ["", f"The table angles of {diag.phases.height} rotation segments are reconstructed from their solved "
                   "phases (no angle was recorded); a rate error is not tested, since the fitted rates absorb it."]
-    lines += ["", "## Findings", "",
-              _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
-                      for e, d, w, ev, b, a, bic in findings.select(
-                          "effect", "detected", "where", "evidence", "rms_before", "rms_after", "delta_bic").iter_rows()],
-                     ["effect", "detected", "where", "evidence", f"RMS before -> after ({output_unit})", "BIC change"]),
-              ""]
+    lines += findings_section(findings, output_unit)
     if diag.parameters.height:
         lines += ["## Effect parameters", "",
                   _table([[e, a or "-", p, *gum_round(v, u), unit] for e, a, p, v, u, unit in diag.parameters.select(

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rotcal.diagnose.static import StaticDiagnosis, limit_text
 from rotcal.model.results import IntrinsicResult
-from rotcal.report.diagnosis import _comparison, _pyplot, _save, _table
+from rotcal.report.diagnosis import _comparison, _pyplot, _save, _table, findings_section, found_line
 from rotcal.report.rounding import gum_round
 from rotcal.tables import atomic_write
 
@@ -48,14 +48,8 @@ def write_static_report(diag: StaticDiagnosis, baseline: tuple[IntrinsicResult, 
     if found.height == 0:
         lines.append("No finding: the poses agree with the papers' model within their noise.")
     else:
-        lines.append(f"{found.height} finding{'s' if found.height > 1 else ''}: "
-                     + "; ".join(f"**{e}** ({w})" for e, w in found.select("effect", "where").iter_rows()) + ".")
-    lines += ["", "## Findings", "",
-              _table([[e, "yes" if d else "no", w, ev, f"{b:.3g} -> {a:.3g}", f"{bic:+.0f}"]
-                      for e, d, w, ev, b, a, bic in findings.select(
-                          "effect", "detected", "where", "evidence", "rms_before", "rms_after", "delta_bic").iter_rows()],
-                     ["effect", "detected", "where", "evidence", f"RMS before -> after ({output_unit})", "BIC change"]),
-              ""]
+        lines.append(found_line(found))
+    lines += findings_section(findings, output_unit)
     if diag.parameters.height:
         lines += ["## Effect parameters", "",
                   _table([[e, p, *gum_round(v, u), unit] for e, p, v, u, unit in diag.parameters.select(
