@@ -175,13 +175,18 @@ def summarise(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def arguments(doc: str) -> argparse.ArgumentParser:
+    """The options every diagnosis acceptance script takes."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--clean", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", type=Path, help="also write every case's details here")
-    args = parser.parse_args()
+    return parser
+
+
+def main() -> None:
+    args = arguments(__doc__).parse_args()
     with tempfile.TemporaryDirectory() as workdir:
         jobs = scenarios(args.seeds, args.clean, workdir)
         with ProcessPoolExecutor(args.workers) as pool:

@@ -14,7 +14,6 @@ Markdown report (docs/measured.md's section comes from it).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import tempfile
@@ -25,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from diagnosis_acceptance import case, summarise_refined, twin_z  # noqa: E402 (the script beside this one)
+from diagnosis_acceptance import arguments, case, summarise_refined, twin_z  # noqa: E402 (the script beside this one)
 
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE  # noqa: E402
 from rotcal.diagnose.scenarios import draw_effect  # noqa: E402
@@ -82,13 +81,9 @@ def summarise(results: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=10)
-    parser.add_argument("--clean", type=int, default=20)
-    parser.add_argument("--workers", type=int, default=2)
+    parser = arguments(__doc__)
     parser.add_argument("--recording", choices=("unlabelled", "continuous"), default="unlabelled")
     parser.add_argument("--only", nargs="*", help="only these scenario labels")
-    parser.add_argument("--json", type=Path, help="also write every case's details here")
     parser.add_argument("--workdir", type=Path, help="keep the datasets here (those already run are read back)")
     parser.add_argument("--done-only", action="store_true", help="only the datasets already run in --workdir")
     args = parser.parse_args()

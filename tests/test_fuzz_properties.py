@@ -51,6 +51,17 @@ def one_line(exc: RotcalError, path: Path) -> None:
     assert "\n" not in exc.problem and exc.path == str(path), str(exc)
 
 
+def loaded_or_refused(path: Path, doc: dict, load, error: type[RotcalError]):
+    """``doc`` written to ``path`` as TOML and loaded: the result, or None when
+    it is refused as the CLI reports it (``one_line``)."""
+    path.write_text(toml_document(doc))
+    try:
+        return load(path)
+    except error as exc:
+        one_line(exc, path)
+        return None
+
+
 TEXT = st.one_of(st.sampled_from([t.decode("utf-8", "replace") for t in fuzz_inputs.HOSTILE_TEXT]),
                  st.text(max_size=30), st.floats().map(repr), st.integers().map(str))
 
@@ -125,12 +136,8 @@ def documents(known: dict[str, list[str]]):
 @PROPERTY
 @given(doc=documents(DATASET_KEYS))
 def test_any_dataset_toml_is_refused_in_one_line_or_finite(tmp_path_factory, doc):
-    path = tmp_path_factory.mktemp("meta") / "dataset.toml"
-    path.write_text(toml_document(doc))
-    try:
-        meta = load_meta(path)
-    except InputError as exc:
-        one_line(exc, path)
+    meta = loaded_or_refused(tmp_path_factory.mktemp("meta") / "dataset.toml", doc, load_meta, InputError)
+    if meta is None:
         return
     numbers = [meta.g_local, meta.g_local_uncertainty, *meta.plan_rates_hz, meta.full_scale or 0.0,
                meta.csv_format.sample_rate_hz or 0.0]
@@ -144,12 +151,8 @@ CONFIG_KEYS = {table: [f.name for f in getattr(RunConfig(), table).__dataclass_f
 @PROPERTY
 @given(doc=documents(CONFIG_KEYS))
 def test_any_run_configuration_is_refused_in_one_line_or_finite(tmp_path_factory, doc):
-    path = tmp_path_factory.mktemp("config") / "config.toml"
-    path.write_text(toml_document(doc))
-    try:
-        config = load_config(path)
-    except ConfigError as exc:
-        one_line(exc, path)
+    config = loaded_or_refused(tmp_path_factory.mktemp("config") / "config.toml", doc, load_config, ConfigError)
+    if config is None:
         return
     values = [v for table in CONFIG_KEYS for v in vars(getattr(config, table)).values()]
     assert all(math.isfinite(v) for v in values if isinstance(v, float)), config
@@ -163,13 +166,10 @@ SIMULATION_KEYS = {"plan": ["step_deg", "step_samples", "rates_hz", "rotation_sa
 @PROPERTY
 @given(doc=documents(SIMULATION_KEYS))
 def test_any_simulation_request_is_refused_in_one_line_or_simulates_finite(tmp_path_factory, doc):
-    path = tmp_path_factory.mktemp("sim") / "request.toml"
     base = {"plan": {"axes": ["x"], "rates_hz": [0.5], "rotation_samples": 40, "step_samples": 2, "step_deg": 90.0}}
-    path.write_text(toml_document({t: {**base.get(t, {}), **doc.get(t, {})} for t in {*base, *doc}}))
-    try:
-        spec = spec_from_toml(path)
-    except ConfigError as exc:
-        one_line(exc, path)
+    spec = loaded_or_refused(tmp_path_factory.mktemp("sim") / "request.toml",
+                             {t: {**base.get(t, {}), **doc.get(t, {})} for t in {*base, *doc}}, spec_from_toml, ConfigError)
+    if spec is None:
         return
     plan = spec.plan
     if len(plan.axes) * (360 / plan.step_deg * plan.step_samples + len(plan.rates_hz) * plan.rotation_samples) <= 5000:
