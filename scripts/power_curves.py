@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -108,6 +109,7 @@ def diagnosed(path: Path) -> tuple[tuple[IntrinsicResult, ...], Diagnosis]:
 def run_job(job: Job) -> dict:
     """Simulate one dataset, run rotcal on it, and compute the GLR statistic
     of its true extension (and, clean, each candidate's score p-value)."""
+    began = cpu_seconds()
     req = clip_request(job) if job.effect == "clipping" else job.req
     spec = SimulationSpec().with_effects(*([req] if req else []))
     data = Path(job.workdir) / f"{job.effect or 'clean'}_{job.seed}_{job.size:.6g}"
@@ -134,7 +136,15 @@ def run_job(job: Job) -> dict:
             if job.seed < 1000 + CLIP_CALIBRATIONS:
                 out["clip_threshold"] = clipping_threshold(null, quantum(final.obs.y), ALPHA, 200_000,
                                                            np.random.default_rng(job.seed))
+    out["cpu_s"] = cpu_seconds() - began
     return out
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process and its finished children (user and system):
+    what a dataset costs, whatever else shares the cores."""
+    own, children = (resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def clip_request(job: Job) -> str:
@@ -315,6 +325,22 @@ def loaded(paths: list[Path]) -> list[dict]:
     return clean + [r for name, f in chosen.items() for r in f if r["effect"] == name]
 
 
+def runtime(results: list[dict], wall_s: float, cpu_s: float, workers: int) -> str:
+    """The run's cost: the datasets' summed CPU time (``cpu_s`` of each, as
+    saved), per kind, and that sum over two cores, the wall time on a quiet
+    two-core machine; and this invocation's wall time and CPU time (with its
+    workers), which on a shared machine say little."""
+    timed = [r for r in results if "cpu_s" in r]
+    total = sum(r["cpu_s"] for r in timed)
+    kinds = {}
+    for r in timed:
+        kinds.setdefault(r["effect"] or "clean", []).append(r["cpu_s"])
+    per = ", ".join(f"{k} {np.mean(v):.1f}" for k, v in kinds.items())
+    return (f"- CPU time: {len(timed)} of {len(results)} datasets timed, {total:,.0f} CPU s in all "
+            f"(per dataset, s: {per}); on 2 idle cores about {total / 2:,.0f} s wall ({total / 120:.0f} min)\n"
+            f"- this invocation: {wall_s:,.0f} s wall, {cpu_s:,.0f} CPU s with its {workers} workers")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=8, help="datasets per effect and size")
@@ -331,7 +357,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.points, args.clean = 1, 2, 2
-    began = time.perf_counter()
+    began, cpu_began = time.perf_counter(), cpu_seconds()
     if args.load:
         results = loaded(args.load)
     else:
@@ -351,7 +377,7 @@ def main() -> None:
           f"per effect from {SPAN[0]:g}x below to {SPAN[1]:g}x above the GLR's pilot 50 % size "
           f"(clipping: limits {CLIP_SIGMAS[0]:g} to {CLIP_SIGMAS[1]:g} noise sd above the largest output).")
     print("\n".join(calibration(clean, threshold)))
-    print(f"- runtime {time.perf_counter() - began:.0f} s with {args.workers} workers")
+    print(runtime(results, time.perf_counter() - began, cpu_seconds() - cpu_began, args.workers))
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ remains unexplained.
 
 1. The null model (``model``): the fitted intrinsic model of every rate,
    simulated for every sample.
-2. Clipping first (``clipping``): stuck samples are set aside, since every
-   other fit would be biased by them.
+2. Clipping first (``clipping``): a pile of samples at an extreme (the
+   binomial count) is set aside, since every other fit would be biased by
+   it; after the selection (3), a censoring test against the selected model
+   finds the smaller clips, and the selection is redone without them.
 3. Forward selection: each catalogue extension (per axis or channel) and an
    offset step at the most likely time is scored by the chi-square it would
    remove; the one with the best BIC among those significant at the stated
@@ -28,7 +30,7 @@ import polars as pl
 
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import STEP, extensions
-from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values
+from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, successive_noise
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
@@ -163,6 +165,16 @@ def _clip_mask(fit: ModelFit, clip: tuple[float | None, float | None], margin_si
     if low is not None:
         use &= (obs.y > low) & (pred > low + margin_sigma * fit.sigma[None, :])
     return use
+
+
+def _clipped(fit: ModelFit, clip: tuple[float | None, float | None]) -> ModelFit:
+    """The model refitted with the output limits ``clip`` and without the
+    samples they can have touched (twice: the mask follows the refit)."""
+    if all(v is None for v in clip):
+        return fit
+    for _ in range(2):
+        fit = fit_model(fit.obs, fit.layout, fit.beta, fit.active, clip, fit.structure, _clip_mask(fit, clip))
+    return fit
 
 
 @dataclass(frozen=True)
@@ -332,12 +344,15 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
                     np.ones_like(obs.y, bool))
     q = quantum(obs.y)
-    evidence = stuck_values(obs.y, q)
+    evidence = stuck_values(obs.y, q)   # the binomial count, which needs no model
     clip = clip_limits(evidence, alpha)
-    if any(v is not None for v in clip):
-        for _ in range(2):
-            fit = fit_model(obs, layout, fit.beta, fit.active, clip, fit.structure, _clip_mask(fit, clip))
-    final = _select(fit, cands, alpha)
+    final = _select(_clipped(fit, clip), cands, alpha)
+    if all(v is None for v in clip):   # the censoring test, against the selected model (``clipping``)
+        evidence = stuck_values(obs.y, q, (final.ev.pred, np.minimum(final.sigma, successive_noise(
+            obs.y - final.ev.pred, obs.segment))))
+        clip = clip_limits(evidence, alpha)
+        if any(v is not None for v in clip):
+            final = _select(_clipped(final, clip), cands, alpha)
     if any(v is not None for v in clip):
         final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance

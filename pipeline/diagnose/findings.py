@@ -105,7 +105,8 @@ def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alph
                                 for e in hits))
         params.append({"dataset": dataset, "effect": effect, "axis": "", "parameter": f"clip_{side}",
                        "value": limit, "std_uncertainty": q, "unit": output_unit})
-    evidence_text = (f"runs of samples stuck at the extremes: {'; '.join(detail)} (binomial p = {_fmt(p)}); "
+    evidence_text = (f"runs of samples stuck at the extremes: {'; '.join(detail)} (p = {_fmt(p)}: binomial against the "
+                     f"neighbouring value or censoring against the model); "
                      f"samples the limit can have touched are left out of every fit")
     return _row(dataset, effect, True, "; ".join(where), evidence_text, rms(rss_before), rms(rss_after), dbic, p), params
 

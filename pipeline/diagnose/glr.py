@@ -20,15 +20,15 @@ Clipping is not a smooth extension: its GLR is that of quantized samples
 with an output limit c at the largest output (its maximum-likelihood value),
 each sample at c censored (probability P(x >= c - q/2)) rather than in its
 quantum bin (P(c - q/2 <= x < c + q/2)), x ~ N(mu, sigma^2) the null model's
-prediction and noise (``censoring_gain``). Its null distribution
+prediction and noise (``clipping.censoring_gain``). Its null distribution
 is not chi-square; it is drawn by Monte Carlo (``clipping_threshold``).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import log_ndtr
 
+from rotcal.diagnose.clipping import censoring_gain
 from rotcal.diagnose.fitting import ModelFit, fit_model
 from rotcal.diagnose.model import Layout, Observations, Structure
 from rotcal.model.effects.base import Candidate
@@ -46,15 +46,6 @@ def glr(null: ModelFit, true: tuple[Candidate, ...]) -> tuple[float, int]:
     alt = fit_model(null.obs, null.layout, null.beta, true, null.clip, null.structure, null.use)
     stat = float(np.sum(null.ev.n_used * np.log(null.ev.rss / alt.ev.rss)))
     return max(stat, 0.0), sum(len(c.names) for c in true)
-
-
-def censoring_gain(mu: np.ndarray, sigma: np.ndarray, limit: np.ndarray | float, q: float) -> np.ndarray:
-    """Per sample at an upper ``limit``, ln P(x >= limit - q/2) - ln P(x in
-    limit's bin), x ~ N(mu, sigma^2): what censoring at the limit gains over
-    the quantized sample, computed in the tail (log_ndtr)."""
-    lower = (limit - q / 2 - mu) / sigma
-    upper = lower + q / sigma
-    return -np.log1p(-np.exp(log_ndtr(-upper) - log_ndtr(-lower)))
 
 
 def clipping_glr(null: ModelFit, q: float) -> float:
