@@ -12,8 +12,10 @@ sizes at 50 % and 80 % power. Clean datasets calibrate both tests.
 
     python scripts/power_curves.py [--seeds 8] [--points 7] [--clean 24] [--workers 2] [--quick]
 
-Prints the Markdown table (docs/power.md, docs/measured.md) and writes the
-plot (``--plot``, default docs/power_curves.png).
+Prints the Markdown table (docs/power.md, docs/measured.md) and the run's
+cost (each dataset's CPU time, summed: over two cores, the wall time on a
+quiet two-core machine), and writes the plot (``--plot``, default
+docs/power_curves.png).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import pytest
 from test_power import _null
 
 from rotcal.config import DiagnosisConfig, RunConfig, RunSection
-from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, successive_noise
+from rotcal.diagnose.clipping import censoring_gain, clip_limits, quantum, stuck_values, successive_noise
 from rotcal.run import run_dataset
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
@@ -86,12 +86,16 @@ def test_a_misfit_null_model_does_not_fake_a_clip(tmp_path, make_dataset):
     """offset_drift + axis_tilt, seed 5300: before either effect is modelled
     the null model's noise in v is about 60 (the sensor's 8), and a
     censoring test against it finds four samples sharing v's largest value
-    censored (p below 1e-6). Against the selected model, with the local
-    noise, there is no clip: the diagnosis names the two effects only."""
+    censored (prod pi below 1e-6; the diagnosis makes no censoring test on
+    a quantum under 0.05 noise sd). Against the selected model, with the
+    local noise, there is no clip: the diagnosis names the two effects only."""
     null = _null(make_dataset, 5300, MISFIT)
     y = null.obs.y
     assert null.sigma[1] > 50
-    assert clip_limits(stuck_values(y, quantum(y), (null.ev.pred, null.sigma)), ALPHA)[1] is not None
+    top = y[:, 1] == y[:, 1].max()
+    assert top.sum() == 4
+    censored = np.exp(-censoring_gain(null.ev.pred[top, 1], null.sigma[1], y[top, 1], quantum(y)).sum())
+    assert censored < 1e-6
     assert successive_noise(y - null.ev.pred, null.obs.segment) == pytest.approx(np.full(3, 8.0), rel=0.03)
     found, _, _ = _run(tmp_path, 5300, MISFIT)
     assert found == {"offset_drift", "axis_tilt"}
