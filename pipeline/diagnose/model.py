@@ -18,14 +18,23 @@ extension, without refitting from scratch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import pickle
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 import scipy.linalg
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, ScaleEffect, catalogue, effect_named
+from rotcal.model.effects import (
+    AngleEffect,
+    ForceEffect,
+    GainEffect,
+    SamplingEffect,
+    ScaleEffect,
+    catalogue,
+    effect_named,
+)
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
     Effects,
@@ -55,6 +64,8 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
+    # the geometries and column factors of the last motion evaluated (``_motion_reuse``)
+    reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
     def n(self) -> int:
@@ -240,8 +251,28 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
     return out
 
 
+def _motion_reuse(obs: Observations, effects: Effects) -> dict:
+    """What depends only on the samples' motion and on the effects that shape
+    it (angle, sampling and force effects): the geometries and the factors
+    the extension columns share (``_Factors.cached``). One slot per
+    ``Observations``, kept while those effects' values are unchanged bit for
+    bit: the iterations of a fit without such effects (the null model, gain,
+    scale or offset effects) then compute them once, not once per evaluation.
+    The arrays are read-only, so no caller can change what later ones reuse."""
+    key = pickle.dumps([(e.name, state) for stage in (AngleEffect, SamplingEffect, ForceEffect)
+                        for e, state in effects.active(stage)])
+    if obs.reuse.get("key") != key:
+        geometries = _geometries(obs, effects)
+        for geo in geometries.values():
+            for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
+                array.flags.writeable = False
+        obs.reuse.clear()
+        obs.reuse.update(key=key, geometries=geometries, factors={})
+    return obs.reuse
+
+
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
-    geometries = _geometries(obs, effects)
+    geometries = _motion_reuse(obs, effects)["geometries"]
     R = layout.responsivity(beta)[obs.rate_idx]
     gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
     delays = effects.delays()
@@ -288,17 +319,22 @@ def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarra
 class _Factors:
     """What the extension columns use besides their channel (the
     ``rotcal.model.effects.base.ColumnContext``): channel-independent
-    factors are computed once per evaluation and cached."""
+    factors are computed once and cached with the geometries
+    (``_motion_reuse``): a factor may depend on the motion, the geometry
+    and the effects that shape them, nothing else."""
 
     def __init__(self, obs: Observations, effects: Effects, structure: Structure):
         self.obs, self.effects, self.structure = obs, effects, structure
         self.motion, self.g_local = obs.motion, obs.g_local
-        self.on_axis = [obs.motion.axis_idx == a for a in range(3)]
-        self.cache: dict = {}
+        self.cache: dict = _motion_reuse(obs, effects)["factors"]
+        self.on_axis = self.cached("on_axis", lambda: [obs.motion.axis_idx == a for a in range(3)])
 
     def cached(self, key, make):
         if key not in self.cache:
-            self.cache[key] = make()
+            value = make()
+            for array in value if isinstance(value, list) else [value]:
+                array.flags.writeable = False
+            self.cache[key] = value
         return self.cache[key]
 
     def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
@@ -328,8 +364,8 @@ class _Factors:
         """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
         if cand == STEP:
             m = self.motion
-            return self.cached("step", lambda: (m.t_s >= self.structure.step_t_s).astype(float)
-                               if self.structure.step_t_s is not None else np.zeros(self.obs.n))
+            t = self.structure.step_t_s
+            return self.cached(("step", t), lambda: (m.t_s >= t).astype(float) if t is not None else np.zeros(self.obs.n))
         return effect_named(cand.effect).column(name, cand, st, self)
 
 
