@@ -167,7 +167,11 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: 
     for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
         E = columns[d.rows]
         keep = ~np.isin(d.ext, params)  # the design holds these columns as zeros
-        cross_ext = d.X[:, 4:][:, keep].T @ E
+        kept = 4 + np.flatnonzero(keep)
+        # a run of columns transposed from a slice (faster than a gather) into
+        # the same contiguous (k, n) matrix, for the same BLAS product
+        run = kept.size > 0 and kept[-1] - kept[0] == kept.size - 1
+        cross_ext = np.ascontiguousarray((d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T) @ E
         gram[r][np.ix_(d.ext[keep], params)] = cross_ext
         gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
         gram[r][np.ix_(params, params)] = E.T @ E
@@ -384,14 +388,18 @@ def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[
         r = st.r
         rows = np.flatnonzero(use[:, r])
         ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
-        X = np.empty((obs.n, 4 + ext.size))
-        X[:, 0] = 1.0
-        X[:, 1:4] = st.slope[:, None] * st.geo.force
+        # each column written contiguously, then one transposing copy into the
+        # row-major design the normal equations read (writing the columns of a
+        # row-major array directly streams the whole array once per column)
+        columns = np.empty((4 + ext.size, obs.n))
+        columns[0] = 1.0
+        columns[1:4] = (st.slope[:, None] * st.geo.force).T
         for k, i in enumerate(ext):
-            X[:, 4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
+            columns[4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
         base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                          for f in range(m)])
-        X = X if rows.size == obs.n else X[rows]
+        X = np.ascontiguousarray(columns.T if rows.size == obs.n else columns.T[rows])
+        del columns
         d = ChannelDesign(X, obs.rate_idx[rows], rows, resid[rows, r], base, ext)
         G, b = normal_equations(d, p, m)
         designs.append(d)
