@@ -64,7 +64,7 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
-    # the geometries and column factors of the last motion evaluated (``_motion_reuse``)
+    # the geometries and column factors of the last motion evaluated (``_motion_reuse``), a scratch array
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
@@ -270,9 +270,18 @@ def _motion_reuse(obs: Observations, effects: Effects) -> dict:
         for geo in geometries.values():
             for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
                 array.flags.writeable = False
-        obs.reuse.clear()
         obs.reuse.update(key=key, geometries=geometries, factors={})
     return obs.reuse
+
+
+def _column_buffer(obs: Observations, k: int) -> np.ndarray:
+    """A (k, n) scratch array for one channel's design columns, kept with
+    the observations: a fresh array of that size costs its page faults
+    (about a millisecond per megabyte on a loaded machine) at every evaluation."""
+    buffer = obs.reuse.get("columns")
+    if buffer is None or buffer.shape[0] < k:
+        buffer = obs.reuse["columns"] = np.empty((k, obs.n))
+    return buffer[:k]
 
 
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
@@ -391,7 +400,7 @@ def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[
         # each column written contiguously, then one transposing copy into the
         # row-major design the normal equations read (writing the columns of a
         # row-major array directly streams the whole array once per column)
-        columns = np.empty((4 + ext.size, obs.n))
+        columns = _column_buffer(obs, 4 + ext.size)
         columns[0] = 1.0
         columns[1:4] = (st.slope[:, None] * st.geo.force).T
         for k, i in enumerate(ext):
@@ -399,7 +408,6 @@ def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[
         base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                          for f in range(m)])
         X = np.ascontiguousarray(columns.T if rows.size == obs.n else columns.T[rows])
-        del columns
         d = ChannelDesign(X, obs.rate_idx[rows], rows, resid[rows, r], base, ext)
         G, b = normal_equations(d, p, m)
         designs.append(d)
