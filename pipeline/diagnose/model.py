@@ -160,9 +160,11 @@ def normal_equations(d: ChannelDesign, p: int, m: int) -> tuple[np.ndarray, np.n
     return G, b
 
 
-def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int) -> Evaluation:
+def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int,
+                 obs: Observations | None = None) -> Evaluation:
     """``ev`` with further Jacobian columns: ``extra[r]`` = (parameter
-    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator."""
+    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator
+    (``obs``: the observations whose scratch array can hold the products' operands)."""
     gram, rhs = ev.gram.copy(), ev.rhs.copy()
     for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
         E = columns[d.rows]
@@ -171,7 +173,12 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: 
         # a run of columns transposed from a slice (faster than a gather) into
         # the same contiguous (k, n) matrix, for the same BLAS product
         run = kept.size > 0 and kept[-1] - kept[0] == kept.size - 1
-        cross_ext = np.ascontiguousarray((d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T) @ E
+        ext_t = (d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T
+        if obs is not None:  # into the scratch array: no fresh pages to fault in
+            target = _column_buffer(obs, ext_t.shape[0]).reshape(-1)[:ext_t.size].reshape(ext_t.shape)
+            np.copyto(target, ext_t)
+            ext_t = target
+        cross_ext = np.ascontiguousarray(ext_t) @ E
         gram[r][np.ix_(d.ext[keep], params)] = cross_ext
         gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
         gram[r][np.ix_(params, params)] = E.T @ E
