@@ -18,65 +18,22 @@ extension, without refitting from scratch.
 
 from __future__ import annotations
 
-import pickle
-from dataclasses import dataclass, field, replace
-from functools import cached_property
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.model.effects import (
-    AngleEffect,
-    ForceEffect,
-    GainEffect,
-    SamplingEffect,
-    ScaleEffect,
-    catalogue,
-    effect_named,
-)
+from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, motion_reuse
+from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
     Effects,
-    Motion,
-    gravity_direction_derivative,
     nonlinearity,
     offset_terms,
     scale_terms,
     scaled,
-    specific_force,
-    true_angle,
-    uniform_angle,
 )
-
-# Relative to a channel's largest output: far above float64 rounding of the
-# model (~1e-15), far below any sensor's noise or quantization (~1e-5).
-NUMERICAL_FLOOR = 1e-9
-
-
-@dataclass(frozen=True, eq=False)
-class Observations:
-    """The samples of a dataset's fitted table segments, as arrays."""
-
-    motion: Motion
-    y: np.ndarray           # (n, 3) raw outputs
-    rate_idx: np.ndarray    # (n,) index into ``rates``
-    rates: np.ndarray       # (m,) rates in Hz, 0 for static
-    segment: np.ndarray     # (n,) segment ids
-    g_local: float
-    # the geometries and column factors of the last motion evaluated (``_motion_reuse``), a scratch array
-    reuse: dict = field(default_factory=dict, init=False, repr=False)
-
-    @property
-    def n(self) -> int:
-        return self.y.shape[0]
-
-    @cached_property
-    def noise_floor(self) -> np.ndarray:
-        """Each channel's smallest credible noise, ``NUMERICAL_FLOOR`` of its
-        largest output: on noise-free (simulated) data the residuals are
-        rounding, and weighting by them would make rounding look like physics."""
-        return NUMERICAL_FLOOR * np.abs(self.y).max(axis=0, initial=0.0)
 
 
 class Layout:
@@ -175,7 +132,7 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: 
         run = kept.size > 0 and kept[-1] - kept[0] == kept.size - 1
         ext_t = (d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T
         if obs is not None:  # into the scratch array: no fresh pages to fault in
-            target = _column_buffer(obs, ext_t.shape[0]).reshape(-1)[:ext_t.size].reshape(ext_t.shape)
+            target = column_buffer(obs, ext_t.shape[0]).reshape(-1)[:ext_t.size].reshape(ext_t.shape)
             np.copyto(target, ext_t)
             ext_t = target
         cross_ext = np.ascontiguousarray(ext_t) @ E
@@ -197,19 +154,6 @@ class Structure:
     """Generic structures in the model: the offset step's time (or None)."""
 
     step_t_s: float | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class Geometry:
-    """What the table did, seen at one sampling delay: specific force / g,
-    true angle, d(force)/d(theta) per degree, and the uniform angle of the
-    rotating samples. Channels without a delay share one."""
-
-    force: np.ndarray
-    theta: np.ndarray
-    deriv: np.ndarray
-    base: np.ndarray
-    stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
 
 
 @dataclass(frozen=True, eq=False)
@@ -240,59 +184,8 @@ class ChannelState:
         return self.geo.stretch
 
 
-def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
-    m, g = obs.motion, obs.g_local
-    scale = np.ones(obs.n)   # of d force / d theta (an axis tilt shrinks the rotating part)
-    for force_effect, state in effects.active(ForceEffect):
-        factor = force_effect.angle_scale(state, m)
-        if factor is not None:
-            scale = scale * factor
-    out = {}
-    rot = np.flatnonzero(m.rotating)
-    for delay in sorted(set(effects.delays())):
-        theta = true_angle(m, effects, delay)
-        base = uniform_angle(m, effects, delay)
-        stretch = np.ones(obs.n)
-        for angle_effect, state in effects.active(AngleEffect):
-            slope = angle_effect.angle_slope(state, m, base)
-            if slope is not None:
-                stretch[rot] += slope
-        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
-                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
-    return out
-
-
-def _motion_reuse(obs: Observations, effects: Effects) -> dict:
-    """What depends only on the samples' motion and on the effects that shape
-    it (angle, sampling and force effects): the geometries and the factors
-    the extension columns share (``_Factors.cached``). One slot per
-    ``Observations``, kept while those effects' values are unchanged bit for
-    bit: the iterations of a fit without such effects (the null model, gain,
-    scale or offset effects) then compute them once, not once per evaluation.
-    The arrays are read-only, so no caller can change what later ones reuse."""
-    key = pickle.dumps([(e.name, state) for stage in (AngleEffect, SamplingEffect, ForceEffect)
-                        for e, state in effects.active(stage)])
-    if obs.reuse.get("key") != key:
-        geometries = _geometries(obs, effects)
-        for geo in geometries.values():
-            for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
-                array.flags.writeable = False
-        obs.reuse.update(key=key, geometries=geometries, factors={})
-    return obs.reuse
-
-
-def _column_buffer(obs: Observations, k: int) -> np.ndarray:
-    """A (k, n) scratch array for one channel's design columns, kept with
-    the observations: a fresh array of that size costs its page faults
-    (about a millisecond per megabyte on a loaded machine) at every evaluation."""
-    buffer = obs.reuse.get("columns")
-    if buffer is None or buffer.shape[0] < k:
-        buffer = obs.reuse["columns"] = np.empty((k, obs.n))
-    return buffer[:k]
-
-
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
-    geometries = _motion_reuse(obs, effects)["geometries"]
+    geometries = motion_reuse(obs, effects)["geometries"]
     R = layout.responsivity(beta)[obs.rate_idx]
     gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
     delays = effects.delays()
@@ -340,13 +233,13 @@ class _Factors:
     """What the extension columns use besides their channel (the
     ``rotcal.model.effects.base.ColumnContext``): channel-independent
     factors are computed once and cached with the geometries
-    (``_motion_reuse``): a factor may depend on the motion, the geometry
+    (``geometry.motion_reuse``): a factor may depend on the motion, the geometry
     and the effects that shape them, nothing else."""
 
     def __init__(self, obs: Observations, effects: Effects, structure: Structure):
         self.obs, self.effects, self.structure = obs, effects, structure
         self.motion, self.g_local = obs.motion, obs.g_local
-        self.cache: dict = _motion_reuse(obs, effects)["factors"]
+        self.cache: dict = motion_reuse(obs, effects)["factors"]
         self.on_axis = self.cached("on_axis", lambda: [obs.motion.axis_idx == a for a in range(3)])
 
     def cached(self, key, make):
@@ -407,7 +300,7 @@ def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[
         # each column written contiguously, then one transposing copy into the
         # row-major design the normal equations read (writing the columns of a
         # row-major array directly streams the whole array once per column)
-        columns = _column_buffer(obs, 4 + ext.size)
+        columns = column_buffer(obs, 4 + ext.size)
         columns[0] = 1.0
         columns[1:4] = (st.slope[:, None] * st.geo.force).T
         for k, i in enumerate(ext):
