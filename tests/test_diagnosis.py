@@ -169,9 +169,9 @@ def test_gaitan_case_centripetal_22_cm(tmp_path):
     assert "figures/offsets_vs_w2.png" in report and (tmp_path / "out" / "figures" / "offsets_vs_w2.png").stat().st_size > 0
 
 
-def test_jacobian_matches_finite_differences(make_dataset):
-    """Every parameter's analytic Jacobian column against central
-    differences of the forward model, at a state with every effect on."""
+def _every_effect_on(make_dataset):
+    """A default-plan dataset's observations, layout and a state with every
+    catalogue effect and the offset step on."""
     from rotcal.combine.labelled import combine
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
@@ -196,7 +196,13 @@ def test_jacobian_matches_finite_differences(make_dataset):
         beta[layout.params(cand)] = scale[cand.effect] * rng.uniform(0.5, 1.0, len(cand.names))
     active = cands + (STEP,)
     structure = Structure(step_t_s=float(np.median(obs.motion.t_s)))
-    use = np.ones_like(obs.y, bool)
+    return obs, layout, beta, active, structure, np.ones_like(obs.y, bool)
+
+
+def test_jacobian_matches_finite_differences(make_dataset):
+    """Every parameter's analytic Jacobian column against central
+    differences of the forward model, at a state with every effect on."""
+    obs, layout, beta, active, structure, use = _every_effect_on(make_dataset)
     ev = evaluate(obs, beta, layout, active, (None, None), structure, use)
     for name in layout.names[layout.n_base:] + ("O.2.1", "R.3.2.0"):
         i = layout.index[name]
@@ -218,6 +224,25 @@ def test_jacobian_matches_finite_differences(make_dataset):
                 continue
             np.testing.assert_allclose(analytic, numeric[d.rows, r], rtol=2e-4,
                                        atol=2e-4 * np.abs(numeric[:, r]).max() + 1e-9, err_msg=f"{name} channel {r}")
+
+
+def test_evaluations_reuse_nothing_stale(make_dataset):
+    """Observations keep the geometries and column factors of the last
+    motion evaluated: an evaluation after one at other values of the
+    motion-shaping effects (here none on, then every one on) equals the same
+    evaluation on fresh observations, bit for bit."""
+    from dataclasses import replace
+
+    obs, layout, beta, active, structure, use = _every_effect_on(make_dataset)
+    null = np.where(np.arange(beta.size) < layout.n_base, beta, 0.0)   # the same responsivities, no effect
+    states = [(beta, active, structure), (null, (), Structure())]
+    for (b1, a1, s1), (b2, a2, s2) in (states, states[::-1]):
+        evaluate(obs, b1, layout, a1, (None, None), s1, use)
+        shared = evaluate(obs, b2, layout, a2, (None, None), s2, use)
+        fresh = evaluate(replace(obs), b2, layout, a2, (None, None), s2, use)
+        assert shared.pred.tobytes() == fresh.pred.tobytes()
+        assert shared.gram.tobytes() == fresh.gram.tobytes()
+        assert all(d.X.tobytes() == e.X.tobytes() for d, e in zip(shared.designs, fresh.designs))
 
 
 def test_step_scan_false_alarm_rate_is_conservative():

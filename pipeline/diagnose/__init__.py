@@ -188,7 +188,7 @@ def _step_score(fit: ModelFit) -> StepScore:
     t, _, p = step_scan(_residuals(fit, ""))
     after = (fit.obs.motion.t_s >= t).astype(float)[:, None]
     extra = [(np.array([fit.layout.index[f"step_{c}"]]), after) for c in CHANNELS]
-    ev = with_columns(fit.ev, extra, fit.layout.n_rates)
+    ev = with_columns(fit.ev, extra, fit.layout.n_rates, fit.obs)
     s = score(fit, (STEP,), p_value=p, ev=ev, extra_params=1)
     return StepScore(s.candidate, s.chi2, s.p_value, s.delta_bic, s.rss, t)
 

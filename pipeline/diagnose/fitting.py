@@ -11,7 +11,7 @@ per-channel residual sums of squares.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import chdtrc
@@ -34,6 +34,8 @@ class ModelFit:
     G: np.ndarray
     b: np.ndarray
     idx: np.ndarray
+    # the scores of extensions already asked for (``score``), and the fit's own decrement
+    memo: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
     def n_total(self) -> int:
@@ -128,14 +130,30 @@ class Score:
 def score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None = None,
           ev: Evaluation | None = None, extra_params: int = 0) -> Score:
     """Score of adding ``cands`` jointly to ``fit``; ``ev`` supplies the
-    Jacobian when the extension changes the structure (a step time)."""
-    ev = ev or fit.ev
+    Jacobian when the extension changes the structure (a step time). The
+    selection, the exchange and the findings ask for the same scores of one
+    fit again: they are kept with it."""
+    if ev is None and p_value is None and not extra_params:
+        key = tuple(c.key for c in cands)
+        if key not in fit.memo:
+            fit.memo[key] = _score(fit, cands, None, fit.ev, 0)
+        return fit.memo[key]
+    return _score(fit, cands, p_value, ev or fit.ev, extra_params)
+
+
+def _score(fit: ModelFit, cands: tuple[Candidate, ...], p_value: float | None, ev: Evaluation,
+           extra_params: int) -> Score:
     G, b = weighted(ev, fit.sigma) if ev is not fit.ev else (fit.G, fit.b)
     extra = np.concatenate([fit.layout.params(c) for c in cands])
     idx = np.union1d(fit.idx, extra)
     step, _ = solve(G, b, idx)
     # the optimum's own gradient is ~0: the decrease is the extension's share
-    _, base_dec = solve(G, b, fit.idx)
+    if ev is not fit.ev:
+        _, base_dec = solve(G, b, fit.idx)
+    else:
+        if "decrement" not in fit.memo:
+            fit.memo["decrement"] = solve(G, b, fit.idx)[1]
+        base_dec = fit.memo["decrement"]
     dchi = max(float(b[idx] @ step) - base_dec, 0.0)
     rss = np.maximum(rss_after(ev, step, idx), 1e-300)
     k = extra.size + extra_params

@@ -19,53 +19,21 @@ extension, without refitting from scratch.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import cached_property
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.model.effects import AngleEffect, ForceEffect, GainEffect, ScaleEffect, catalogue, effect_named
+from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, motion_reuse
+from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
     Effects,
-    Motion,
-    gravity_direction_derivative,
     nonlinearity,
     offset_terms,
     scale_terms,
     scaled,
-    specific_force,
-    true_angle,
-    uniform_angle,
 )
-
-# Relative to a channel's largest output: far above float64 rounding of the
-# model (~1e-15), far below any sensor's noise or quantization (~1e-5).
-NUMERICAL_FLOOR = 1e-9
-
-
-@dataclass(frozen=True, eq=False)
-class Observations:
-    """The samples of a dataset's fitted table segments, as arrays."""
-
-    motion: Motion
-    y: np.ndarray           # (n, 3) raw outputs
-    rate_idx: np.ndarray    # (n,) index into ``rates``
-    rates: np.ndarray       # (m,) rates in Hz, 0 for static
-    segment: np.ndarray     # (n,) segment ids
-    g_local: float
-
-    @property
-    def n(self) -> int:
-        return self.y.shape[0]
-
-    @cached_property
-    def noise_floor(self) -> np.ndarray:
-        """Each channel's smallest credible noise, ``NUMERICAL_FLOOR`` of its
-        largest output: on noise-free (simulated) data the residuals are
-        rounding, and weighting by them would make rounding look like physics."""
-        return NUMERICAL_FLOOR * np.abs(self.y).max(axis=0, initial=0.0)
 
 
 class Layout:
@@ -149,14 +117,25 @@ def normal_equations(d: ChannelDesign, p: int, m: int) -> tuple[np.ndarray, np.n
     return G, b
 
 
-def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int) -> Evaluation:
+def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int,
+                 obs: Observations | None = None) -> Evaluation:
     """``ev`` with further Jacobian columns: ``extra[r]`` = (parameter
-    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator."""
+    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator
+    (``obs``: the observations whose scratch array can hold the products' operands)."""
     gram, rhs = ev.gram.copy(), ev.rhs.copy()
     for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
         E = columns[d.rows]
         keep = ~np.isin(d.ext, params)  # the design holds these columns as zeros
-        cross_ext = d.X[:, 4:][:, keep].T @ E
+        kept = 4 + np.flatnonzero(keep)
+        # a run of columns transposed from a slice (faster than a gather) into
+        # the same contiguous (k, n) matrix, for the same BLAS product
+        run = kept.size > 0 and kept[-1] - kept[0] == kept.size - 1
+        ext_t = (d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T
+        if obs is not None:  # into the scratch array: no fresh pages to fault in
+            target = column_buffer(obs, ext_t.shape[0]).reshape(-1)[:ext_t.size].reshape(ext_t.shape)
+            np.copyto(target, ext_t)
+            ext_t = target
+        cross_ext = np.ascontiguousarray(ext_t) @ E
         gram[r][np.ix_(d.ext[keep], params)] = cross_ext
         gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
         gram[r][np.ix_(params, params)] = E.T @ E
@@ -175,19 +154,6 @@ class Structure:
     """Generic structures in the model: the offset step's time (or None)."""
 
     step_t_s: float | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class Geometry:
-    """What the table did, seen at one sampling delay: specific force / g,
-    true angle, d(force)/d(theta) per degree, and the uniform angle of the
-    rotating samples. Channels without a delay share one."""
-
-    force: np.ndarray
-    theta: np.ndarray
-    deriv: np.ndarray
-    base: np.ndarray
-    stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,30 +184,8 @@ class ChannelState:
         return self.geo.stretch
 
 
-def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
-    m, g = obs.motion, obs.g_local
-    scale = np.ones(obs.n)   # of d force / d theta (an axis tilt shrinks the rotating part)
-    for force_effect, state in effects.active(ForceEffect):
-        factor = force_effect.angle_scale(state, m)
-        if factor is not None:
-            scale = scale * factor
-    out = {}
-    rot = np.flatnonzero(m.rotating)
-    for delay in sorted(set(effects.delays())):
-        theta = true_angle(m, effects, delay)
-        base = uniform_angle(m, effects, delay)
-        stretch = np.ones(obs.n)
-        for angle_effect, state in effects.active(AngleEffect):
-            slope = angle_effect.angle_slope(state, m, base)
-            if slope is not None:
-                stretch[rot] += slope
-        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
-                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
-    return out
-
-
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
-    geometries = _geometries(obs, effects)
+    geometries = motion_reuse(obs, effects)["geometries"]
     R = layout.responsivity(beta)[obs.rate_idx]
     gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
     delays = effects.delays()
@@ -288,17 +232,22 @@ def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarra
 class _Factors:
     """What the extension columns use besides their channel (the
     ``rotcal.model.effects.base.ColumnContext``): channel-independent
-    factors are computed once per evaluation and cached."""
+    factors are computed once and cached with the geometries
+    (``geometry.motion_reuse``): a factor may depend on the motion, the geometry
+    and the effects that shape them, nothing else."""
 
     def __init__(self, obs: Observations, effects: Effects, structure: Structure):
         self.obs, self.effects, self.structure = obs, effects, structure
         self.motion, self.g_local = obs.motion, obs.g_local
-        self.on_axis = [obs.motion.axis_idx == a for a in range(3)]
-        self.cache: dict = {}
+        self.cache: dict = motion_reuse(obs, effects)["factors"]
+        self.on_axis = self.cached("on_axis", lambda: [obs.motion.axis_idx == a for a in range(3)])
 
     def cached(self, key, make):
         if key not in self.cache:
-            self.cache[key] = make()
+            value = make()
+            for array in value if isinstance(value, list) else [value]:
+                array.flags.writeable = False
+            self.cache[key] = value
         return self.cache[key]
 
     def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
@@ -328,8 +277,8 @@ class _Factors:
         """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
         if cand == STEP:
             m = self.motion
-            return self.cached("step", lambda: (m.t_s >= self.structure.step_t_s).astype(float)
-                               if self.structure.step_t_s is not None else np.zeros(self.obs.n))
+            t = self.structure.step_t_s
+            return self.cached(("step", t), lambda: (m.t_s >= t).astype(float) if t is not None else np.zeros(self.obs.n))
         return effect_named(cand.effect).column(name, cand, st, self)
 
 
@@ -348,14 +297,17 @@ def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[
         r = st.r
         rows = np.flatnonzero(use[:, r])
         ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
-        X = np.empty((obs.n, 4 + ext.size))
-        X[:, 0] = 1.0
-        X[:, 1:4] = st.slope[:, None] * st.geo.force
+        # each column written contiguously, then one transposing copy into the
+        # row-major design the normal equations read (writing the columns of a
+        # row-major array directly streams the whole array once per column)
+        columns = column_buffer(obs, 4 + ext.size)
+        columns[0] = 1.0
+        columns[1:4] = (st.slope[:, None] * st.geo.force).T
         for k, i in enumerate(ext):
-            X[:, 4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
+            columns[4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
         base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                          for f in range(m)])
-        X = X if rows.size == obs.n else X[rows]
+        X = np.ascontiguousarray(columns.T if rows.size == obs.n else columns.T[rows])
         d = ChannelDesign(X, obs.rate_idx[rows], rows, resid[rows, r], base, ext)
         G, b = normal_equations(d, p, m)
         designs.append(d)
@@ -378,9 +330,12 @@ def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, fl
     scale[scale == 0] = 1.0
     A = sub / np.outer(scale, scale)
     rhs = b[idx] / scale
-    try:
-        step = scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, check_finite=False), rhs, check_finite=False)
-    except np.linalg.LinAlgError:
+    # scipy.linalg.cho_factor and cho_solve's LAPACK calls, without their
+    # argument handling (about 0.1 ms a call; hundreds of calls a diagnosis)
+    factor, info = dpotrf(A, lower=False, overwrite_a=True, clean=False)
+    if info == 0:
+        step = dpotrs(factor, rhs, lower=False)[0]
+    else:  # not positive definite
         step = np.linalg.lstsq(A, rhs, rcond=1e-12)[0]
     step = step / scale
     return step, float(b[idx] @ step)

@@ -155,10 +155,8 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
     return out
 
 
-def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per segment (rows ``starts[k]:starts[k+1]``), the chi-square of the
-    standardised residuals ``e`` explained by regressing them on ``basis``
-    (n, q), and the coefficients: normal equations summed per segment."""
+def _segment_grams(basis: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Per segment (rows ``starts[k]:starts[k+1]``), the Gram matrix of ``basis`` (n, q)."""
     q = basis.shape[1]
     # the products of each pair of basis columns once (the Gram matrices are symmetric)
     i, j = np.triu_indices(q)
@@ -166,6 +164,18 @@ def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray) -> tuple
     gram = np.empty((starts.size, q, q))
     gram[:, i, j] = sums
     gram[:, j, i] = sums
+    return gram
+
+
+def _segment_chi2(e: np.ndarray, basis: np.ndarray, starts: np.ndarray,
+                  gram: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment (rows ``starts[k]:starts[k+1]``), the chi-square of the
+    standardised residuals ``e`` explained by regressing them on ``basis``
+    (n, q), and the coefficients: normal equations summed per segment
+    (``gram``: the basis's ``_segment_grams``, when another channel on the
+    same rows has them already)."""
+    q = basis.shape[1]
+    gram = _segment_grams(basis, starts) if gram is None else gram
     rhs = np.add.reduceat(basis * e[:, None], starts, axis=0)
     coef = np.linalg.solve(gram + np.eye(q)[None] * 1e-12, rhs[..., None])[..., 0]
     return np.einsum("ki,ki->k", coef, rhs), coef
@@ -188,15 +198,22 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
     """Harmonics k theta of the rotation in the residuals of each axis's
     rotation segments, per channel (chi-square with 2 per segment)."""
     tests = []
+    # the harmonics of every rotating sample once; each channel takes its used rows
+    rotating = np.flatnonzero(res.rotating)
+    theta = np.deg2rad(res.theta_deg[rotating])
+    waves = [np.column_stack([np.sin(k * theta), np.cos(k * theta)]) for k in orders]
+    grams: dict[int, np.ndarray] = {}  # of the channels that use every rotating sample (the same rows)
     for r, channel in enumerate(CHANNELS):
         rows, starts, segs = _used_segments(res, r, lambda part: res.rotating[part.start])
         if not segs:
             continue
         e = res.resid[rows, r] / res.sigma[r]
-        theta = np.deg2rad(res.theta_deg[rows])
+        at = None if rows.size == rotating.size else np.searchsorted(rotating, rows)
         seg_axis = np.array([res.axis_idx[part.start] for _, part in segs])
-        for k in orders:
-            x2, coef = _segment_chi2(e, np.column_stack([np.sin(k * theta), np.cos(k * theta)]), starts)
+        for k, wave in zip(orders, waves):
+            if at is None and k not in grams:
+                grams[k] = _segment_grams(wave, starts)
+            x2, coef = _segment_chi2(e, wave, starts, grams[k]) if at is None else _segment_chi2(e, wave[at], starts)
             for ax in np.unique(seg_axis):
                 on = seg_axis == ax
                 stat = float(x2[on].sum())
@@ -223,21 +240,27 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
     model (Geist 2017 section 3 consistency) or drifting within themselves."""
     out = []
     n_rates = len(np.unique(res.rate_hz))
+    theta = np.deg2rad(res.theta_deg)
+    first_harmonic = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])  # every sample's, once
+    used = [_used_segments(res, r, lambda part: True) for r in range(3)]
     for kind in ("inconsistent", "trend"):
         stats = []  # (chi2, dof, segment id, slice, channel, coefficient of interest)
+        shared = None  # the Gram matrices of the channels that use every sample (the same rows)
         for r in range(3):
-            rows, starts, segs = _used_segments(res, r, lambda part: True)
+            rows, starts, segs = used[r]
             if not segs:
                 continue
             e = res.resid[rows, r] / res.sigma[r]
+            whole = rows.size == theta.size
             if kind == "inconsistent":
-                theta = np.deg2rad(res.theta_deg[rows])
-                basis = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
+                basis = first_harmonic if whole else first_harmonic[rows]
             else:
                 t = res.t_s[rows]
                 mean_t = np.add.reduceat(t, starts) / np.diff(np.r_[starts, t.size])
                 basis = (t - np.repeat(mean_t, np.diff(np.r_[starts, t.size])))[:, None]
-            x2, coef = _segment_chi2(e, basis, starts)
+            if whole and shared is None:
+                shared = _segment_grams(basis, starts)
+            x2, coef = _segment_chi2(e, basis, starts, shared if whole else None)
             for k, (sid, part) in enumerate(segs):
                 stats.append((float(x2[k]), basis.shape[1], sid, part, r, coef[k]))
         if not stats:

@@ -1,0 +1,110 @@
+"""The samples the diagnosis models (``Observations``), what the table did
+for its model (Geist 2017 Eq. 5 with the angle, sampling and force effects
+of docs/effects.md, through ``rotcal.model.physics``), and what the model's
+evaluations keep between them: the geometries and shared column factors of
+the last motion, and one scratch array for the design's columns
+(``Observations.reuse``)."""
+
+from __future__ import annotations
+
+import pickle
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from rotcal.model.effects import AngleEffect, ForceEffect, SamplingEffect
+from rotcal.model.physics import Effects, Motion, gravity_direction_derivative, specific_force, true_angle, uniform_angle
+
+# Relative to a channel's largest output: far above float64 rounding of the
+# model (~1e-15), far below any sensor's noise or quantization (~1e-5).
+NUMERICAL_FLOOR = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """The samples of a dataset's fitted table segments, as arrays."""
+
+    motion: Motion
+    y: np.ndarray           # (n, 3) raw outputs
+    rate_idx: np.ndarray    # (n,) index into ``rates``
+    rates: np.ndarray       # (m,) rates in Hz, 0 for static
+    segment: np.ndarray     # (n,) segment ids
+    g_local: float
+    # the geometries and column factors of the last motion evaluated (``geometry.motion_reuse``), a scratch array
+    reuse: dict = field(default_factory=dict, init=False, repr=False)
+
+    @property
+    def n(self) -> int:
+        return self.y.shape[0]
+
+    @cached_property
+    def noise_floor(self) -> np.ndarray:
+        """Each channel's smallest credible noise, ``NUMERICAL_FLOOR`` of its
+        largest output: on noise-free (simulated) data the residuals are
+        rounding, and weighting by them would make rounding look like physics."""
+        return NUMERICAL_FLOOR * np.abs(self.y).max(axis=0, initial=0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """What the table did, seen at one sampling delay: specific force / g,
+    true angle, d(force)/d(theta) per degree, and the uniform angle of the
+    rotating samples. Channels without a delay share one."""
+
+    force: np.ndarray
+    theta: np.ndarray
+    deriv: np.ndarray
+    base: np.ndarray
+    stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
+
+
+def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
+    m, g = obs.motion, obs.g_local
+    scale = np.ones(obs.n)   # of d force / d theta (an axis tilt shrinks the rotating part)
+    for force_effect, state in effects.active(ForceEffect):
+        factor = force_effect.angle_scale(state, m)
+        if factor is not None:
+            scale = scale * factor
+    out = {}
+    rot = np.flatnonzero(m.rotating)
+    for delay in sorted(set(effects.delays())):
+        theta = true_angle(m, effects, delay)
+        base = uniform_angle(m, effects, delay)
+        stretch = np.ones(obs.n)
+        for angle_effect, state in effects.active(AngleEffect):
+            slope = angle_effect.angle_slope(state, m, base)
+            if slope is not None:
+                stretch[rot] += slope
+        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
+                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
+    return out
+
+
+def motion_reuse(obs: Observations, effects: Effects) -> dict:
+    """What depends only on the samples' motion and on the effects that shape
+    it (angle, sampling and force effects): the geometries and the factors
+    the extension columns share (``model._Factors.cached``). One slot per
+    ``Observations``, kept while those effects' values are unchanged bit for
+    bit: the iterations of a fit without such effects (the null model, gain,
+    scale or offset effects) then compute them once, not once per evaluation.
+    The arrays are read-only, so no caller can change what later ones reuse."""
+    key = pickle.dumps([(e.name, state) for stage in (AngleEffect, SamplingEffect, ForceEffect)
+                        for e, state in effects.active(stage)])
+    if obs.reuse.get("key") != key:
+        geometries = _geometries(obs, effects)
+        for geo in geometries.values():
+            for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
+                array.flags.writeable = False
+        obs.reuse.update(key=key, geometries=geometries, factors={})
+    return obs.reuse
+
+
+def column_buffer(obs: Observations, k: int) -> np.ndarray:
+    """A (k, n) scratch array for one channel's design columns, kept with
+    the observations: a fresh array of that size costs its page faults
+    (about a millisecond per megabyte on a loaded machine) at every evaluation."""
+    buffer = obs.reuse.get("columns")
+    if buffer is None or buffer.shape[0] < k:
+        buffer = obs.reuse["columns"] = np.empty((k, obs.n))
+    return buffer[:k]
