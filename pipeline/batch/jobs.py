@@ -27,7 +27,7 @@ from rotcal.batch.manifest import now
 from rotcal.batch.plan import Plan, dataset_inputs
 from rotcal.config import EXECUTOR, BatchConfig, RunConfig
 from rotcal.errors import ConfigError, RotcalError
-from rotcal.parallel import cores
+from rotcal.parallel import cores, share
 from rotcal.report.publish import OutputDir
 from rotcal.tables import write_table
 
@@ -139,6 +139,23 @@ class _LocalPool(Executor):
 
 
 @contextmanager
+def _polars_threads(threads: int) -> Iterator[None]:
+    """Pool workers started meanwhile size their Polars thread pools to
+    their share of the cores (``POLARS_MAX_THREADS``, read when Polars is
+    imported), unless the user set it: a pool per core in each worker made
+    two workers' threads wake and wait on each other for every small frame
+    (about a tenth of a dataset's CPU). Results do not depend on it."""
+    if "POLARS_MAX_THREADS" in os.environ:
+        yield
+        return
+    os.environ["POLARS_MAX_THREADS"] = str(threads)
+    try:
+        yield
+    finally:
+        del os.environ["POLARS_MAX_THREADS"]
+
+
+@contextmanager
 def open_executor(batch: BatchConfig, jobs: int) -> Iterator[tuple[Executor, int]]:
     """The executor of ``batch.executor`` and how many jobs it runs at once."""
     match = EXECUTOR.fullmatch(batch.executor)
@@ -146,8 +163,11 @@ def open_executor(batch: BatchConfig, jobs: int) -> Iterator[tuple[Executor, int
         raise ConfigError(f"executor {batch.executor!r} is not 'local' or 'dask://HOST:PORT'")
     if match.group(1) is None:
         workers = min(cores(batch.workers), jobs)
-        executor = _InProcess() if workers == 1 else _LocalPool(workers)
-        with executor:
+        if workers == 1:
+            with _InProcess() as executor:
+                yield executor, workers
+            return
+        with _polars_threads(share(batch.workers, workers)), _LocalPool(workers) as executor:
             yield executor, workers
         return
     try:
