@@ -18,10 +18,14 @@ from dataclasses import dataclass
 from functools import cache
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import polars as pl
 
 from rotcal import __version__
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 _DTYPES: dict[str, pl.DataType] = {
     "string": pl.String(),
@@ -121,15 +125,30 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def contract_table(frame: pl.DataFrame, name: str) -> pa.Table:
+    """``frame`` as the Arrow table of contract ``name``: conformed, nothing
+    non-finite (``finite_or_null``), the schema named in its metadata."""
+    table = finite_or_null(conform(frame, name)).to_arrow()
+    return table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
+
+
+def write_table(table: pa.Table, path: Path) -> Path:
+    """Write an Arrow table to ``path`` as zstd Parquet, atomically
+    (``atomic_write``). Encoded in memory and written with one call: the
+    same bytes as ``pq.write_table`` to the path, without the cost of
+    pyarrow's file sink, which for a small table exceeds the encoding."""
+    import pyarrow as pa  # loaded at the first write: not held through the stages before (memory)
+    import pyarrow.parquet as pq
+
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write(path, lambda tmp: tmp.write_bytes(sink.getvalue()))
+
+
 def write_parquet(frame: pl.DataFrame, path: Path, name: str) -> Path:
     """Write ``frame`` as contract ``name`` to ``path``, atomically (``atomic_write``)."""
-    import pyarrow.parquet as pq  # loaded at the first write: not held through the stages before (memory)
-
-    table = finite_or_null(conform(frame, name)).to_arrow()
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: pq.write_table(table, tmp, compression="zstd"))
-    return path
+    return write_table(contract_table(frame, name), path)
 
 
 def read_schema_name(path: Path) -> tuple[str, str]:

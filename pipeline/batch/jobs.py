@@ -21,14 +21,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from rotcal import __version__
 from rotcal.batch.manifest import now
 from rotcal.batch.plan import Plan, dataset_inputs
 from rotcal.config import EXECUTOR, BatchConfig, RunConfig
 from rotcal.errors import ConfigError, RotcalError
-from rotcal.parallel import cores
+from rotcal.parallel import cores, share
+from rotcal.report.publish import OutputDir
+from rotcal.tables import write_table
 
 # -- one job, on a worker -------------------------------------------------------
 
@@ -50,13 +51,21 @@ class JobResult:
     rotcal_version: str = __version__
 
 
-def _write_part(table_path: Path, part_path: Path, dataset_path: str) -> None:
-    """The table with ``dataset_path`` in front (schema ``batch_combined``)."""
-    table = pq.ParquetFile(table_path).read()  # the same table as pq.read_table, without its dataset layer (half the time)
+def _as_read(field: pa.Field) -> pa.Field:
+    """``field`` as a Parquet reader returns it: a list's items named
+    ``element`` (the Parquet LIST convention) where Polars names them ``item``."""
+    if pa.types.is_large_list(field.type):
+        return field.with_type(pa.large_list(field.type.value_field.with_name("element")))
+    return field
+
+
+def _write_part(table: pa.Table, part_path: Path, dataset_path: str) -> None:
+    """The table as published, as read back, with ``dataset_path`` in front
+    (schema ``batch_combined``): the parts of every run have one schema."""
+    table = table.cast(pa.schema([_as_read(f) for f in table.schema], metadata=table.schema.metadata))
     table = table.add_column(0, pa.field("dataset_path", pa.string()), pa.array([dataset_path] * table.num_rows, pa.string()))
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}), b"rotcal.combined": b"batch_combined 1.0"})
-    part_path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(table, part_path, compression="zstd")
+    write_table(table.replace_schema_metadata({**(table.schema.metadata or {}), b"rotcal.combined": b"batch_combined 1.0"}),
+                part_path)
 
 
 def run_job(job: Job) -> JobResult:
@@ -68,10 +77,10 @@ def run_job(job: Job) -> JobResult:
     work = Path(job.work)
     try:
         dataset_inputs(Path(job.source), job.config.limits)  # again: the worker reads the files now
-        outcome = run_dataset(Path(job.source), work / "tables", None, job.config)
+        parts = work / "parts"
+        outcome = run_dataset(Path(job.source), OutputDir(work / "tables", on_table=lambda name, table: _write_part(
+            table, parts / f"{name}.parquet", job.dataset_path)), None, job.config)
         tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
-        for path in tables:
-            _write_part(path, work / "parts" / path.name, job.dataset_path)
         return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
     except RotcalError as exc:  # one line, but for control characters in its path, escaped when printed
         status, reason = "quarantined", str(exc)
@@ -130,6 +139,23 @@ class _LocalPool(Executor):
 
 
 @contextmanager
+def _polars_threads(threads: int) -> Iterator[None]:
+    """Pool workers started meanwhile size their Polars thread pools to
+    their share of the cores (``POLARS_MAX_THREADS``, read when Polars is
+    imported), unless the user set it: a pool per core in each worker made
+    two workers' threads wake and wait on each other for every small frame
+    (about a tenth of a dataset's CPU). Results do not depend on it."""
+    if "POLARS_MAX_THREADS" in os.environ:
+        yield
+        return
+    os.environ["POLARS_MAX_THREADS"] = str(threads)
+    try:
+        yield
+    finally:
+        del os.environ["POLARS_MAX_THREADS"]
+
+
+@contextmanager
 def open_executor(batch: BatchConfig, jobs: int) -> Iterator[tuple[Executor, int]]:
     """The executor of ``batch.executor`` and how many jobs it runs at once."""
     match = EXECUTOR.fullmatch(batch.executor)
@@ -137,8 +163,11 @@ def open_executor(batch: BatchConfig, jobs: int) -> Iterator[tuple[Executor, int
         raise ConfigError(f"executor {batch.executor!r} is not 'local' or 'dask://HOST:PORT'")
     if match.group(1) is None:
         workers = min(cores(batch.workers), jobs)
-        executor = _InProcess() if workers == 1 else _LocalPool(workers)
-        with executor:
+        if workers == 1:
+            with _InProcess() as executor:
+                yield executor, workers
+            return
+        with _polars_threads(share(batch.workers, workers)), _LocalPool(workers) as executor:
             yield executor, workers
         return
     try:

@@ -17,6 +17,8 @@ the cost linear in the samples and out of multithreaded BLAS.
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 
 NOISE_FREE = 1e-9  # residuals below this fraction of the signal are rounding: the data are noise-free
@@ -46,9 +48,18 @@ def normal_equations(z: np.ndarray, resid: np.ndarray, design: np.ndarray, weigh
     """(N, rhs) of one segment: ``design`` (3, 5, P) holds the D_r, ``weight`` W."""
     gram = np.einsum("ni,nj->ij", z, z)
     ze = np.einsum("ni,nb->ib", z, resid)
-    normal = np.einsum("ab,aip,ij,bjq->pq", weight, design, gram, design, optimize=True)
-    rhs = np.einsum("ab,aip,ib->p", weight, design, ze, optimize=True)
+    normal = np.einsum("ab,aip,ij,bjq->pq", weight, design, gram, design,
+                       optimize=_path("ab,aip,ij,bjq->pq", weight.shape, design.shape, gram.shape, design.shape))
+    rhs = np.einsum("ab,aip,ib->p", weight, design, ze, optimize=_path("ab,aip,ib->p", weight.shape, design.shape, ze.shape))
     return normal, rhs
+
+
+@cache
+def _path(subscripts: str, *shapes: tuple[int, ...]) -> list:
+    """``einsum``'s optimal contraction order for operands of these shapes,
+    found once: the order depends on the shapes alone, and searching it took
+    as long as the contraction (the same order, so the same sums bit for bit)."""
+    return np.einsum_path(subscripts, *(np.empty(shape) for shape in shapes), optimize=True)[0]
 
 
 def solve(normal: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ import math
 import os
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -214,6 +215,12 @@ def rate_calibration(result: IntrinsicResult, frame: str, model: str, reason: st
         corr_cov)
 
 
+@cache
+def _validator() -> jsonschema.Draft202012Validator:
+    """The validator of ``schemas/calibration.json``, built once a process."""
+    return jsonschema.Draft202012Validator(schema_text(CALIBRATION_SCHEMA))
+
+
 @dataclass(frozen=True)
 class Calibration:
     """``calibration.json``: the dataset, the DUT's output unit, g_local with
@@ -259,7 +266,7 @@ class Calibration:
     def write(self, path: Path) -> Path:
         """Write the document (validated first: a bug, not the user's input, if it fails)."""
         doc = self.to_dict()
-        jsonschema.Draft202012Validator(schema_text(CALIBRATION_SCHEMA)).validate(doc)
+        _validator().validate(doc)
         path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
         return path
 
@@ -274,7 +281,7 @@ class Calibration:
             doc = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise InputError(f"cannot read calibration: {exc}", path=path) from None
-        errors = sorted(jsonschema.Draft202012Validator(schema_text(CALIBRATION_SCHEMA)).iter_errors(doc),
+        errors = sorted(_validator().iter_errors(doc),
                         key=lambda e: list(e.absolute_path))
         if errors:
             where = "/".join(str(p) for p in errors[0].absolute_path) or "document"

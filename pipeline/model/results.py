@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.special import stdtrit
 
 from rotcal.model.physics import ANGLE_PAIRS
 
@@ -35,6 +34,8 @@ EXPANDED_COVERAGE = 0.95
 
 def coverage_factor(dof: np.ndarray) -> np.ndarray:
     """k_p = t_p(nu_eff) for ``EXPANDED_COVERAGE`` (GUM G.3.4, Table G.2)."""
+    from scipy.special import stdtrit  # here: the batch's coordinating process, which plans, never needs scipy (0.7 s)
+
     return stdtrit(np.asarray(dof, float), 0.5 + EXPANDED_COVERAGE / 2)
 
 

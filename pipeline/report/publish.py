@@ -24,9 +24,13 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rotcal import __version__
 from rotcal.errors import InputError
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 LISTING = "rotcal-files.json"
 LISTING_SCHEMA = ("rotcal_files", "1.0")
@@ -39,6 +43,9 @@ class OutputDir:
 
     path: Path
     replace: bool = False
+    # called with each table as it is published (its name, its Arrow table):
+    # the batch writes its parts from them without reading the files back
+    on_table: Callable[[str, pa.Table], object] | None = None
 
 
 def usable(path: Path, swapped: bool = True) -> Path:
@@ -85,7 +92,7 @@ def check_out(out: OutputDir, inputs: Sequence[Path | None] = (), listed: bool =
         if foreign is not None:
             problem = "holds files no rotcal listing names" if listed else "is not empty"
             raise InputError(f"output directory {problem} (e.g. {foreign})", path=out.path, hint="--replace replaces them")
-    return OutputDir(target, out.replace)
+    return OutputDir(target, out.replace, out.on_table)
 
 
 def foreign_files(directory: Path, listed: bool = True) -> Iterator[str]:

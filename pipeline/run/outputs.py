@@ -21,7 +21,7 @@ from rotcal.metrology import (
 from rotcal.model import IntrinsicResult, Table
 from rotcal.model.calibration import Recommended, recommended_calibration
 from rotcal.report.publish import OutputDir, publish_directory
-from rotcal.tables import write_parquet
+from rotcal.tables import contract_table, write_table
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
@@ -102,14 +102,20 @@ def certificate_output(config: RunConfig) -> Figure:
 def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
     """Publish what the run produced as the whole of ``out``, in
     ``PUBLISH_ORDER`` (an item it does not name after those it does): each
-    table as Parquet under its schema (``tables.write_parquet``), each
-    figure drawn, staged beside ``out``, listed and swapped in
-    (``report.publish``); the paths published."""
+    table as Parquet under its schema (``tables.contract_table``; handed to
+    ``out.on_table`` too), each figure drawn, staged beside ``out``, listed
+    and swapped in (``report.publish``); the paths published."""
     def write(staging: Path) -> list[Path]:
         order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
-        items = sorted(outputs, key=lambda o: order.get(o.name, len(order)))
-        paths = (write_parquet(i.data, staging / f"{i.name}.parquet", i.name) if isinstance(i, Table) else i.draw(staging)
-                 for i in items)
+        paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: order.get(o.name, len(order))))
         return [path for path in paths if path is not None]
+
+    def write_item(item: Table | Figure, staging: Path) -> Path | None:
+        if isinstance(item, Figure):
+            return item.draw(staging)
+        table = contract_table(item.data, item.name)
+        if out.on_table is not None:
+            out.on_table(item.name, table)
+        return write_table(table, staging / f"{item.name}.parquet")
 
     return publish_directory(out, write)

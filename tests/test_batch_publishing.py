@@ -1,0 +1,71 @@
+"""The batch's per-dataset savings keep what they save on: a part written
+from the published Arrow table is the part read back from the published
+file, byte for byte; the pool's workers size Polars to their core share;
+the reductions' shared rate segments are those of the table asked for."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from rotcal.batch.jobs import _write_part, open_executor
+from rotcal.combine.labelled import rate_segments, segment_coefficients
+from rotcal.config import BatchConfig
+from rotcal.tables import write_table
+
+
+def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
+    table = pl.DataFrame({"segment": [1, 2], "cov_u": [[1.0, 2.0], [3.0, float("nan")]]}).to_arrow()
+    table = table.replace_schema_metadata({b"rotcal.schema": b"fits"})
+    published = write_table(table, tmp_path / "fits.parquet")
+    # the part as the batch wrote it before: the file read back, the path column in front
+    read = pq.ParquetFile(published).read()
+    read = read.add_column(0, pa.field("dataset_path", pa.string()), pa.array(["lot/dut1"] * 2, pa.string()))
+    pq.write_table(read.replace_schema_metadata({**read.schema.metadata, b"rotcal.combined": b"batch_combined 1.0"}),
+                   tmp_path / "expected.parquet", compression="zstd")
+    _write_part(table, tmp_path / "parts" / "fits.parquet", "lot/dut1")
+    assert (tmp_path / "parts" / "fits.parquet").read_bytes() == (tmp_path / "expected.parquet").read_bytes()
+
+
+def _polars_threads(_: int) -> int:
+    import polars
+
+    return polars.thread_pool_size()
+
+
+def test_pool_workers_size_polars_to_their_share_of_the_cores():
+    assert "POLARS_MAX_THREADS" not in os.environ
+    with open_executor(BatchConfig(workers=2), 4) as (executor, workers):
+        sizes = [f.result() for f in [executor.submit(_polars_threads, k) for k in range(4)]]
+    assert workers == 2 and sizes == [1, 1, 1, 1]  # two cores, two workers: one thread each
+    assert "POLARS_MAX_THREADS" not in os.environ  # the batch process's environment as it was
+
+
+def _fits(segments: list[tuple[int, str, float, str]], scale: float) -> pl.DataFrame:
+    """A fits table: per segment (number, axis, rate, kind) three channels' C, A, B and covariances."""
+    rows = []
+    for seg, axis, rate, kind in segments:
+        for k, channel in enumerate("uvw"):
+            c, a, b = scale * (seg + k), scale * (seg - k), scale * k
+            rows.append({"segment": seg, "axis": axis, "rate_hz": rate, "kind": kind, "channel": channel, "status": "ok",
+                         "dof": 100, "C": c, "A": a, "B": b,
+                         **{f"cov_{o}": list(np.eye(3).ravel() * (k == j) * scale) for j, o in enumerate("uvw")}})
+    return pl.DataFrame(rows)
+
+
+def test_rate_segments_are_those_of_the_table_asked_for():
+    first = _fits([(0, "x", 0.0, "static"), (1, "x", 0.5, "rotation")], 1.0)
+    second = _fits([(0, "y", 0.0, "static"), (1, "y", 0.5, "rotation"), (2, "z", 1.0, "rotation")], 2.0)
+    for fits, rates in ((first, [0.0, 0.5]), (second, [0.0, 0.5, 1.0]), (first, [0.0, 0.5])):
+        got = rate_segments(fits)
+        assert [rate for rate, _ in got] == rates
+        expected = segment_coefficients(fits)
+        flat = [s for _, segs in got for s in segs]
+        assert [(s.segment, s.axis) for s in flat] == [(s.segment, s.axis) for s in expected]
+        assert all(np.array_equal(s.coef, e.coef) and np.array_equal(s.cov, e.cov) for s, e in zip(flat, expected))
+    again = rate_segments(first)  # the same table asked for again: the same answer, in a list of its own
+    assert again is not rate_segments(first) and [r for r, _ in again] == [0.0, 0.5]
