@@ -198,16 +198,29 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
     with open_capture(path) as fh:
         if os.fstat(fh.fileno()).st_size == 0:
             raise InputError("the file is empty", path=path)
-        # mapped, not read: searched at memchr speed without a copy of the file
-        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as text:
-            if not _lines_within(text, limits.max_line_bytes):
+        text = _mapped(fh)
+        try:
+            if text is None or not _lines_within(text, limits.max_line_bytes):
                 check_line_lengths(fh, path, limits.max_line_bytes)
             lay = layout(fh, fmt, path)
             source = _whitespace_to_commas(fh, lay.separator) if lay.whitespace else fh
-            if lay.comment_prefix and (source if isinstance(source, bytes) else text).find(lay.comment_prefix.encode()) < 0:
+            searched = source if isinstance(source, bytes) else text
+            if lay.comment_prefix and searched is not None and searched.find(lay.comment_prefix.encode()) < 0:
                 # no comment anywhere: polars' comment handling would cost a third of the parse
                 lay = dataclasses.replace(lay, comment_prefix=None)
+        finally:
+            if text is not None:
+                text.close()
         return _capture(source, fmt, lay, spec, path)
+
+
+def _mapped(fh: BinaryIO) -> mmap.mmap | None:
+    """The open file mapped read-only, searched at memchr speed without a
+    copy; None where the file system cannot map it (then it is read)."""
+    try:
+        return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):
+        return None
 
 
 def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: CaptureSpec | None,
