@@ -16,6 +16,7 @@ per-message path instead.
 
 from __future__ import annotations
 
+import json
 import struct
 from dataclasses import dataclass, field
 
@@ -206,30 +207,46 @@ def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
     return out.tobytes()
 
 
-def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
-    """JSON lines parsed in one pass with the fields' types given
-    (``JSON_TYPES``: no inference over every line first, which took twice
-    the parse; other fields are not read). A field is a column where some
-    message has it; ``Unsupported`` where polars refuses a line, where a
-    field is null wherever it appears (a key the types cannot tell from an
-    absent one), and where an axis label is not x, y or z (polars writes
-    a number given for text as text): the per-message path words those."""
-    if n == 0:
-        return pl.DataFrame()
+def _read_json_lines(text: bytes, n: int, types: dict) -> pl.DataFrame:
     try:
-        frame = pl.read_ndjson(text, schema=JSON_TYPES)
+        frame = pl.read_ndjson(text, schema=types)
     except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
         raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
     if frame.height != n:
         raise Unsupported("JSON messages other than one object a line")
-    nulls = frame.null_count().row(0)
-    empty = [name for name, count in zip(frame.columns, nulls) if count == n]
-    # as many colons as values read: no message has another key, null or not (a count at memory speed);
-    # else the names are searched for (a bare name: a quote in the needle slows the search tenfold)
-    values = frame.width * n - sum(nulls)
-    if np.count_nonzero(np.frombuffer(text, np.uint8) == ord(":")) != values and any(name.encode() in text for name in empty):
-        raise Unsupported("JSON field null in every message")
-    frame = frame.drop(empty)
+    return frame
+
+
+def _first_fields(text: bytes) -> dict:
+    """``JSON_TYPES`` of the fields the first message has (all of them where it is not an object)."""
+    try:
+        first = json.loads(text[: text.find(b"\n") % (len(text) + 1)])
+    except ValueError:
+        first = None
+    return {name: t for name, t in JSON_TYPES.items() if name in first} if isinstance(first, dict) else JSON_TYPES
+
+
+def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
+    """JSON lines parsed in one pass with the fields' types given: no
+    inference over every line first, which took twice the parse. The fields
+    of the first message are read first; when the text holds as many
+    colons as values were read (a count at memory speed), no message has
+    another key, null or not, and that frame is the answer. Else every field
+    of ``JSON_TYPES`` is read, and a field is a column where some message
+    has it. ``Unsupported`` where polars refuses a line, where a field is
+    null wherever it appears (a key the types cannot tell from an absent
+    one), and where an axis label is not x, y or z (polars writes a number
+    given for text as text): the per-message path words those."""
+    if n == 0:
+        return pl.DataFrame()
+    colons = np.count_nonzero(np.frombuffer(text, np.uint8) == ord(":"))
+    frame = _read_json_lines(text, n, _first_fields(text))
+    if frame.width * n - sum(frame.null_count().row(0)) != colons:
+        frame = _read_json_lines(text, n, JSON_TYPES)
+        empty = [name for name, count in zip(frame.columns, frame.null_count().row(0)) if count == n]
+        if any(name.encode() in text for name in empty):  # a bare name: a quote in the needle slows the search tenfold
+            raise Unsupported("JSON field null in every message")
+        frame = frame.drop(empty)
     if "axis" in frame.columns and not frame.select((pl.col("axis").is_in(AXES) | pl.col("axis").is_null()).all()).item():
         raise Unsupported("JSON axis label other than x, y or z")
     return frame
