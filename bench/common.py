@@ -23,5 +23,18 @@ def report(what: str, count: int, unit: str, seconds: float, reference: str, ref
     """Print rotcal's and the reference's rates and their ratio; return the ratio."""
     ours, theirs = count / seconds, count / ref_seconds
     ratio = ours / theirs
-    print(f"{what}: {ours:,.0f} {unit}/s; {reference}: {theirs:,.0f} {unit}/s; ratio {ratio:.1f}x", flush=True)
+    print(f"{what}: {ours:,.0f} {unit}/s; {reference}: {theirs:,.0f} {unit}/s; ratio {ratio:.2f}x", flush=True)
     return ratio
+
+
+def best_cpu_of(fn: Callable[[], object], repeats: int) -> float:
+    """CPU seconds (all threads of the process) of the least of ``repeats``
+    calls, after one warm-up: on a loaded machine the wall clock counts the
+    other jobs' time too, the CPU time only this one's."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        fn()
+        times.append(time.process_time() - start)
+    return min(times)

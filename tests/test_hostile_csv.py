@@ -225,3 +225,35 @@ def test_whitespace_file_is_converted_without_copies_of_the_whole_text(tmp_path,
     assert frame["u"].to_list() == digits[:, 0].astype(float).tolist()
     size = path.stat().st_size
     assert peak < 4 * size, f"{peak / size:.1f} times the file"
+
+
+@pytest.mark.parametrize("trailing_newline", [True, False])
+@pytest.mark.parametrize("row", [0, 1, 4, 7])
+@pytest.mark.parametrize(("excess", "refused"), [(0, False), (1, True)])
+def test_a_line_one_byte_over_the_limit_is_refused_wherever_it_falls(tmp_path, row, excess, refused, trailing_newline):
+    """A line of exactly ``max_line_bytes`` is read, one byte more refused,
+    whichever of the guard's half-limit spans it straddles (rows of varying
+    offset, the last line with or without its newline)."""
+    limit = 64
+    rows = [f"0.0{k},1,2,3" for k in range(8)]
+    rows[row] = f"0.0{row},1." + "0" * (limit + excess - 11) + ",2,3"  # 11 bytes around the zeros
+    assert len(rows[row]) == limit + excess
+    path = tmp_path / "long.csv"
+    path.write_text("t,u,v,w\n" + "\n".join(rows) + ("\n" if trailing_newline else ""))
+    if refused:
+        with pytest.raises(InputError, match=f"a line is longer than the limit of {limit} bytes"):
+            read_csv_capture(path, CsvFormat(), None, Limits(max_line_bytes=limit))
+    else:
+        frame = read_csv_capture(path, CsvFormat(), None, Limits(max_line_bytes=limit))
+        assert frame.height == 8 and frame["u"].to_list() == [1.0] * 8
+
+
+def test_comment_lines_anywhere_and_labels_written_otherwise(tmp_path):
+    """A comment deep in the data is skipped, labels in capitals or with
+    blanks are read as x, y, z (the labels are parsed as the sample table's
+    type only where all are written so)."""
+    path = tmp_path / "labels.csv"
+    path.write_text("t,u,v,w,axis\n0.00,10,20,30,X\n0.01,11,21,31, y\n# paused\n0.02,12,22,32,z\n")
+    frame = read_csv_capture(path, CsvFormat(), None, Limits())
+    assert frame["axis"].cast(pl.String).to_list() == ["x", "y", "z"]
+    assert frame["t_ns"].to_list() == [0, 10_000_000, 20_000_000] and frame["w"].to_list() == [30.0, 31.0, 32.0]

@@ -171,3 +171,28 @@ def test_damaged_files_are_refused_as_before(small, tmp_path, monkeypatch):
         assert "\n" not in str(fast_error.value)
     with pytest.raises(LimitError, match="larger than the limit of 1024 bytes"):
         mcap_source.read_mcap_capture(cdr, load_meta(None), None, Limits(max_mcap_record_bytes=1024))
+
+
+@pytest.mark.parametrize(("extra", "fast_expected", "labelled"), [
+    ("", True, True),  # the table's labels
+    (', "note": {"deep": [1, "x"]}', True, True),  # a key not read, of any kind
+    (', "axis": null', False, False),  # a key null everywhere is a column of nulls: the table is not read
+    (', "axis": "X"', False, True),  # a label the parser cannot check: read as text and lowercased
+])
+def test_json_fields_read_alike_on_both_paths(tmp_path, monkeypatch, extra, fast_expected, labelled):
+    from mcap.writer import Writer
+
+    path = tmp_path / "fields.mcap"
+    with path.open("wb") as fh:
+        writer = Writer(fh)
+        writer.start()
+        schema = writer.register_schema("s", "jsonschema", b"{}")
+        imu, table = writer.register_channel("/imu", "json", schema), writer.register_channel("/table/joint_states", "json", schema)
+        writer.add_message(table, 0, b'{"t": 0, "axis": "x", "rate_hz": 0.5, "angle_deg": 0}', 0)
+        for k in range(20):
+            writer.add_message(imu, k, f'{{"t": {k * 0.01}, "u": {k}, "v": 1.5, "w": -2{extra}}}'.encode(), k)
+        writer.finish()
+    frame = _both(monkeypatch, path, fast_expected=fast_expected)
+    assert frame["u"].to_list() == [float(k) for k in range(20)]
+    assert frame["axis"].to_list() == (["x"] * 20 if labelled else [None] * 20)
+    assert frame["rate_hz"].to_list() == ([0.5] * 20 if labelled and not extra.startswith(', "axis"') else [None] * 20)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import mmap
 import os
 import re
 from collections.abc import Iterator
@@ -19,11 +21,12 @@ from rotcal.ingest.files import open_capture
 from rotcal.ingest.labels import label_columns
 from rotcal.ingest.meta import TIME_UNITS, CaptureSpec, CsvFormat
 from rotcal.ingest.summaries import SUMMARY_COLUMNS, pose_summaries
-from rotcal.model.physics import CHANNELS
+from rotcal.model.physics import AXES, CHANNELS
 
 NUMERIC = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
 TEXT = ("axis",)
 REQUIRED = ("u", "v", "w")
+AXIS_LABELS = pl.Enum(AXES)  # the sample table's axis type (tables.schema("samples"))
 _SCAN_BLOCK = 1 << 20
 ISO_DATE = re.compile(r"\s*\d{4}-\d\d-\d\d")
 
@@ -32,6 +35,16 @@ def _blocks(fh: BinaryIO) -> Iterator[bytes]:
     fh.seek(0)
     while block := fh.read(_SCAN_BLOCK):
         yield block
+
+
+def _lines_within(text: mmap.mmap, max_line_bytes: int) -> bool:
+    """Whether every whole span of ``(max_line_bytes + 2) // 2`` bytes, laid
+    end to end from the file's start, holds a newline: a longer line would
+    cover one such span, so then none is (a search per span, each stopping at
+    its first newline, where scanning every byte cost as much as a fifth of
+    the parse)."""
+    span = (max_line_bytes + 2) // 2
+    return all(text.find(b"\n", start, start + span) >= 0 for start in range(0, len(text) - span + 1, span))
 
 
 def check_line_lengths(fh: BinaryIO, path: Path, max_line_bytes: int) -> None:
@@ -137,8 +150,21 @@ def _read(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, dtypes: dict, c
     frame = pl.read_csv(_text(source), **lay.read_options(), has_header=False, columns=keep, infer_schema=False,
                         raise_if_empty=False)
     frame = frame.rename(dict(zip(frame.columns, map(str, keep))))
-    return frame.with_columns(_numbers(pl.col(c), lay) if dtypes.get(c) == pl.Float64 else pl.col(c)
+    return frame.with_columns(_numbers(pl.col(c), lay) if dtypes.get(c) == pl.Float64 else pl.col(c).cast(dtypes.get(c, pl.String))
                               for c in frame.columns)
+
+
+def _labels_typed(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, dtypes: dict,
+                  columns: list[str]) -> pl.DataFrame | None:
+    """``_read`` with the axis labels parsed straight into the sample table's
+    Enum (no column of strings to check and convert: a third of what
+    ``label_columns`` cost); None for a file it cannot read so (a label
+    written " X", a bad value, a short row): the caller reads it again with
+    the labels as text and words what is wrong."""
+    try:
+        return _read(source, fmt, lay, dtypes, columns)
+    except pl.exceptions.PolarsError:
+        return None
 
 
 def _file_columns(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, path: Path) -> dict[str, str]:
@@ -172,10 +198,29 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
     with open_capture(path) as fh:
         if os.fstat(fh.fileno()).st_size == 0:
             raise InputError("the file is empty", path=path)
-        check_line_lengths(fh, path, limits.max_line_bytes)
-        lay = layout(fh, fmt, path)
-        source = _whitespace_to_commas(fh, lay.separator) if lay.whitespace else fh
+        text = _mapped(fh)
+        try:
+            if text is None or not _lines_within(text, limits.max_line_bytes):
+                check_line_lengths(fh, path, limits.max_line_bytes)
+            lay = layout(fh, fmt, path)
+            source = _whitespace_to_commas(fh, lay.separator) if lay.whitespace else fh
+            searched = source if isinstance(source, bytes) else text
+            if lay.comment_prefix and searched is not None and searched.find(lay.comment_prefix.encode()) < 0:
+                # no comment anywhere: polars' comment handling would cost a third of the parse
+                lay = dataclasses.replace(lay, comment_prefix=None)
+        finally:
+            if text is not None:
+                text.close()
         return _capture(source, fmt, lay, spec, path)
+
+
+def _mapped(fh: BinaryIO) -> mmap.mmap | None:
+    """The open file mapped read-only, searched at memchr speed without a
+    copy; None where the file system cannot map it (then it is read)."""
+    try:
+        return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):
+        return None
 
 
 def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: CaptureSpec | None,
@@ -202,8 +247,9 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
     scaled = "t" in wanted and fmt.time_unit not in ("s", "iso8601")  # read as text: integer stamps stay exact
     dtypes = {wanted[c]: (pl.String if c in TEXT or (c == "t" and (iso or scaled)) else pl.Float64) for c in wanted}
     columns = list(dtypes) + ([pose_col] if pose_col else [])
+    frame = _labels_typed(source, fmt, lay, dtypes | ({wanted["axis"]: AXIS_LABELS} if "axis" in wanted else {}), columns)
     try:
-        frame = _read(source, fmt, lay, dtypes, columns)
+        frame = _read(source, fmt, lay, dtypes, columns) if frame is None else frame
     except pl.exceptions.ColumnNotFoundError:
         raise InputError(f"the file has fewer columns than the {len(fmt.names or ())} that dataset.toml [format] names lists",
                          path=path) from None
@@ -212,7 +258,7 @@ def _capture(source: bytes | BinaryIO, fmt: CsvFormat, lay: Layout, spec: Captur
         raise _bad_value(source, fmt, lay, numeric, path) or _unreadable(exc, source, path) from None
     # blank lines (a logger's trailing newlines) come back as rows of nulls: no sample, no error
     blank = pl.all_horizontal(pl.all().is_null())
-    if frame.select(blank.any()).item():
+    if min(frame.null_count().row(0)) and frame.select(blank.any()).item():  # counts are kept: no pass unless every column has a gap
         frame = frame.filter(~blank)
     frame = frame.rename({v: k for k, v in wanted.items()})
     if pose_col:

@@ -16,7 +16,7 @@ import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.ingest.labels import MAX_ABS_TIME_S
-from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
+from rotcal.ingest.mcap_columns import NUMBER_FIELDS, TEXT_FIELDS, DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import MessageTopic, decoder
 from rotcal.model.physics import AXES, JOINT_SIGN
 
@@ -57,10 +57,6 @@ def _joint_axis(names: list[str], position: list[float], velocity: list[float], 
             return moved[0]
         return prev_idx if prev_idx < len(names) else 0
     return 0
-
-
-NUMBER_FIELDS = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
-TEXT_FIELDS = ("axis",)
 
 
 def _number(value, name: str, k: int, topic: str, path: Path) -> float | None:
