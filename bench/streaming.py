@@ -115,8 +115,8 @@ def fits(dataset: Path, block: int, repeats: int = 3) -> None:
     def streamed():
         def blocks():
             return (samples.slice(a, block) for a in range(0, n, block))
-        segments, fitted = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
-        return fits_frame(fitted, segments, ds.name)
+        result = stream_segments(blocks, ds.name, ds.meta.angle_source, config, 100_000)
+        return fits_frame(result.fits, result.segments, ds.name)
 
     with threadpool_limits(limits=1):  # as run_dataset holds BLAS
         ours, _, mb_s = traced(streamed)

@@ -104,7 +104,8 @@ def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
     def blocks():
         return (samples.slice(a, block) for a in range(0, samples.height, block))
 
-    streamed_segments, streamed = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
+    result = stream_segments(blocks, ds.name, ds.meta.angle_source, config, 100_000)
+    streamed_segments, streamed = result.segments, result.fits
     assert_frame_equal(streamed_segments, segments)
     streamed_fits = fits_frame(streamed, streamed_segments, ds.name)
     assert streamed_fits.height == fits.height == 3 * 15
