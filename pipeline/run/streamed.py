@@ -8,8 +8,10 @@ memory, with a note saying so."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,17 +19,22 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import RunConfig
+from rotcal.errors import InputError
 from rotcal.fit.segments import SegmentFit
-from rotcal.ingest import Dataset, load_dataset
+from rotcal.ingest import Dataset, capture_files, dataset_name, load_dataset, mcap_fast
+from rotcal.ingest.mcap_columns import Unsupported
+from rotcal.ingest.mcap_records import McapFile
+from rotcal.ingest.meta import load_meta
+from rotcal.ingest.stream import open_stream
 from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
-from rotcal.timebase import repair_timebase
+from rotcal.tables import schema
 from rotcal.timebase.check import TimebaseResult
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
 
-BLOCK_SAMPLES = 1 << 20  # samples a block of the capture holds
+BLOCK_SAMPLES = 1 << 20  # samples a block of the capture holds (ingest.stream's)
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,20 +50,45 @@ class StreamedDataset(Dataset):
 
 
 def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
-    """The dataset, its samples streamed when it is one capture of more than
-    ``[run] stream_above_samples`` samples."""
-    ds = load_dataset(path, meta_path, config.limits, config.run.workers)
-    if ds.summaries is not None or ds.samples.height <= config.run.stream_above_samples:
-        return ds
-    timebase = repair_timebase(ds.samples, ds.name)
-    repaired = timebase.samples
+    """The dataset, its samples streamed (``ingest.stream.open_stream``)
+    when it is one MCAP capture of more than ``[run] stream_above_samples``
+    samples that the streamed reader decodes chunk by chunk; read whole otherwise."""
+    path = Path(path)
+    if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
+        meta_path = path / "dataset.toml"
+    whole = partial(load_dataset, path, meta_path, config.limits, config.run.workers)
+    if not path.exists():
+        return whole()  # the in-memory reader words the problem
+    meta = load_meta(meta_path)
+    root = path if path.is_dir() else path.parent
+    files = capture_files(path, meta)
+    if len(files) != 1 or files[0][0].suffix.lower() != ".mcap" or _messages(files[0][0], config) <= config.run.stream_above_samples:
+        return whole()
+    file, spec = files[0]
+    capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
+    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture)
+    if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
+        return whole()
+    constant = [pl.lit(capture, pl.Categorical).alias("capture"), pl.lit(None, pl.Float64).alias("temperature_c"),
+                pl.lit(stream.label_source or "file", schema("samples").polars_schema["label_source"]).alias("label_source")]
+    tb = stream.timebase
+    timebase = TimebaseResult(schema("samples").empty(), tb.findings_table(dataset_name(path)), tb.warnings,
+                              {capture: tb.unrepairable} if tb.unrepairable else {}, () if tb.gaps is None else (tb.gaps,))
+    return StreamedDataset(dataset_name(path), root, meta, schema("samples").empty(), (*meta.notes, *stream.notes),
+                           inputs=(file, *(() if meta_path is None else (Path(meta_path),))),
+                           blocks=lambda: (b.with_columns(constant) for b in stream.blocks()), timebase=timebase,
+                           in_memory=whole)
 
-    def blocks() -> Iterator[pl.DataFrame]:
-        return (repaired.slice(a, BLOCK_SAMPLES) for a in range(0, repaired.height, BLOCK_SAMPLES))
 
-    fields = {k: getattr(ds, k) for k in Dataset.__dataclass_fields__}
-    return StreamedDataset(**{**fields, "samples": repaired.clear()}, blocks=blocks,
-                           timebase=replace(timebase, samples=repaired.clear()), in_memory=lambda: ds)
+def _messages(file: Path, config: RunConfig) -> int:
+    """The most messages of any channel of an MCAP file (its samples, for
+    a capture whose table channel is slower), from its message indexes; 0
+    where it has none the fast reader can count (it is then read whole)."""
+    try:
+        with file.open("rb") as fh:
+            return max(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values(), default=0)
+    except (Unsupported, InputError, OSError):
+        return 0
 
 
 def why_not(ds: StreamedDataset, config: RunConfig, streamed: StreamedSegments | None = None) -> str | None:
