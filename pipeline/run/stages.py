@@ -120,7 +120,8 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
         if streamed is not None:
             return _from_stream(ds, streamed)
         assert ds.in_memory is not None
-        ds = replace(ds.in_memory(), notes=ds.notes + notes)
+        whole = ds.in_memory()
+        ds = replace(whole, notes=whole.notes + notes)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
