@@ -30,7 +30,7 @@ solution of ``combine`` within the uncertainties.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,7 +153,7 @@ def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int 
     return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), precision_from(rtr, seg.n, y_max, 3))
 
 
-def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples] | list[SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
+def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
     """The simultaneous least-squares solution of one rate (see module docstring)."""
     measured = {3 * r + c for s in segs for r in range(3) for c in (SIN_COMPONENT[axis_index(s.axis)], COS_COMPONENT[axis_index(s.axis)])}
     missing = [STATE[i] for i in range(9) if i not in measured]
