@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -68,7 +68,9 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
     stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture)
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
-        return whole()
+        read = whole()
+        return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
+                                    "does not decode chunk by chunk (docs/streaming.md)"))
     constant = [pl.lit(capture, pl.Categorical).alias("capture"), pl.lit(None, pl.Float64).alias("temperature_c"),
                 pl.lit(stream.label_source or "file", schema("samples").polars_schema["label_source"]).alias("label_source")]
     tb = stream.timebase
