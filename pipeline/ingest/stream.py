@@ -51,7 +51,8 @@ from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.model.physics import AXES
 from rotcal.tables import conform
 from rotcal.timebase.check import TimebaseConfig, check_capture
-from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome, stream_grid
+from rotcal.timebase.stream_grid import stream_grid
+from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome
 
 Blocks = Callable[[], Iterator[pl.DataFrame]]
 BLOCK_SAMPLES = 1 << 20
