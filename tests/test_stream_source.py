@@ -9,6 +9,8 @@ the capture."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -132,3 +134,49 @@ def test_an_empty_file_and_a_missing_topic(tmp_path):
     expected = _refusal(lambda: mcap_source.read_mcap_capture(good, other, None, Limits()))
     assert "'/elsewhere' is not in the file" in expected
     assert _refusal(lambda: open_stream(good, other)) == expected
+
+
+MEMORY_CHILD = """
+import sys
+from pathlib import Path
+from rotcal.ingest import load_dataset, mcap_fast, stream
+from rotcal.ingest.meta import load_meta
+from rotcal.ingest.stream import open_stream
+from rotcal.timebase import repair_timebase, stream_grid
+
+def status(key):
+    return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])
+
+directory = Path(sys.argv[1])
+open("/proc/self/clear_refs", "w").write("5")  # the peak (VmHWM) counted from here
+base = status("VmRSS")
+if sys.argv[2] == "memory":
+    ds = load_dataset(directory)
+    n = repair_timebase(ds.samples, ds.name).samples.height
+else:
+    # small batches and blocks: the part of the memory that does not grow with the capture
+    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_grid.GATHER = 1 << 20, 1 << 14, 1 << 15
+    capture = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
+    n = sum(block.height for block in capture.blocks())
+print(n, status("VmHWM") - base)
+"""
+
+
+def test_a_pass_holds_a_block_not_the_capture(tmp_path):
+    """Half a million samples (46 MB as a sample table): the streamed
+    reader's peak growth (first pass, time base, a pass of blocks of 16,384
+    samples, batches of 512 kB) is a small part of the in-memory reader's,
+    each measured in a process of its own from the resident memory after
+    the imports."""
+    spec = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=80_000))
+    directory = write_streamed(spec, 7, tmp_path / "long", "dut")
+
+    def peak(part: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(directory), part], capture_output=True, text=True,
+                             check=True).stdout.split()
+        return int(out[0]), int(out[1])
+    (n_memory, memory), (n_streamed, streamed) = peak("memory"), peak("stream")
+    assert n_memory == n_streamed > 400_000
+    assert memory > 95 * n_memory / 1024  # kB: the sample table at least
+    print(f"peak growth: streamed {streamed} kB, in memory {memory} kB")
+    assert streamed < 0.3 * memory, (streamed, memory)

@@ -19,6 +19,8 @@ slots would need a sort are left to the in-memory check (``None``).
 
 from __future__ import annotations
 
+import os
+import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
@@ -28,8 +30,9 @@ from rotcal.timebase.check import Gaps, GridStats, TimebaseConfig, grid_findings
 from rotcal.timebase.grid import intervals
 from rotcal.timebase.streamed import Repairer, Stamps, StreamedTimebase, replaced
 
-GATHER = 1 << 20  # values gathered and sorted to pick a rank
+GATHER = 1 << 18  # values gathered and sorted to pick a rank
 BINS = 1 << 12  # bins of a histogram narrowing a rank
+SPILL_BLOCK = 1 << 18  # values read back from a temporary file at a time
 
 
 class _NotStreamed(Exception):
@@ -176,11 +179,21 @@ def _residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, off
 
 
 def _white_jitter(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray) -> float:
-    """``grid.white_jitter``: the robust sd of successive residual differences within runs, over sqrt(2)."""
-    def steps() -> Iterator[np.ndarray]:
+    """``grid.white_jitter``: the robust sd of successive residual differences
+    within runs, over sqrt(2). The differences are computed once, kept in a
+    temporary file (8 bytes each) for the passes of the medians."""
+    with tempfile.TemporaryFile() as spill:
+        n = 0
         for s, k, run, _ in _walked(stamps, slots):
-            yield np.diff(_residuals(s, k, run, period, offset))[run[1:] == run[:-1]]
-    return _robust_sd(steps, sum(x.size for x in steps())) / np.sqrt(2.0)
+            step = np.diff(_residuals(s, k, run, period, offset))[run[1:] == run[:-1]]
+            spill.write(step.tobytes())
+            n += step.size
+        spill.flush()
+
+        def steps() -> Iterator[np.ndarray]:
+            for a in range(0, n, SPILL_BLOCK):
+                yield np.frombuffer(os.pread(spill.fileno(), 8 * min(SPILL_BLOCK, n - a), 8 * a), np.float64)
+        return _robust_sd(steps, n) / np.sqrt(2.0)
 
 
 def _grid_slots(stamps: Stamps, n: int) -> tuple[_Slots, float, np.ndarray]:
