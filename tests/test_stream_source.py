@@ -76,8 +76,15 @@ def assert_streams_alike(directory: Path, block: int, bounded: bool = True, grid
     blocks = list(capture.blocks())
     assert capture.bounded == bounded
     assert len(blocks) == -(-ds.samples.height // block)  # one a block of samples read, rows dropped or not
-    assert_frame_equal(pl.concat(blocks), tb.samples.select(COLUMNS))  # exact: values, order, types
-    assert_frame_equal(pl.concat(list(capture.blocks())), tb.samples.select(COLUMNS))  # a second pass alike
+    joined, memory = pl.concat(blocks), tb.samples.select(COLUMNS)
+    if any("placed on the regular" in w for w in tb.warnings):
+        # stamps replaced by the fitted grid, a + T k: a period differing in its last bit (the cross
+        # products summed in another order) moves a stamp by 1 ns where a + T k is near a half
+        step = np.abs(joined["t_ns"].to_numpy() - memory["t_ns"].to_numpy())
+        assert step.max() <= 1 and np.mean(step) < 1e-3
+        joined, memory = joined.drop("t_ns"), memory.drop("t_ns")
+    assert_frame_equal(joined, memory)  # exact: values, order, types
+    assert_frame_equal(pl.concat(list(capture.blocks())).select(joined.columns), memory)  # a second pass alike
     assert capture.n_samples == tb.samples.height
     assert_findings_alike(capture.timebase.findings_table(ds.name), tb.findings)
     assert [NUMBER.sub("#", w) for w in capture.timebase.warnings] == [NUMBER.sub("#", w) for w in tb.warnings]

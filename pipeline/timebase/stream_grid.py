@@ -67,7 +67,7 @@ def _ranked(values: Callable[[], Iterator[np.ndarray]], n: int, ranks: list[int]
             for i in open_ranks:
                 lo, hi, closed, _ = state[i]
                 mine = x[(x >= lo) & ((x <= hi) if closed else (x < hi))]
-                counts[i] += np.bincount(np.minimum(np.searchsorted(edges[i], mine, "right") - 1, BINS - 1), minlength=BINS)
+                counts[i] += np.bincount(_bin(mine, edges[i]), minlength=BINS)
         gather = []
         for i in open_ranks:
             cumulative = np.cumsum(counts[i])
@@ -86,6 +86,18 @@ def _ranked(values: Callable[[], Iterator[np.ndarray]], n: int, ranks: list[int]
             for i in gather:
                 found[i] = float(np.sort(np.concatenate(picked[i]))[ranks[i] - state[i][3]])
     return [found[i] for i in range(len(ranks))]
+
+
+def _bin(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Each value's bin among ``edges`` (``edges[b] <= x < edges[b + 1]``, the
+    last bin closed), as ``np.searchsorted(edges, x, "right") - 1``: a guess
+    from the spacing, corrected by a bin where rounding misplaced it."""
+    last = edges.size - 2
+    width = (edges[-1] - edges[0]) / (last + 1)
+    b = np.zeros(x.size, np.int64) if width <= 0 else np.clip(((x - edges[0]) / width).astype(np.int64), 0, last)
+    b -= (x < edges[b]) & (b > 0)
+    b += (x >= edges[np.minimum(b + 1, last + 1)]) & (b < last)
+    return b
 
 
 def _median(values: Callable[[], Iterator[np.ndarray]], n: int) -> float:
@@ -165,13 +177,18 @@ def _fit(stamps: Stamps, slots: _Slots, n_runs: int) -> tuple[float, np.ndarray]
     den = num = 0.0
     for s, k, run, lead in _walked(stamps, slots):
         dk = k[lead:] - k_mean[run[lead:]]
-        den += float(dk @ dk)
-        num += float(dk @ (s[lead:] - s_mean[run[lead:]]))
+        den += _dot(dk, dk)
+        num += _dot(dk, s[lead:] - s_mean[run[lead:]])
     if den <= 0:
         raise _NotStreamed("no run spans two slots")
     slots.counts = count
     period = num / den
     return period, s_mean - period * k_mean
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """a . b without BLAS (whose threads, started for each of thousands of blocks, cost more than the sum)."""
+    return float(np.einsum("i,i->", a, b))
 
 
 def _residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> np.ndarray:
@@ -252,7 +269,7 @@ def _statistics(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray
         own = r[lead:]
         sums.n += own.size
         sums.r += float(own.sum())
-        sums.rr += float(own @ own)
+        sums.rr += _dot(own, own)
         sums.k += float(k[lead:].sum())
         sums.high, sums.low = max(sums.high, float(own.max())), min(sums.low, float(own.min()))
         sums.pairs += int(np.count_nonzero(within))
@@ -265,7 +282,7 @@ def _statistics(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray
         within = run[1:] == run[:-1]
         x, y = r[:-1][within] - x_mean, r[1:][within] - y_mean
         dr, dk = r[lead:] - r_mean, k[lead:] - k_mean
-        sums.centred += dr @ dr, dk @ dk, x @ x, y @ y, x @ y
+        sums.centred += _dot(dr, dr), _dot(dk, dk), _dot(x, x), _dot(y, y), _dot(x, y)
     return sums
 
 
