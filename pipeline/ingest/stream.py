@@ -32,6 +32,7 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
 from typing import Any
 
@@ -51,12 +52,13 @@ from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.model.physics import AXES
 from rotcal.tables import conform
 from rotcal.timebase.check import TimebaseConfig, check_capture
-from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome, stream_grid
+from rotcal.timebase.stream_grid import stream_grid
+from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome
 
 Blocks = Callable[[], Iterator[pl.DataFrame]]
 BLOCK_SAMPLES = 1 << 20
 COLUMNS = ("t_ns", "u", "v", "w", "axis", "rate_hz", "angle_deg")  # the columns blocks carry
-_STAMP_BLOCK = 1 << 20  # stamps read back a block at a time
+_STAMP_BLOCK = 1 << 16  # stamps read back a block at a time (the time base's temporaries: about 80 bytes a stamp)
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,7 +219,7 @@ def _raw_blocks(path: Path, found: dict, imu_key: str, table_key: str | None, li
     track, more = None, table_key is not None
     pending: list[dict[str, np.ndarray]] = []
     held_rows = 0
-    for topic in [*samples, None]:
+    for topic in chain(samples, [None]):  # None: the end, the rest is the last block
         if topic is not None:
             pending.append(topic.take())
             held_rows += pending[-1]["t_ns"].size

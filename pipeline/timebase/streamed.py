@@ -48,7 +48,7 @@ class StreamedTimebase:
         return findings_frame([{"dataset": dataset, "capture": self.capture, **f.__dict__} for f in self.findings])
 
 
-def _replaced(block: pl.DataFrame, keep: np.ndarray, t_ns: np.ndarray) -> pl.DataFrame:
+def replaced(block: pl.DataFrame, keep: np.ndarray, t_ns: np.ndarray) -> pl.DataFrame:
     """``block`` with the rows ``keep`` and the stamps ``t_ns``, copied only as far as something changes."""
     block = block if keep.all() else block.filter(pl.Series(keep))
     if np.array_equal(block["t_ns"].to_numpy(), t_ns):
@@ -77,7 +77,7 @@ def held(tb: CaptureTimebase, capture: str) -> StreamedTimebase:
             n = int(np.count_nonzero(keep))
             t_ns = tb.t_ns[out : out + n]
             rows, out = rows + block.height, out + n
-            return _replaced(block, keep, t_ns)
+            return replaced(block, keep, t_ns)
         return repair
     return outcome(tb, capture, repairer)
 
@@ -98,7 +98,3 @@ def loaded(stamps: Stamps) -> np.ndarray:
     """Every stamp of a capture, in one array (the captures the streamed check does not take)."""
     return np.concatenate([np.zeros(0, np.int64), *stamps()])
 
-
-def stream_grid(stamps: Stamps, n: int, capture: str, config) -> StreamedTimebase | None:
-    """To come: the grid fitted from sums over blocks of stamps."""
-    return None
