@@ -63,19 +63,24 @@ def _ranked(values: Callable[[], Iterator[np.ndarray]], n: int, ranks: list[int]
             break
         edges = {i: np.linspace(state[i][0], state[i][1], BINS + 1) for i in open_ranks}
         counts = {i: np.zeros(BINS, np.int64) for i in open_ranks}
+        lows = {i: np.full(BINS, np.inf) for i in open_ranks}
+        highs = {i: np.full(BINS, -np.inf) for i in open_ranks}
         for x in values():
             for i in open_ranks:
                 lo, hi, closed, _ = state[i]
                 mine = x[(x >= lo) & ((x <= hi) if closed else (x < hi))]
-                counts[i] += np.bincount(_bin(mine, edges[i]), minlength=BINS)
+                where = _bin(mine, edges[i])
+                counts[i] += np.bincount(where, minlength=BINS)
+                np.minimum.at(lows[i], where, mine)
+                np.maximum.at(highs[i], where, mine)
         gather = []
         for i in open_ranks:
             cumulative = np.cumsum(counts[i])
             b = int(np.searchsorted(cumulative, ranks[i] - state[i][3], "right"))
             state[i][3] += int(cumulative[b] - counts[i][b])
-            last = b == BINS - 1
-            state[i][:3] = [float(edges[i][b]), float(state[i][1] if last else edges[i][b + 1]), state[i][2] if last else False]
-            if counts[i][b] <= GATHER:
+            # the bin's own values span [low, high]: a bin of one value ends the search
+            state[i][:3] = [float(lows[i][b]), float(highs[i][b]), True]
+            if counts[i][b] <= GATHER and lows[i][b] < highs[i][b]:
                 gather.append(i)
         if gather:
             picked: dict[int, list[np.ndarray]] = {i: [] for i in gather}
