@@ -11,6 +11,15 @@ segment fits streamed (``run.streaming.stream_segments`` over blocks of
 the largest difference between their fits tables, and the peak of memory
 each allocates beyond the sample table (``tracemalloc``).
 
+Last, ``rotcal run`` on that capture, each in a process of its own under
+``/usr/bin/time -v``: read block by block (``[run] stream_above_samples``
+0) against read whole (the key above the capture); CPU seconds per sample
+(the machine may be loaded: wall time is printed too), peak resident
+memory, and the largest difference between their tables (of the column's
+largest value; ``tests/test_streaming.py`` bounds them). ``--streamed-only``
+(captures beyond memory) runs only the default configuration, which
+streams captures past its key.
+
     python bench/streaming.py [--samples 10000000] [--dir /tmp] [--streamed-only] [--block 1048576]
 """
 
@@ -73,12 +82,48 @@ def main() -> None:
         print(f"simulate, streamed ({n:,} samples, rotation_samples {rotation:,}, {size / 1e9:.2f} GB): "
               f"{n / t_s:,.0f} samples/s, peak {mb_s:,.0f} MB ({mb_s * 1e6 / n:.1f} B/sample)", flush=True)
         if args.streamed_only:
+            run(Path(tmp) / "streamed", n, {"default configuration": None})
             return
         t_m, mb_m = measure(rotation, Path(tmp) / "memory", False)
         same = filecmp.cmp(Path(tmp) / "streamed" / "capture.mcap", Path(tmp) / "memory" / "capture.mcap", shallow=False)
         print(f"simulate, in memory: {n / t_m:,.0f} samples/s, peak {mb_m:,.0f} MB ({mb_m * 1e6 / n:.1f} B/sample)")
         print(f"streamed / in memory: speed {t_m / t_s:.2f}x, peak memory {mb_s / mb_m:.3f}x; same bytes: {same}")
         fits(Path(tmp) / "streamed", args.block)
+        run(Path(tmp) / "streamed", n, {"streamed": 0, "in memory": n})
+
+
+def run(dataset: Path, n: int, ways: dict[str, int | None]) -> None:
+    """``rotcal run`` on ``dataset`` each way (``[run] stream_above_samples``;
+    None: the default configuration), CPU time, wall time and peak resident
+    memory from ``/usr/bin/time -v``; the tables compared when there are two."""
+    import numpy as np
+    import polars as pl
+
+    rotcal = Path(sys.executable).with_name("rotcal")
+    cpu, outs = {}, []
+    for name, above in ways.items():
+        out = dataset.parent / f"run-{len(outs)}"
+        config = ["--config", str(dataset.parent / "stream.toml")] if above is not None else []
+        if above is not None:
+            (dataset.parent / "stream.toml").write_text(f"[run]\nstream_above_samples = {above}\n")
+        done = subprocess.run(["/usr/bin/time", "-v", str(rotcal), "run", str(dataset), "--out", str(out), "--quiet", *config],
+                              check=True, capture_output=True, text=True)
+        field = dict(line.strip().rsplit(": ", 1) for line in done.stderr.splitlines() if ": " in line)
+        cpu[name] = float(field["User time (seconds)"]) + float(field["System time (seconds)"])
+        wall = sum(float(p) * 60 ** i for i, p in enumerate(reversed(field["Elapsed (wall clock) time (h:mm:ss or m:ss)"].split(":"))))
+        print(f"rotcal run, {name}: CPU {cpu[name] * 1e9 / n:,.0f} ns/sample ({cpu[name]:,.1f} s), wall {wall:,.1f} s, "
+              f"peak resident {int(field['Maximum resident set size (kbytes)']) / 1024:,.0f} MB", flush=True)
+        outs.append(out)
+    if len(outs) == 2:
+        worst = 0.0
+        for table in outs[1].glob("*.parquet"):
+            a, b = pl.read_parquet(outs[0] / table.name), pl.read_parquet(table)
+            for c in (c for c, d in b.schema.items() if d in (pl.Float64, pl.List(pl.Float64))):
+                x, y = (np.array(f[c].explode().fill_null(np.nan).to_numpy(), float) for f in (a, b))
+                worst = max(worst, float(np.nanmax(np.abs(x - y), initial=0.0) / max(np.nanmax(np.abs(y), initial=0.0), 1e-300)))
+        first, second = ways
+        print(f"rotcal run, {first} / {second}: CPU time per sample {cpu[first] / cpu[second]:.2f}x; "
+              f"largest difference between their tables {worst:.1e} of the column's largest value")
 
 
 def traced(fn):
@@ -115,8 +160,8 @@ def fits(dataset: Path, block: int, repeats: int = 3) -> None:
     def streamed():
         def blocks():
             return (samples.slice(a, block) for a in range(0, n, block))
-        segments, fitted = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
-        return fits_frame(fitted, segments, ds.name)
+        result = stream_segments(blocks, ds.name, ds.meta.angle_source, config, 100_000)
+        return fits_frame(result.fits, result.segments, ds.name)
 
     with threadpool_limits(limits=1):  # as run_dataset holds BLAS
         ours, _, mb_s = traced(streamed)

@@ -7,16 +7,20 @@ equations accumulated chunk by chunk must give the in-memory fit."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from rotcal.config import FitConfig
+import rotcal.run.stages as stages
+import rotcal.run.streamed as streamed
+from rotcal.config import FitConfig, RunConfig, with_options
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.segments import fit_segments, fits_frame, sincos_deg, sine3_fit
 from rotcal.ingest import load_dataset
+from rotcal.run import run_dataset
 from rotcal.run.streaming import stream_segments
 from rotcal.segment import segment_by_labels
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
@@ -104,7 +108,8 @@ def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
     def blocks():
         return (samples.slice(a, block) for a in range(0, samples.height, block))
 
-    streamed_segments, streamed = stream_segments(blocks, samples["capture"][0], "table", ds.name, ds.meta.angle_source, config)
+    result = stream_segments(blocks, ds.name, ds.meta.angle_source, config, 100_000)
+    streamed_segments, streamed = result.segments, result.fits
     assert_frame_equal(streamed_segments, segments)
     streamed_fits = fits_frame(streamed, streamed_segments, ds.name)
     assert streamed_fits.height == fits.height == 3 * 15
@@ -116,3 +121,76 @@ def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
     for c in ("cov_u", "cov_v", "cov_w"):
         ours, theirs = np.vstack(streamed_fits[c].to_list()), np.vstack(fits[c].to_list())
         np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max(), err_msg=c)
+
+
+# statistics of the difference of two near-equal estimates (consistency checks, the simultaneous solution
+# against the per-segment one): rounding of the estimates, ~1e-12, grows by their ratio to the difference
+DIFFERENCES = {"z", "chi2", "chi2_per_dof", "p_value", "difference", "difference_over_u", "z_difference"}
+
+
+def assert_tables_match(ours: Path, theirs: Path) -> int:
+    """Every table of two output directories: integers and strings equal,
+    floats within 1e-9 of their column's largest magnitude (1e-6 for the
+    statistics of differences); the number of tables compared."""
+    names = sorted(p.name for p in theirs.glob("*.parquet"))
+    assert names == sorted(p.name for p in ours.glob("*.parquet"))
+    for name in names:
+        a, b = pl.read_parquet(ours / name), pl.read_parquet(theirs / name)
+        assert a.schema == b.schema and a.height == b.height, name
+        floats = [c for c, d in b.schema.items() if d == pl.Float64 or d == pl.List(pl.Float64)]
+        # the time base's evidence quotes figures at rounding level (the stamps' scatter about the
+        # grid, 1e-8 ms), whose streamed sums round otherwise: its values are compared as floats
+        words = ["evidence"] if name == "timebase.parquet" else []
+        assert_frame_equal(a.drop(floats + words), b.drop(floats + words), check_exact=True)
+        for c in floats:
+            x, y = (np.array(f[c].explode().fill_null(np.nan).to_numpy(), float) for f in (a, b))
+            assert np.array_equal(np.isnan(x), np.isnan(y)), (name, c)
+            scale = np.nanmax(np.abs(y), initial=0.0)
+            tol = (1e-6 if c in DIFFERENCES else 1e-9) * scale
+            if name == "timebase.parquet":  # scatters zero but for rounding (1e-19 s): within a picosecond
+                tol = max(tol, 1e-12)
+            assert np.nanmax(np.abs(x - y), initial=0.0) <= tol, (name, c, np.nanmax(np.abs(x - y)) / scale)
+    return len(names)
+
+
+@pytest.fixture(scope="module")
+def centripetal_capture(tmp_path_factory):
+    """A 243,600-sample MCAP capture of the default plan (rotations of
+    20,000 samples) with a centripetal acceleration the diagnosis finds."""
+    spec = SimulationSpec()
+    spec = replace(spec, plan=replace(spec.plan, rotation_samples=20_000)).with_effects("centripetal:axis=x,radius_m=0.2")
+    return write_dataset(simulate(spec, 3), spec, tmp_path_factory.mktemp("centripetal") / "d", "mcap-cdr", "dut")
+
+
+def test_the_whole_run_streamed_equals_in_memory(centripetal_capture, tmp_path, monkeypatch):
+    """``rotcal run`` on a capture read in blocks of 7,777 samples (every
+    rotation and static sequence cut by block boundaries) publishes the
+    tables of the run in memory: the segments and fits from sums, the
+    diagnosis on the same thinned samples (it finds the centripetal
+    acceleration and the refined model is recommended), the refits of the
+    samples less the effect, the static steps' poses and corrections, and
+    Geist's simultaneous solution from per-segment sums."""
+    memory = run_dataset(centripetal_capture, tmp_path / "memory")
+    assert memory.recommended.model == "refined"
+    assert memory.diagnosis is not None and memory.diagnosis.findings.filter(pl.col("detected"))["effect"].to_list() == ["centripetal"]
+    monkeypatch.setattr(streamed, "BLOCK_SAMPLES", 7_777)
+    taken = []
+    original = stages._from_stream
+    monkeypatch.setattr(stages, "_from_stream", lambda ds, s: taken.append(s) or original(ds, s))
+    config = with_options(RunConfig(), run={"stream_above_samples": 200_000})
+    ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=config)
+    assert len(taken) == 1 and taken[0].n_samples == 243_600  # streamed, not read in memory
+    assert ours.notes == memory.notes and ours.warnings == memory.warnings
+    assert ours.recommended.model == "refined"
+    assert assert_tables_match(tmp_path / "streamed", tmp_path / "memory") == 15
+
+
+def test_what_the_streamed_path_cannot_take_is_read_in_memory(centripetal_capture, tmp_path):
+    """Four-parameter fits read every sample: the capture is read whole, with a note, and the tables are the in-memory run's."""
+    four = with_options(RunConfig(), fit={"sine_fit": "four_parameter"}, diagnosis={"enabled": False})
+    memory = run_dataset(centripetal_capture, tmp_path / "memory", config=four)
+    ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=with_options(four, run={"stream_above_samples": 0}))
+    note = "read in memory, not block by block: four-parameter fits ([fit] sine_fit)"
+    assert note in ours.notes and tuple(n for n in ours.notes if n != note) == memory.notes
+    for p in (tmp_path / "memory").glob("*.parquet"):
+        assert pl.read_parquet(tmp_path / "streamed" / p.name).equals(pl.read_parquet(p)), p.name

@@ -41,9 +41,14 @@ class NormalSums:
         for j, y in enumerate(channels):
             self.xty[j] += (y.sum(), s @ y, c @ y)
 
+    @property
+    def gram(self) -> np.ndarray:
+        """X^T X (3 x 3)."""
+        return self.xtx[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3)
+
     def solve(self) -> tuple[np.ndarray, np.ndarray]:
         """The coefficients (channel x (C, A, B)) and (X^T X)^-1."""
-        xtx_inv = np.linalg.inv(self.xtx[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3))
+        xtx_inv = np.linalg.inv(self.gram)
         return self.xty @ xtx_inv, xtx_inv
 
 

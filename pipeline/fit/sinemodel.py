@@ -38,16 +38,26 @@ def residuals(z: np.ndarray, y: np.ndarray, coef: np.ndarray) -> np.ndarray:
 def precision(resid: np.ndarray, y: np.ndarray, n_params: int) -> np.ndarray | None:
     """Inverse of the channels' residual covariance (``n_params`` fitted per
     channel); None when the residuals are at rounding level (noise-free data)."""
-    sigma = np.einsum("na,nb->ab", resid, resid) / max(resid.shape[0] - n_params, 1)
-    if np.linalg.eigvalsh(sigma)[0] <= (NOISE_FREE * np.max(np.abs(y))) ** 2:
+    return precision_from(np.einsum("na,nb->ab", resid, resid), resid.shape[0], float(np.max(np.abs(y))), n_params)
+
+
+def precision_from(rtr: np.ndarray, n: int, y_max: float, n_params: int) -> np.ndarray | None:
+    """``precision`` from the residual products R^T R of ``n`` samples whose
+    largest output magnitude is ``y_max`` (sums a streamed run accumulates)."""
+    sigma = rtr / max(n - n_params, 1)
+    if np.linalg.eigvalsh(sigma)[0] <= (NOISE_FREE * y_max) ** 2:
         return None
     return np.linalg.inv(sigma)
 
 
 def normal_equations(z: np.ndarray, resid: np.ndarray, design: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, rhs) of one segment: ``design`` (3, 5, P) holds the D_r, ``weight`` W."""
-    gram = np.einsum("ni,nj->ij", z, z)
-    ze = np.einsum("ni,nb->ib", z, resid)
+    return normal_from(np.einsum("ni,nj->ij", z, z), np.einsum("ni,nb->ib", z, resid), design, weight)
+
+
+def normal_from(gram: np.ndarray, ze: np.ndarray, design: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, rhs) from the sums Z^T Z and Z^T e over a segment's samples; the
+    basis may be the first m of the five functions (``design`` then (3, m, P))."""
     normal = np.einsum("ab,aip,ij,bjq->pq", weight, design, gram, design,
                        optimize=_path("ab,aip,ij,bjq->pq", weight.shape, design.shape, gram.shape, design.shape))
     rhs = np.einsum("ab,aip,ib->p", weight, design, ze, optimize=_path("ab,aip,ib->p", weight.shape, design.shape, ze.shape))

@@ -18,7 +18,7 @@ error, so both paths give the same samples and the same messages.
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -279,4 +279,84 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
         raise Unsupported(f"damaged MCAP ({exc})") from None
     for topic in state.keep.values():
         topic.finish()
+    return state.found
+
+
+def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: int = 0,
+                       only: frozenset[int] = frozenset()) -> Generator[dict[str, DecodedTopic], None, dict[str, DecodedTopic]]:
+    """``read_topics`` a batch of chunks at a time (issue 16, item 1): after
+    each batch (at most ``BATCH_BYTES`` of chunks, decompressed on
+    ``parallel.cores(workers)`` threads), the kept channels' messages in it,
+    each a finished ``DecodedTopic`` holding that batch's columns only, by
+    topic (channels without messages in the batch left out). Memory is one
+    batch, whatever the file's length; a batch is decoded before the next is
+    decompressed. It returns (``yield from``'s value) every channel by
+    topic, as ``read_topics`` does, without their messages. Raises
+    ``Unsupported`` as ``read_topics`` does, possibly after some batches.
+
+    ``only`` (channel ids): once these channels are known, chunks holding
+    none of their messages (by their message indexes) are not decompressed;
+    a reader following one channel skips the others' chunks."""
+    batch = _Batch()
+    where = McapFile(path, limits)
+
+    def wanted(indexes: list[bytes]) -> bool:
+        return any(struct.unpack_from("<HI", index, 0)[0] in only and struct.unpack_from("<HI", index, 0)[1] >= 16
+                   for index in indexes)
+
+    def land(state: _State, mapper: Callable) -> dict[str, DecodedTopic]:
+        if only and only <= set(state.keep):
+            batch.chunks = [chunk for chunk in batch.chunks if wanted(chunk[2])]
+            if not batch.chunks:
+                batch.size = 0
+                return {}
+        flight = _launch(state, batch, mapper, overlap=False)
+        counts: dict[int, int] = {}
+        for chunk_indexes in flight.indexes:
+            for index in chunk_indexes:
+                channel_id, length = struct.unpack_from("<HI", index, 0)
+                counts[channel_id] = counts.get(channel_id, 0) + length // 16
+        for channel_id, topic in state.keep.items():  # fresh columns, sized for this batch
+            state.keep[channel_id] = state.found[topic.channel.topic] = DecodedTopic(topic.schema, topic.channel, counts.get(channel_id, 0))
+        # channels defined in this batch are sized from it too, not from the whole file
+        whole = state.counts, state.chunk_bytes
+        state.counts, state.chunk_bytes = counts, int(flight.bases[-1])
+        _land(state, flight)
+        state.counts, state.chunk_bytes = whole
+        decoded = {}
+        for topic in state.keep.values():
+            topic.finish()
+            if topic.count:
+                decoded[topic.channel.topic] = topic
+        return decoded
+
+    try:
+        threads = cores(workers)
+        with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
+            mapper = map if pool is None else pool.map
+            state = _State(where, topics, *_message_counts(fh, where))
+            for opcode, offset, length in top_records(fh, where):
+                if opcode == Opcode.MESSAGE_INDEX and batch.chunks:
+                    batch.chunks[-1][2].append(fh.read(length))
+                    continue
+                body = fh.read(length) if opcode in (Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL) else b""
+                if opcode == Opcode.CHUNK and batch.fits(body):
+                    batch.add(offset, body)
+                    continue
+                if batch.chunks:
+                    yield land(state, mapper)
+                if opcode == Opcode.CHUNK:
+                    batch.add(offset, body)
+                elif opcode == Opcode.SCHEMA:
+                    state.schema(body)
+                elif opcode == Opcode.CHANNEL:
+                    state.channel(body)
+                elif opcode == Opcode.MESSAGE:
+                    raise Unsupported("messages outside chunks")
+            if batch.chunks:
+                yield land(state, mapper)
+    except (InputError, struct.error, ValueError) as exc:
+        raise Unsupported(f"damaged MCAP ({exc})") from None
+    for channel_id, topic in state.keep.items():
+        state.found[topic.channel.topic] = DecodedTopic(topic.schema, topic.channel, state.counts.get(channel_id, 0))
     return state.found

@@ -93,7 +93,9 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
 
 
-def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
+def chosen_topics(found: dict, path: Path, meta: DatasetMeta) -> tuple[str, str | None, tuple[str, ...]]:
+    """The DUT and table topics read (``found``: every channel by topic) and
+    notes on those chosen where the defaults were absent."""
     imu_key = _choose_topic(found, meta.imu_topic, meta.imu_topic_given, IMU_SCHEMA, path)
     table_key = _choose_topic(found, meta.table_topic, meta.table_topic_given, JOINT_SCHEMA, path)
     if imu_key is None:
@@ -105,6 +107,11 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
         for key, meta_topic, kind in ((imu_key, meta.imu_topic, "Imu"), (table_key, meta.table_topic, "JointState"))
         if key is not None and key != meta_topic
     )
+    return imu_key, table_key, notes
+
+
+def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
+    imu_key, table_key, notes = chosen_topics(found, path, meta)
     require(found[imu_key].schema, found[imu_key].channel, IMU_SCHEMA, path)
     frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
     if frame.height == 0:

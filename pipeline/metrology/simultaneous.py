@@ -30,6 +30,7 @@ solution of ``combine`` within the uncertainties.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ import polars as pl
 
 from rotcal.combine.labelled import STATE, segment_input, units
 from rotcal.fit.segments import segment_rows
-from rotcal.fit.sinemodel import basis, normal_equations, precision, residuals, solve
+from rotcal.fit.sinemodel import basis, normal_from, precision_from, residuals, solve
 from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
 from rotcal.model.results import Failure, IntrinsicResult
 from rotcal.tables import conform, schema
@@ -58,6 +59,10 @@ class SegmentSamples:
     kappa: float | None
 
     @property
+    def n(self) -> int:
+        return self.theta_deg.size
+
+    @property
     def y(self) -> np.ndarray:
         """The outputs (n, 3), built when wanted, in ``DataFrame.to_numpy``'s layout."""
         y = np.empty((self.theta_deg.size, len(self.channels)), order="F")
@@ -65,11 +70,56 @@ class SegmentSamples:
             y[:, r] = column
         return y
 
+    def sums(self, coef: np.ndarray, beta: np.ndarray, kappa_index: int | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Z^T Z, Z^T e, e^T e and the largest |y| at the channels'
+        coefficients ``coef`` (3, 5), e the residuals (``sinemodel``)."""
+        theta_unw = np.unwrap(self.theta_deg, period=360.0)
+        psi = np.deg2rad(theta_unw - theta_unw[0])
+        theta = np.deg2rad(theta_unw[0]) + beta[kappa_index] * psi if kappa_index is not None else np.deg2rad(self.theta_deg)
+        z = basis(theta, psi)
+        y = self.y
+        resid = residuals(z, y, coef)
+        return (np.einsum("ni,nj->ij", z, z), np.einsum("ni,nb->ib", z, resid), np.einsum("na,nb->ab", resid, resid),
+                float(np.max(np.abs(y))))
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentSums:
+    """One three-parameter segment as the sums a streamed run accumulates
+    (``fit.normal``): Z^T Z and Z^T Y of the basis (1, sin theta, cos theta),
+    the segment's own fit (coefficients C_0, channel x basis) with its
+    residual products R_0^T R_0, and the largest |y|. At other coefficients
+    C the residuals are R = R_0 - Z (C - C_0)^T, so
+
+        Z^T R = Z^T Y - Z^T Z C^T,
+        R^T R = R_0^T R_0 - R_0^T Z D^T - D Z^T R_0 + D Z^T Z D^T,  D = C - C_0,
+
+    exact, and without the cancellation Y^T Y - ... would suffer (R_0 is
+    the noise, Y the signal)."""
+
+    segment: int
+    axis: str
+    n: int
+    gram: np.ndarray   # (3, 3)
+    zty: np.ndarray    # (3 basis, 3 channels)
+    coef: np.ndarray   # (3 channels, 3 basis): the segment's own fit
+    rtr: np.ndarray    # (3, 3) at ``coef``
+    y_max: float
+    kappa: None = None  # the commanded rate is trusted (three-parameter fits only)
+
+    def sums(self, coef: np.ndarray, beta: np.ndarray, kappa_index: int | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """As ``SegmentSamples.sums``, on the basis's first three functions."""
+        d = coef[:, :3] - self.coef
+        ze0 = self.zty - self.gram @ self.coef.T  # Z^T R_0: zero but for rounding
+        rtr = self.rtr - ze0.T @ d.T - d @ ze0 + d @ self.gram @ d.T
+        return self.gram, self.zty - self.gram @ coef[:, :3].T, rtr, self.y_max
+
 
 def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool) -> list[SegmentSamples]:
     """The ok segments of one rate with their samples, in segment order."""
-    ok = (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
-          .unique("segment", keep="first").sort("segment"))
+    ok = _ok(fits, rate_hz)
     rows, out = segment_rows(samples), []
     for row in ok.iter_rows(named=True):
         part = samples.slice(*rows[row["segment"]])
@@ -80,16 +130,18 @@ def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, f
     return out
 
 
-def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
+def _ok(fits: pl.DataFrame, rate_hz: float) -> pl.DataFrame:
+    """The fits of the ok segments of one rate, in segment order."""
+    return (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
+            .unique("segment", keep="first").sort("segment"))
+
+
+def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
                     weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """One segment's normal equations at ``beta`` with the channel weight
     matrix ``weight`` (``sinemodel``), and the weight its residuals give
     (``precision``; computed here so that no segment's residuals are kept)."""
     a = axis_index(seg.axis)
-    theta_unw = np.unwrap(seg.theta_deg, period=360.0)
-    psi = np.deg2rad(theta_unw - theta_unw[0])
-    theta = np.deg2rad(theta_unw[0]) + beta[kappa_index] * psi if kappa_index is not None else np.deg2rad(seg.theta_deg)
-    z = basis(theta, psi)
     coef, design = np.zeros((3, 5)), np.zeros((3, 5, n_params))
     for r in range(3):
         i_sin, i_cos, i_off = 3 * r + SIN_COMPONENT[a], 3 * r + COS_COMPONENT[a], 9 + 3 * k + r
@@ -97,12 +149,11 @@ def _segment_system(seg: SegmentSamples, k: int, kappa_index: int | None, beta: 
         design[r, 0, i_off], design[r, 1, i_sin], design[r, 2, i_cos] = 1.0, -1.0, 1.0
         if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
             design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
-    y = seg.y
-    resid = residuals(z, y, coef)
-    return (*normal_equations(z, resid, design, weight), precision(resid, y, 3))
+    gram, ze, rtr, y_max = seg.sums(coef, beta, kappa_index)
+    return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), precision_from(rtr, seg.n, y_max, 3))
 
 
-def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
+def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
     """The simultaneous least-squares solution of one rate (see module docstring)."""
     measured = {3 * r + c for s in segs for r in range(3) for c in (SIN_COMPONENT[axis_index(s.axis)], COS_COMPONENT[axis_index(s.axis)])}
     missing = [STATE[i] for i in range(9) if i not in measured]
@@ -149,16 +200,28 @@ def simultaneous_rate(rate_hz: float, segs: list[SegmentSamples], g_local: float
     parts = []
     for s, (block, _, _) in zip(segs, blocks):
         share = transform @ cov @ block @ cov @ transform.T
-        parts.append((segment_input(s.segment, s.axis, s.theta_deg.size - 3), share))
+        parts.append((segment_input(s.segment, s.axis, s.n - 3), share))
     return IntrinsicResult.from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)
 
 
 def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_uncertainty: float,
                  four_parameter: bool = False) -> list[IntrinsicResult | Failure]:
     """Every rate's simultaneous solution (rate 0, the static result, first)."""
+    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter), g_local, g_uncertainty)
+            for rate in _rates(fits)]
+
+
+def simultaneous_from_sums(sums: Mapping[int, SegmentSums], fits: pl.DataFrame, g_local: float,
+                           g_uncertainty: float) -> list[IntrinsicResult | Failure]:
+    """``simultaneous`` of three-parameter segments from their sums (a streamed run's)."""
+    return [simultaneous_rate(rate, [sums[s] for s in _ok(fits, rate)["segment"].to_list()], g_local, g_uncertainty)
+            for rate in _rates(fits)]
+
+
+def _rates(fits: pl.DataFrame) -> list[float]:
+    """The rates of the ok static and rotation fits, rate 0 (the static result) first."""
     fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]) & (pl.col("status") == "ok"))
-    rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
-    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter), g_local, g_uncertainty) for rate in rates]
+    return sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
 
 
 def simultaneous_frame(sim: list[IntrinsicResult], per_segment: list[IntrinsicResult], dataset: str, output_unit: str) -> pl.DataFrame:

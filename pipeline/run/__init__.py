@@ -18,7 +18,6 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
-from rotcal.ingest import load_dataset
 from rotcal.model import Failure, IntrinsicResult, Table
 from rotcal.model.calibration import Recommended, mark_recommended
 from rotcal.report.publish import OutputDir
@@ -36,6 +35,7 @@ from rotcal.run.stages import (
     reduce,
     segment_and_fit,
 )
+from rotcal.run.streamed import load
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
@@ -74,7 +74,7 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) 
     what remains after failed segments cannot determine any rate's result
     (the tables that describe the input, with the failure rows, are written then).
     """
-    ds = load_dataset(path, meta_path, config.limits, config.run.workers)
+    ds = load(path, meta_path, config)  # its samples streamed past [run] stream_above_samples (``streamed``)
     seg = segment_and_fit(ds, config)
     reductions = reduce(seg, ds)
     try:

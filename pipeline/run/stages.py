@@ -4,7 +4,7 @@ tables or results for the next."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,9 +43,12 @@ from rotcal.metrology import (
     simultaneous_frame,
     temperature_frame,
 )
+from rotcal.metrology.simultaneous import simultaneous_from_sums
 from rotcal.model import Failure, IntrinsicResult, Reduction, Table
 from rotcal.model.calibration import BASELINE, REFINED, Recommended, recommend
 from rotcal.run.outputs import Figure
+from rotcal.run.streamed import StreamedDataset, corrected_blocks, streamed_fits, streamed_segments
+from rotcal.run.streaming import StreamedSegments
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
@@ -70,6 +73,7 @@ class Segmented:
     tables: tuple[Table, ...]
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
+    streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
 
     @property
     def labelled_fits(self) -> pl.DataFrame:
@@ -109,7 +113,15 @@ def _rate_order(rate_hz: float) -> tuple[float, float]:
 
 def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     """Time base, segments (labelled, then inferred from the signals) and
-    the segment fits of a dataset."""
+    the segment fits of a dataset; of a streamed one (``run.streamed``) block
+    by block, or in memory with a note where the streamed path cannot take it."""
+    if isinstance(ds, StreamedDataset):
+        streamed, notes = streamed_segments(ds, config)
+        if streamed is not None:
+            return _from_stream(ds, streamed)
+        assert ds.in_memory is not None
+        whole = ds.in_memory()
+        ds = replace(whole, notes=whole.notes + notes)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
@@ -127,6 +139,21 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + (inferred.warnings if table else ()),
                      ds.notes + (inferred.notes if table else ()))
+
+
+def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
+    """``segment_and_fit``'s result from a streamed capture's segments and
+    fits; the samples kept are the capture's first and the static segments'
+    (every sample is labelled: ``infer_segments`` adds no segment)."""
+    assert ds.timebase is not None
+    inferred = infer_segments(streamed.static_samples(), streamed.segments, ds.name, ds.meta.plan_rates_hz,
+                              ds.timebase.unrepairable)
+    fits = fits_frame(streamed.fits + list(inferred.fits), inferred.segments, ds.name)
+    findings = pl.concat([findings_frame(duplicate_findings(ds.name, ds.copies)), ds.timebase.findings,
+                          findings_frame(list(inferred.findings))])
+    return Segmented(inferred.samples, inferred.segments, fits, inferred.own_phase, inferred.dwells, True,
+                     (Table("segments", inferred.segments), Table("fits", fits), Table("timebase", findings)),
+                     tuple(ds.timebase.warnings) + inferred.warnings, ds.notes + inferred.notes, streamed)
 
 
 def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
@@ -203,8 +230,10 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         phases = segment_phases(seg.fits, seg.segments, seg.own_phase, g, u_g, clock)
         notes.append(f"diagnosis on table angles reconstructed from the solved phases of {phases.height} rotation "
                      "segment(s) without one; rate_error not tested (the fitted rates absorb it)")
-    diagnose_with = partial(diagnose, seg.samples, seg.segments, seg.fits,
-                            tuple(r for r in results if r.rate_hz in in_table), ds.name, ds.meta.output_unit,
+    diagnosed = tuple(r for r in results if r.rate_hz in in_table)
+    samples = seg.samples if seg.streamed is None else _diagnosed_samples(seg.streamed, seg.fits, diagnosed, config)
+    diagnose_with = partial(diagnose, samples, seg.segments, seg.fits,
+                            diagnosed, ds.name, ds.meta.output_unit,
                             ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
     if phases is None:
         diagnosis = diagnose_with(None)
@@ -216,10 +245,27 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
                                                              clock_factor=clock), phases)
     if diagnosis is None:
         return None, ()
+    if seg.streamed is not None:  # the samples the thinned rows stand for
+        diagnosis = replace(diagnosis, samples_available=seg.streamed.count(_diagnosed(seg.fits, diagnosed)))
     if diagnosis.final.obs.n < diagnosis.samples_available:
         notes.append(f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
                      f"samples (long segments thinned evenly; [diagnosis] max_samples)")
     return diagnosis, tuple(notes)
+
+
+def _diagnosed(fits: pl.DataFrame, results: tuple[IntrinsicResult, ...]) -> frozenset[int]:
+    """The segments ``diagnose.observations`` models: the ok fits at the diagnosed rates."""
+    rates = [r.rate_hz for r in results]
+    return frozenset(fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].to_list())
+
+
+def _diagnosed_samples(streamed: StreamedSegments, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
+                       config: RunConfig) -> pl.DataFrame:
+    """A streamed capture's samples the diagnosis models: the rows
+    ``diagnose.observations`` thins its segments to, gathered (within
+    ``[diagnosis] max_samples`` it keeps them all) with the capture's first
+    sample (the model's time origin)."""
+    return streamed.diagnosed_samples(_diagnosed(fits, results), config.diagnosis.max_samples)
 
 
 def static_diagnosis_stage(seg: Segmented, static: StaticReduction, ds: Dataset,
@@ -296,6 +342,9 @@ def recommended_fits(seg: Segmented, diagnosis: Diagnosis | StaticDiagnosis | No
     from rotcal.diagnose.corrected import without_effects
 
     assert isinstance(diagnosis, Diagnosis)  # a static recording's returned above
+    if seg.streamed is not None:
+        fits = streamed_fits(corrected_blocks(seg.streamed, seg.segments, seg.fits, diagnosis), ds, config)
+        return fits_frame(fits, seg.segments, ds.name)
     samples = without_effects(seg.samples, seg.segments, seg.fits, diagnosis)
     referenced = seg.segments.filter(pl.col("angle_source") != "none")
     return fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers), seg.segments, ds.name)
@@ -319,7 +368,8 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommen
     consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model)
     response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], chosen_fits,
                                         dataset, unit, chosen.model)
-    both = [r for r in simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if isinstance(r, IntrinsicResult)]
+    both = [r for r in (simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if seg.streamed is None
+                        else simultaneous_from_sums(seg.streamed.sums, fits, g, u_g)) if isinstance(r, IntrinsicResult)]
     outputs: list[Table | Figure] = [
         Table("uncertainty_budget", budget_frame(results, dataset, unit)),
         Table("simultaneous", simultaneous_frame(both, results, dataset, unit)),

@@ -29,6 +29,7 @@ import polars as pl
 from rotcal.config import FitConfig
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.segments import BLOCK_SAMPLES, SegmentFit, arc_bounds, arc_from, finite, refusal_from, sincos_deg, sine3_result, stuck_from
+from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.segment.labelled import segments_frame
 
@@ -88,8 +89,8 @@ def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a != b) & ~(np.isnan(a) & np.isnan(b))
 
 
-def label_runs(blocks: Blocks) -> list[_Run]:
-    """The first pass: every labelled run (segment) with its sums."""
+def label_runs(blocks: Blocks) -> tuple[list[_Run], int]:
+    """The first pass: every labelled run (segment) with its sums, and the number of samples."""
     runs: list[_Run] = []
     last = (np.int64(-2), np.nan, np.nan)  # the previous sample's axis, rate, angle (none before the first)
     offset = 0
@@ -112,15 +113,18 @@ def label_runs(blocks: Blocks) -> list[_Run]:
                          int(np.count_nonzero(angle_change[a + 1 : b])) + (1 if start[a] else int(angle_change[a])))
         last = (axis[-1], rate[-1], angle[-1])
         offset += axis.size
-    return runs
+    return runs, offset
 
 
-def residual_pass(blocks: Blocks, runs: list[_Run], coefs: dict[int, np.ndarray]) -> dict[int, ResidualSums]:
-    """The second pass: each fitted segment's residual statistics at its coefficients."""
+def residual_pass(blocks: Blocks, runs: list[_Run], coefs: dict[int, np.ndarray],
+                  rows: np.ndarray) -> tuple[dict[int, ResidualSums], pl.DataFrame]:
+    """The second pass: each fitted segment's residual statistics at its
+    coefficients, and the samples at the sorted sample numbers ``rows``
+    gathered whole (with their ``segment`` and sample number ``row``)."""
     sums = {k: ResidualSums(c) for k, c in coefs.items()}
     fitted = [r for r in runs if r.segment in sums]
     starts = np.array([r.first for r in fitted], np.int64)
-    offset = 0
+    gathered, offset = [], 0
     for block in blocks():
         m = block.height
         lo, hi = np.searchsorted(starts + [r.n for r in fitted], offset, "right"), np.searchsorted(starts, offset + m)
@@ -131,19 +135,97 @@ def residual_pass(blocks: Blocks, runs: list[_Run], coefs: dict[int, np.ndarray]
                 for p in range(a, b, BLOCK_SAMPLES):
                     q = min(p + BLOCK_SAMPLES, b)
                     sums[run.segment].add(*sincos_deg(angle[p:q]), [y[p:q] for y in channels])
+        wanted = rows[np.searchsorted(rows, offset) : np.searchsorted(rows, offset + m)]
+        if wanted.size:
+            gathered.append(block[wanted - offset].with_columns(row=pl.Series(wanted)))
         offset += m
-    return sums
+    return sums, pl.concat(gathered)
 
 
-def stream_segments(blocks: Blocks, capture: str, label_source: str, dataset: str, angle_source: str,
-                    config: FitConfig) -> tuple[pl.DataFrame, list[SegmentFit]]:
-    """The ``segments`` table and the three-parameter fits of the static and
-    rotation segments with an angle reference, as ``segment_by_labels`` and
-    ``fit_segments`` give them for the whole capture in memory."""
-    runs = label_runs(blocks)
+def with_segments(frame: pl.DataFrame, sizes: dict[int, tuple[int, int]]) -> pl.DataFrame:
+    """Gathered samples with the ``segment`` column of ``segment_by_labels``
+    (null outside the label runs; segments numbered in time order)."""
+    first, count = (np.array([sizes[s][i] for s in sorted(sizes)], np.int64).reshape(-1) for i in (0, 1))
+    row = frame["row"].to_numpy()
+    k = np.searchsorted(first, row, "right") - 1
+    inside = (k >= 0) & (row < (first + count)[np.maximum(k, 0)]) if first.size else np.zeros(row.size, bool)
+    return frame.with_columns(segment=pl.Series(np.ma.masked_array(k, ~inside), dtype=pl.Int32))
+
+
+def thinned_rows(first: np.ndarray, count: np.ndarray, max_samples: int) -> np.ndarray:
+    """The sample numbers the diagnosis models of segments starting at
+    ``first`` with ``count`` samples: each thinned evenly to its share
+    (``diagnose.kept_per_segment``), ``first + floor(i n / k)``, the rows
+    ``diagnose.observations`` takes in memory."""
+    from rotcal.diagnose import kept_per_segment  # the diagnosis's modules load when diagnosing
+
+    kept = kept_per_segment(count, max_samples)
+    return np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)]
+                          or [np.zeros(0, np.int64)])
+
+
+@dataclass(frozen=True, eq=False)
+class StreamedSegments:
+    """What the two passes give: the ``segments`` table and the segment fits
+    (as ``segment_by_labels`` + ``fit_segments`` give them in memory), each
+    fitted segment's sums (``metrology.simultaneous.SegmentSums``), and the
+    samples gathered on the way: the capture's first, the static segments'
+    whole, and the diagnosis's thinned rows of the fitted segments
+    (``thinned_rows``; ``thinned`` names those segments, ``sizes`` gives
+    every segment's sample count)."""
+
+    blocks: Blocks
+    segments: pl.DataFrame
+    fits: list[SegmentFit]
+    sums: dict[int, SegmentSums]
+    gathered: pl.DataFrame
+    thinned: frozenset[int]
+    sizes: dict[int, tuple[int, int]]   # segment -> (first sample number, samples)
+    n_samples: int
+
+    @property
+    def unlabelled(self) -> int:
+        """Samples outside every label run."""
+        return self.n_samples - sum(n for _, n in self.sizes.values())
+
+    def static_samples(self) -> pl.DataFrame:
+        """The capture's first sample and the static segments' samples."""
+        static = self.segments.filter(pl.col("kind") == "static")["segment"]
+        return self.gathered.filter((pl.col("row") == 0) | pl.col("segment").is_in(static.implode())).drop("row")
+
+    def count(self, segments: frozenset[int]) -> int:
+        """The samples of ``segments``."""
+        return sum(self.sizes[s][1] for s in segments)
+
+    def diagnosed_samples(self, segments: frozenset[int], max_samples: int) -> pl.DataFrame:
+        """The capture's first sample and the rows ``diagnose.observations``
+        thins ``segments`` to: those gathered in the second pass, or, when
+        the diagnosed segments are not those fitted then, a third pass."""
+        first, count = (np.array([self.sizes[s][i] for s in sorted(segments)], np.int64) for i in (0, 1))
+        rows = np.r_[0, thinned_rows(first, count, max_samples)]
+        if segments == self.thinned:
+            return self.gathered.filter(pl.col("row").is_in(rows)).drop("row")
+        return with_segments(residual_pass(self.blocks, [], {}, np.unique(rows))[1], self.sizes).drop("row")
+
+
+def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: FitConfig, max_samples: int) -> StreamedSegments:
+    """The segments and three-parameter fits of the static and rotation
+    segments with an angle reference (two passes over ``blocks``), with the
+    samples the later stages read gathered in the second (``StreamedSegments``)."""
+    runs, n_samples = label_runs(blocks)
+    reasons, coefs = {}, {}
+    for r in (r for r in runs if r.has_angle):
+        reasons[r.segment] = (refusal_from(r.kind, angle_source, r.n, len(r.angles), arc_from(r.arc_low, r.arc_high), config)
+                              or stuck_from(r.low, r.high))
+        if reasons[r.segment] is None:
+            coefs[r.segment], _ = r.normal.solve()
+    fitted = [r for r in runs if r.segment in coefs]
+    static = [np.arange(r.first, r.first + r.n) for r in runs if r.kind == "static"]
+    thinned = thinned_rows(np.array([r.first for r in fitted], np.int64), np.array([r.n for r in fitted], np.int64), max_samples)
+    residuals, gathered = residual_pass(blocks, runs, coefs, np.unique(np.concatenate([[0], thinned, *static])))
     segments = segments_frame({
         "segment": pl.Series([r.segment for r in runs], dtype=pl.Int32),
-        "capture": [capture] * len(runs),
+        "capture": [gathered["capture"][0]] * len(runs),
         "kind": [r.kind for r in runs],
         "axis": pl.Series([AXES[r.axis] for r in runs], dtype=pl.Enum(AXES)),
         "rate_hz": pl.Series([r.rate_hz for r in runs], dtype=pl.Float64),
@@ -151,17 +233,10 @@ def stream_segments(blocks: Blocks, capture: str, label_source: str, dataset: st
         "t_end_ns": pl.Series([r.t_end_ns for r in runs], dtype=pl.Int64),
         "n_samples": pl.Series([r.n for r in runs], dtype=pl.Int64),
         "n_steps": pl.Series([r.angle_runs for r in runs], dtype=pl.Int64),
-        "label_source": [label_source] * len(runs),
+        "label_source": [gathered["label_source"].fill_null("file")[0]] * len(runs),
         "has_angle": pl.Series([r.has_angle for r in runs], dtype=pl.Boolean),
     }, dataset, angle_source)
-    reasons, coefs = {}, {}
-    for r in (r for r in runs if r.has_angle):
-        reasons[r.segment] = (refusal_from(r.kind, angle_source, r.n, len(r.angles), arc_from(r.arc_low, r.arc_high), config)
-                              or stuck_from(r.low, r.high))
-        if reasons[r.segment] is None:
-            coefs[r.segment], _ = r.normal.solve()
-    residuals = residual_pass(blocks, runs, coefs)
-    fits = []
+    fits, sums = [], {}
     for r in (r for r in runs if r.has_angle):
         if reasons[r.segment] is not None:
             fits.append(SegmentFit.failed(r.segment, r.n, reasons[r.segment], r.rate_hz))
@@ -171,4 +246,8 @@ def stream_segments(blocks: Blocks, capture: str, label_source: str, dataset: st
         rtr = res.products()
         fits.append(finite(sine3_result(r.segment, r.rate_hz, r.n, coef, coefficient_covariance(rtr, xtx_inv, r.n), rtr,
                                         res.max_abs, res.lag), r.rate_hz))
-    return segments, fits
+        sums[r.segment] = SegmentSums(r.segment, AXES[r.axis], r.n, r.normal.gram, r.normal.xty.T.copy(), coef, rtr,
+                                      float(np.max(np.abs(np.r_[r.low, r.high]))))
+    sizes = {r.segment: (r.first, r.n) for r in runs}
+    return StreamedSegments(blocks, segments, fits, sums, with_segments(gathered, sizes), frozenset(r.segment for r in fitted),
+                            sizes, n_samples)

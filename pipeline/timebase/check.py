@@ -126,6 +126,81 @@ class CaptureTimebase:
     gaps: Gaps | None = None
 
 
+@dataclass(frozen=True)
+class GridStats:
+    """What a capture's time-base findings are worded from: the records and
+    those kept (duplicates dropped), the fitted period (ns) and its
+    uncertainty (s), the white jitter, the residuals' lag-1
+    autocorrelation, sd and largest magnitude (ns)."""
+
+    n: int
+    n_kept: int
+    period: float
+    u_period: float
+    jitter: float
+    lag1: float
+    spread: float
+    largest: float
+
+    def regularity(self, config: TimebaseConfig) -> tuple[bool, bool, bool]:
+        """Whether the jitter is detectable, the scatter white, and the sampling regular."""
+        floor = config.jitter_floor * self.period
+        # white scatter about the grid: the sampling is regular and only the stamps are noisy
+        white = self.spread <= floor or self.lag1 < config.white_max_lag1
+        placeable = self.jitter < self.period / 9  # half a period is 4.5 standard deviations
+        return self.jitter > floor, white, white and placeable
+
+
+def grid_findings(stats: GridStats, n_rep: int, n_unplaceable: int, gaps: Gaps, capture: str,
+                  config: TimebaseConfig) -> tuple[tuple[Finding, ...], tuple[str, ...], str | None, bool]:
+    """A capture's findings and warnings, why its time base cannot carry a
+    rotation fit (None if it can), and whether its stamps are replaced by
+    the fitted grid; ``n_rep`` samples with repeated stamps, ``n_unplaceable``
+    of them not placed."""
+    jittery, white, regular = stats.regularity(config)
+    jitter, lag1 = stats.jitter, stats.lag1
+    findings, warnings = [], []
+    unit_period = stats.period / 1e9
+    findings.append(Finding("sample_interval", False, unit_period, stats.u_period, "s", "none",
+                            f"{stats.n_kept} samples on a grid of {unit_period * 1e3:.6g} ms"))
+    n_dup = stats.n - stats.n_kept
+    findings.append(Finding("duplicated_samples", n_dup > 0, float(n_dup), None, "1", "dropped" if n_dup else "none",
+                            f"{n_dup} records repeat the previous record exactly (stamp and values)"))
+    if n_dup:
+        warnings.append(f"{capture}: {n_dup} duplicated records dropped")
+    action = ("none" if not n_rep else "placed on the regular time base" if regular
+              else "dropped: the sampling is not regular, their times are unknown")
+    findings.append(Finding("repeated_stamps", n_rep > 0, float(n_rep), None, "1", action,
+                            f"{n_rep} samples share their stamp with another sample; {n_unplaceable} could not be placed"))
+    if n_rep:
+        warnings.append(f"{capture}: {n_rep} samples with repeated stamps ({action})")
+    gap_findings, gap_warning = gaps.findings()
+    findings += gap_findings
+    warnings += [gap_warning] if gap_warning else []
+
+    unrepairable = None
+    refit = jittery and regular
+    if refit:
+        action = "refit: stamps replaced by the regular time base"
+        warnings.append(f"{capture}: timestamp jitter {jitter / 1e6:.3g} ms (sd), samples placed on the regular "
+                        f"{unit_period * 1e3:.6g} ms time base")
+    elif jittery and white:
+        action = "none: too large to place samples on the grid"
+        unrepairable = (f"timestamp jitter of {jitter / 1e6:.3g} ms (sd) is too large against the "
+                        f"{unit_period * 1e3:.6g} ms sample interval to place the samples on a regular time base")
+        warnings.append(f"{capture}: {unrepairable}")
+    else:
+        action = "none"
+    findings.append(Finding("timestamp_jitter", jittery, jitter / 1e9, jitter / 1e9 / np.sqrt(2 * max(stats.n_kept - 1, 1)),
+                            "s", action, f"white scatter of the stamps about the grid {jitter / 1e6:.3g} ms (sd), "
+                            f"residual lag-1 autocorrelation {lag1:.2f}"))
+    wander = not white
+    findings.append(Finding("irregular_sampling", wander, stats.spread / 1e9, None, "s", "kept the stamps" if wander else "none",
+                            f"stamps deviate from a regular grid by {stats.spread / 1e6:.3g} ms (sd), "
+                            f"{stats.largest / 1e6:.3g} ms at most, residual lag-1 autocorrelation {lag1:.2f}"))
+    return tuple(findings), tuple(warnings), unrepairable, refit
+
+
 # Captures run to millions of samples: the sample-length arrays are built in
 # place where the arithmetic allows and dropped as soon as they are done with,
 # with every value computed exactly as the straightforward expression would.
@@ -167,37 +242,14 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     del dk
     slot = k.astype(np.int64)
     del k
-    floor = config.jitter_floor * period
-    jittery = jitter > floor
-    # white scatter about the grid: the sampling is regular and only the stamps are noisy
-    white = spread <= floor or lag1 < config.white_max_lag1
-    placeable = jitter < period / 9  # half a period is 4.5 standard deviations
-    regular = white and placeable
-
-    findings, warnings = [], []
-    unit_period = period / 1e9
-    findings.append(Finding("sample_interval", False, unit_period, u_period, "s", "none",
-                            f"{s.size} samples on a grid of {unit_period * 1e3:.6g} ms"))
-    n_dup = n - s.size
-    findings.append(Finding("duplicated_samples", n_dup > 0, float(n_dup), None, "1", "dropped" if n_dup else "none",
-                            f"{n_dup} records repeat the previous record exactly (stamp and values)"))
-    if n_dup:
-        warnings.append(f"{capture}: {n_dup} duplicated records dropped")
-
+    stats = GridStats(n, s.size, period, u_period, jitter, lag1, spread, largest)
+    jittery, white, regular = stats.regularity(config)
     if regular:
         placed = place_collisions(slot, run)
         unplaceable = placed < 0
         repeated |= np.r_[False, (slot[1:] == slot[:-1]) & within]
     else:
         placed, unplaceable = slot, repeated
-    n_rep = int(repeated.sum())
-    action = ("none" if not n_rep else "placed on the regular time base" if regular
-              else "dropped: the sampling is not regular, their times are unknown")
-    findings.append(Finding("repeated_stamps", n_rep > 0, float(n_rep), None, "1", action,
-                            f"{n_rep} samples share their stamp with another sample; "
-                            f"{int(unplaceable.sum())} could not be placed"))
-    if n_rep:
-        warnings.append(f"{capture}: {n_rep} samples with repeated stamps ({action})")
 
     good = ~unplaceable
     if regular:
@@ -221,32 +273,10 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         at_gap = holes >= config.gap_min_slots
         gap_lengths = holes[at_gap]
         gap_middle = (s[1:][at_gap] + s[:-1][at_gap]) / 2
-    gaps = Gaps(capture, n_missing, n_missing + int(good.sum()), unit_period, gap_middle, gap_lengths, int(run.max()),
+    gaps = Gaps(capture, n_missing, n_missing + int(good.sum()), period / 1e9, gap_middle, gap_lengths, int(run.max()),
                 config.gap_min_slots)
-    gap_findings, gap_warning = gaps.findings()
-    findings += gap_findings
-    warnings += [gap_warning] if gap_warning else []
-
-    unrepairable = None
-    refit = jittery and regular
-    if refit:
-        action = "refit: stamps replaced by the regular time base"
-        warnings.append(f"{capture}: timestamp jitter {jitter / 1e6:.3g} ms (sd), samples placed on the regular "
-                        f"{unit_period * 1e3:.6g} ms time base")
-    elif jittery and white:
-        action = "none: too large to place samples on the grid"
-        unrepairable = (f"timestamp jitter of {jitter / 1e6:.3g} ms (sd) is too large against the "
-                        f"{unit_period * 1e3:.6g} ms sample interval to place the samples on a regular time base")
-        warnings.append(f"{capture}: {unrepairable}")
-    else:
-        action = "none"
-    findings.append(Finding("timestamp_jitter", jittery, jitter / 1e9, jitter / 1e9 / np.sqrt(2 * max(s.size - 1, 1)), "s", action,
-                            f"white scatter of the stamps about the grid {jitter / 1e6:.3g} ms (sd), "
-                            f"residual lag-1 autocorrelation {lag1:.2f}"))
-    wander = not white
-    findings.append(Finding("irregular_sampling", wander, spread / 1e9, None, "s", "kept the stamps" if wander else "none",
-                            f"stamps deviate from a regular grid by {spread / 1e6:.3g} ms (sd), "
-                            f"{largest / 1e6:.3g} ms at most, residual lag-1 autocorrelation {lag1:.2f}"))
+    findings, warnings, unrepairable, refit = grid_findings(stats, int(repeated.sum()), int(unplaceable.sum()), gaps,
+                                                            capture, config)
 
     t_out = s
     if refit:
@@ -259,7 +289,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
             t_out = s.copy()
             t_out[moved] = np.rint(offset[run[moved]] + period * placed[moved]).astype(np.int64)
     keep[np.flatnonzero(keep)[unplaceable]] = False
-    return CaptureTimebase(keep, kept(t_out, good), unit_period, tuple(findings), unrepairable, tuple(warnings), gaps)
+    return CaptureTimebase(keep, kept(t_out, good), period / 1e9, findings, unrepairable, warnings, gaps)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,181 @@
+"""The run's load and segment stages for a capture read block by block
+(issue 16, item 1): past ``[run] stream_above_samples`` a single capture's
+samples are not held; the segment stage reads them in passes
+(``run.streaming``) and keeps only what the later stages read: the static
+segments' samples, the diagnosis's thinned rows and each fitted segment's
+sums. What the streamed path cannot take (see ``why_not``) is read in
+memory, with a note saying so."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import polars as pl
+
+from rotcal.config import RunConfig
+from rotcal.errors import InputError
+from rotcal.fit.segments import SegmentFit
+from rotcal.ingest import Dataset, capture_files, dataset_name, load_dataset, mcap_fast
+from rotcal.ingest.mcap_columns import Unsupported
+from rotcal.ingest.mcap_records import McapFile
+from rotcal.ingest.meta import load_meta
+from rotcal.ingest.stream import open_stream
+from rotcal.model.physics import CHANNELS
+from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
+from rotcal.tables import schema
+from rotcal.timebase.check import TimebaseResult
+
+if TYPE_CHECKING:
+    from rotcal.diagnose import Diagnosis
+
+BLOCK_SAMPLES = 1 << 20  # samples a block of the capture holds (ingest.stream's)
+
+
+@dataclass(frozen=True, eq=False)
+class StreamedDataset(Dataset):
+    """A dataset whose samples are read block by block: ``blocks`` yields
+    them anew for each pass, after the time base (``timebase``, whose
+    ``samples`` are not held); ``in_memory`` reads the dataset whole when
+    the streamed path cannot take it."""
+
+    blocks: Blocks = lambda: iter(())
+    timebase: TimebaseResult | None = None
+    in_memory: Callable[[], Dataset] | None = None
+
+
+def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
+    """The dataset, its samples streamed (``ingest.stream.open_stream``)
+    when it is one MCAP capture of more than ``[run] stream_above_samples``
+    samples that the streamed reader decodes chunk by chunk; read whole otherwise."""
+    path = Path(path)
+    if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
+        meta_path = path / "dataset.toml"
+    whole = partial(load_dataset, path, meta_path, config.limits, config.run.workers)
+    if not path.exists():
+        return whole()  # the in-memory reader words the problem
+    meta = load_meta(meta_path)
+    root = path if path.is_dir() else path.parent
+    files = capture_files(path, meta)
+    if len(files) != 1 or files[0][0].suffix.lower() != ".mcap" or _messages(files[0][0], config) <= config.run.stream_above_samples:
+        return whole()
+    file, spec = files[0]
+    capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
+    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture)
+    if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
+        read = whole()
+        return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
+                                    "does not decode chunk by chunk (docs/streaming.md)"))
+    constant = [pl.lit(capture, pl.Categorical).alias("capture"), pl.lit(None, pl.Float64).alias("temperature_c"),
+                pl.lit(stream.label_source or "file", schema("samples").polars_schema["label_source"]).alias("label_source")]
+    tb = stream.timebase
+    timebase = TimebaseResult(schema("samples").empty(), tb.findings_table(dataset_name(path)), tb.warnings,
+                              {capture: tb.unrepairable} if tb.unrepairable else {}, () if tb.gaps is None else (tb.gaps,))
+    return StreamedDataset(dataset_name(path), root, meta, schema("samples").empty(), (*meta.notes, *stream.notes),
+                           inputs=(file, *(() if meta_path is None else (Path(meta_path),))),
+                           blocks=lambda: (b.with_columns(constant) for b in stream.blocks()), timebase=timebase,
+                           in_memory=whole)
+
+
+def _messages(file: Path, config: RunConfig) -> int:
+    """The most messages of any channel of an MCAP file (its samples, for
+    a capture whose table channel is slower), from its message indexes; 0
+    where it has none the fast reader can count (it is then read whole)."""
+    try:
+        with file.open("rb") as fh:
+            return max(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values(), default=0)
+    except (Unsupported, InputError, OSError):
+        return 0
+
+
+def why_not(ds: StreamedDataset, config: RunConfig, streamed: StreamedSegments | None = None) -> str | None:
+    """Why the streamed path cannot take a dataset (None: it can): it fits
+    three parameters against a table angle to labelled samples of one
+    capture whose time base has no gap to classify; blind segmentation,
+    four-parameter fits and gaps read every sample."""
+    timebase = ds.timebase
+    assert timebase is not None
+    if config.fit.sine_fit != "three_parameter":
+        return "four-parameter fits ([fit] sine_fit)"
+    if ds.meta.angle_source == "none":
+        return "no table angle (angle_source = \"none\")"
+    if timebase.unrepairable or any(g.length.size for g in timebase.gaps):
+        return "gaps in the time base"
+    if streamed is not None and (streamed.unlabelled or (streamed.segments["angle_source"] == "none").any()):
+        return "samples without axis, rate or angle labels"
+    if streamed is not None and streamed.segments.filter(pl.col("kind").is_in(["static", "rotation"])).is_empty():
+        return "no static or rotation segments"
+    return None
+
+
+def streamed_segments(ds: StreamedDataset, config: RunConfig) -> tuple[StreamedSegments | None, tuple[str, ...]]:
+    """The segments and fits of a streamed dataset, or None with a note
+    when the streamed path cannot take it."""
+    reason = why_not(ds, config)
+    streamed = None
+    if reason is None:
+        streamed = stream_segments(ds.blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples)
+        reason = why_not(ds, config, streamed)
+    if reason is None:
+        return streamed, ()
+    return None, (f"read in memory, not block by block: {reason}",)
+
+
+def streamed_fits(blocks: Blocks, ds: Dataset, config: RunConfig) -> list[SegmentFit]:
+    """The segment fits of a capture's blocks (``corrected_blocks``'s: the fits under the refined model)."""
+    return stream_segments(blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples).fits
+
+
+def corrected_blocks(streamed: StreamedSegments, segments: pl.DataFrame, fits: pl.DataFrame, diagnosis: Diagnosis) -> Blocks:
+    """The blocks less the modelled effects' contribution: block by block,
+    what ``diagnose.corrected.without_effects`` does to the whole sample
+    table. Each block's samples of the diagnosed segments are modelled with
+    what the model takes from outside the block: the capture's first sample
+    (the time origin) and each segment's first (its start angle)."""
+    from rotcal.diagnose import observations
+    from rotcal.diagnose.model import Structure, predict
+
+    final = diagnosis.final
+    diagnosed = np.unique(final.obs.segment)
+    first = {int(s): streamed.sizes[int(s)][0] for s in diagnosed}
+    heads = streamed.gathered.filter(pl.col("row").is_in([0, *first.values()]))
+
+    def corrected(block: pl.DataFrame, offset: int) -> pl.DataFrame:
+        framed = with_segments(block.with_columns(row=pl.int_range(offset, offset + block.height, dtype=pl.Int64)),
+                               streamed.sizes)
+        present = [s for s in framed["segment"].unique(maintain_order=True).drop_nulls().to_list() if s in first]
+        if not present:
+            return block
+        # each diagnosed segment's rows contiguous and in time order, its first sample before them
+        groups = [] if heads["segment"][0] in present else [heads.head(1)]
+        for s in present:
+            groups += [heads.filter((pl.col("row") == first[s]) & (pl.col("row") < offset)),
+                       framed.filter(pl.col("segment") == s)]
+        frame = pl.concat(groups)
+        in_frame = fits.filter(pl.col("segment").is_in(frame["segment"].drop_nulls().implode()))
+        built = observations(frame, segments, in_frame, final.obs.rates.tolist(), final.obs.g_local, frame.height)
+        assert built is not None
+        obs = built[0]
+        effect = (predict(obs, final.beta, final.layout, final.active, final.clip, final.structure)
+                  - predict(obs, final.beta, final.layout, (), (None, None), Structure()))
+        # observations orders rows by (rate, time): by segment (stable), each segment's rows in frame order
+        segment, row = frame["segment"].to_numpy(), frame["row"].to_numpy()
+        rows = np.concatenate([row[segment == s] for s in np.unique(obs.segment)])
+        effect = effect[np.argsort(obs.segment, kind="stable")]
+        inside = rows >= offset
+        y = block.select(CHANNELS).to_numpy().copy()
+        y[rows[inside] - offset] -= effect[inside]
+        return block.with_columns(pl.Series(c, y[:, i]) for i, c in enumerate(CHANNELS))
+
+    def blocks() -> Iterator[pl.DataFrame]:
+        offset = 0
+        for block in streamed.blocks():
+            yield corrected(block, offset)
+            offset += block.height
+
+    return blocks

@@ -1,0 +1,189 @@
+"""Issue 16, item 1: a capture read chunk by chunk (``ingest.stream``).
+
+The blocks, joined, must be the very samples ``load_dataset`` and
+``repair_timebase`` give in memory (bit for bit, whatever the block and
+batch sizes cut), the time-base findings the same, bad input refused with
+the same one line, and the memory of a pass bounded by the block, not by
+the capture."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+from test_hostile_mcap import ACCELERATION, IMU, SMALL, TABLE, VELOCITY, _long_message, _set_float, rewrite
+
+from rotcal.config import Limits
+from rotcal.errors import InputError
+from rotcal.ingest import load_dataset, mcap_fast, mcap_source, stream
+from rotcal.ingest.meta import load_meta
+from rotcal.ingest.stream import COLUMNS, open_stream
+from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
+from rotcal.simulate.streamed import write_streamed
+from rotcal.timebase import repair_timebase
+from rotcal.timebase.check import check_capture
+
+SPEC = SimulationSpec()
+SPEC = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))  # 18,600 samples
+
+
+@pytest.fixture
+def small_batches(monkeypatch):
+    """Batches of a few chunks and stamps read back 1000 at a time, so that
+    a capture is many batches and its time base many blocks."""
+    monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 100_000)
+    monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
+
+
+NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
+
+
+def assert_findings_alike(streamed: pl.DataFrame, memory: pl.DataFrame) -> None:
+    """The same checks, detections and actions; values and the numbers in
+    the evidence equal to rounding: the streamed sums add the cross
+    products in another order (the means and medians are exact), so the
+    period differs in its last bits, and residuals at the level of rounding
+    (1e-13 s) with it."""
+    assert_frame_equal(streamed.drop("value", "std_uncertainty", "evidence"), memory.drop("value", "std_uncertainty", "evidence"))
+    for column in ("value", "std_uncertainty"):
+        assert np.allclose(streamed[column].fill_null(0).to_numpy(), memory[column].fill_null(0).to_numpy(), rtol=1e-9, atol=1e-12)
+    for a, b in zip(streamed["evidence"], memory["evidence"]):
+        assert NUMBER.sub("#", a) == NUMBER.sub("#", b)
+        x, y = (np.array([float(m.group()) for m in NUMBER.finditer(e)]) for e in (a, b))
+        assert np.allclose(x, y, rtol=5e-3, atol=1e-9), (a, b)  # 3 significant digits; ms at rounding
+
+
+def in_memory(directory: Path):
+    ds = load_dataset(directory)
+    return ds, repair_timebase(ds.samples, ds.name)
+
+
+def assert_streams_alike(directory: Path, block: int, bounded: bool = True, grid_streamed: bool = True) -> None:
+    """``grid_streamed``: the time base checked without the stamps in memory (no repeated stamps)."""
+    ds, tb = in_memory(directory)
+    held = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(stream, "check_capture", lambda *a, **k: held.append(1) or check_capture(*a, **k))
+        capture = open_stream(directory / "capture.mcap", ds.meta, block_samples=block)
+    assert bool(held) != grid_streamed
+    blocks = list(capture.blocks())
+    assert capture.bounded == bounded
+    assert len(blocks) == -(-ds.samples.height // block)  # one a block of samples read, rows dropped or not
+    joined, memory = pl.concat(blocks), tb.samples.select(COLUMNS)
+    if any("placed on the regular" in w for w in tb.warnings):
+        # stamps replaced by the fitted grid, a + T k: a period differing in its last bit (the cross
+        # products summed in another order) moves a stamp by 1 ns where a + T k is near a half
+        step = np.abs(joined["t_ns"].to_numpy() - memory["t_ns"].to_numpy())
+        assert step.max() <= 1 and np.mean(step) < 1e-3
+        joined, memory = joined.drop("t_ns"), memory.drop("t_ns")
+    assert_frame_equal(joined, memory)  # exact: values, order, types
+    assert_frame_equal(pl.concat(list(capture.blocks())).select(joined.columns), memory)  # a second pass alike
+    assert capture.n_samples == tb.samples.height
+    assert_findings_alike(capture.timebase.findings_table(ds.name), tb.findings)
+    assert [NUMBER.sub("#", w) for w in capture.timebase.warnings] == [NUMBER.sub("#", w) for w in tb.warnings]
+    assert capture.timebase.unrepairable == tb.unrepairable.get("capture.mcap")
+    assert (capture.notes, capture.label_source, capture.capture) == (ds.notes, "table", "capture.mcap")
+
+
+@pytest.mark.parametrize("block", [777, 5000, 1 << 20])
+def test_blocks_are_the_in_memory_samples(tmp_path, small_batches, block):
+    """A clean capture (77 logging pauses between the plan's segments):
+    blocks of 777 cut every segment and the table's 0.1 s ticks mid-way,
+    batches of 100 kB every chunk run; one block holds the capture whole."""
+    directory = write_streamed(SPEC, 7, tmp_path / "clean", "dut")
+    assert_streams_alike(directory, block)
+
+
+@pytest.mark.parametrize("defects", [
+    "jitter_s=0.002,gap_count=3,drop_fraction=0.01",  # gaps and lost samples, jitter repaired on the grid
+    "duplicate_fraction=0.01,repeat_stamp_fraction=0.01,jitter_s=0.001",  # records dropped, stamps placed
+    "clock_drift_ppm=50,jitter_s=0.02",  # stamps out of order: read in memory
+])
+def test_captures_with_time_base_defects(tmp_path, small_batches, defects):
+    spec = SPEC.with_timebase(defects)
+    directory = write_dataset(simulate(spec, 3), spec, tmp_path / "defects", "mcap-cdr", "dut")
+    assert_streams_alike(directory, 777, bounded="drift" not in defects, grid_streamed="jitter_s=0.002" in defects)
+
+
+def _refusal(read) -> str:
+    with pytest.raises(InputError) as error:
+        read()
+    return str(error.value)
+
+
+@pytest.mark.parametrize("patch", [
+    _set_float(IMU, ACCELERATION, np.inf), _set_float(IMU, ACCELERATION, np.nan), _set_float(IMU, ACCELERATION, 1e300),
+    _set_float(TABLE, VELOCITY, np.inf), _set_float(TABLE, VELOCITY, 1e300), _long_message,
+], ids=["inf", "nan", "beyond", "table-inf", "table-beyond", "long-message"])
+def test_bad_input_gives_the_in_memory_message(tmp_path, patch):
+    """The hostile captures of tests/test_hostile_mcap.py: the same one line."""
+    good = write_mcap(simulate(SMALL, 3), tmp_path / "good.mcap")
+    bad = rewrite(good, tmp_path / "bad.mcap", patch)
+    meta = load_meta(None)
+    expected = _refusal(lambda: mcap_source.read_mcap_capture(bad, meta, None, Limits()))
+    assert _refusal(lambda: open_stream(bad, meta)) == expected
+
+
+def test_an_empty_file_and_a_missing_topic(tmp_path):
+    meta = load_meta(None)
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    assert _refusal(lambda: open_stream(empty, meta)) == f"{empty}: the file is empty"
+    good = write_mcap(simulate(SMALL, 3), tmp_path / "good.mcap")
+    other = replace(meta, imu_topic="/elsewhere", imu_topic_given=True)
+    expected = _refusal(lambda: mcap_source.read_mcap_capture(good, other, None, Limits()))
+    assert "'/elsewhere' is not in the file" in expected
+    assert _refusal(lambda: open_stream(good, other)) == expected
+
+
+MEMORY_CHILD = """
+import sys
+from pathlib import Path
+from rotcal.ingest import load_dataset, mcap_fast, stream
+from rotcal.ingest.meta import load_meta
+from rotcal.ingest.stream import open_stream
+from rotcal.timebase import repair_timebase, stream_grid
+
+def status(key):
+    return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])
+
+directory = Path(sys.argv[1])
+open("/proc/self/clear_refs", "w").write("5")  # the peak (VmHWM) counted from here
+base = status("VmRSS")
+if sys.argv[2] == "memory":
+    ds = load_dataset(directory)
+    n = repair_timebase(ds.samples, ds.name).samples.height
+else:
+    # small batches and blocks: the part of the memory that does not grow with the capture
+    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_grid.GATHER = 1 << 20, 1 << 14, 1 << 15
+    capture = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
+    n = sum(block.height for block in capture.blocks())
+print(n, status("VmHWM") - base)
+"""
+
+
+def test_a_pass_holds_a_block_not_the_capture(tmp_path):
+    """Half a million samples (46 MB as a sample table): the streamed
+    reader's peak growth (first pass, time base, a pass of blocks of 16,384
+    samples, batches of 512 kB) is a small part of the in-memory reader's,
+    each measured in a process of its own from the resident memory after
+    the imports."""
+    spec = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=80_000))
+    directory = write_streamed(spec, 7, tmp_path / "long", "dut")
+
+    def peak(part: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(directory), part], capture_output=True, text=True,
+                             check=True).stdout.split()
+        return int(out[0]), int(out[1])
+    (n_memory, memory), (n_streamed, streamed) = peak("memory"), peak("stream")
+    assert n_memory == n_streamed > 400_000
+    assert memory > 95 * n_memory / 1024  # kB: the sample table at least
+    print(f"peak growth: streamed {streamed} kB, in memory {memory} kB")
+    assert streamed < 0.4 * memory, (streamed, memory)  # measured 27 MB against 83 MB; all batches held: 0.8
