@@ -104,7 +104,8 @@ class _Seen:
     previous: tuple = ()  # Imu: the last sample (t, x, y, z) of the batch before
     low_ns: int = 0
     high_ns: int = 0
-    peak: float = 0.0  # table: the largest angle reachable, |angle| + 360 |rate| span
+    peak_angle_deg: float = 0.0  # table: the largest |angle| and |rate| seen, for the label bound
+    peak_rate_hz: float = 0.0
 
     def ordered_from(self, t_ns: np.ndarray) -> None:
         self.ordered &= bool(t_ns[0] >= self.last_ns and np.all(t_ns[1:] >= t_ns[:-1]))
@@ -141,7 +142,8 @@ def _table_batch(seen: _Seen, topic: DecodedTopic, path: Path) -> TableTrack:
         track = fast_table_track(topic, path)
     except (InputError, Unsupported):
         raise _InMemory("table messages the in-memory reader refuses or reads message by message") from None
-    seen.peak = max(seen.peak, float(np.abs(track.angle_deg).max()), float(np.abs(track.rate_hz).max()))
+    seen.peak_angle_deg = max(seen.peak_angle_deg, float(np.abs(track.angle_deg).max()))
+    seen.peak_rate_hz = max(seen.peak_rate_hz, float(np.abs(track.rate_hz).max()))
     return track
 
 
@@ -301,7 +303,9 @@ def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: L
     if table is not None and table.count:
         require(found[table_key].schema, found[table_key].channel, JOINT_SCHEMA, path)
         span_s = (max(imu.high_ns, table.high_ns) - min(imu.low_ns, table.low_ns)) / 1e9
-        if not table.ordered or table.refused or table.peak * (1.0 + 360.0 * span_s) > MAX_ABS_VALUE:
+        # the largest angle a sample's label can reach: a message's angle advanced at its rate over the span
+        reach_deg = table.peak_angle_deg + 360.0 * table.peak_rate_hz * span_s
+        if not table.ordered or table.refused or reach_deg > MAX_ABS_VALUE:
             raise _InMemory("table messages out of time order, or labels the in-memory reader may refuse")
         source: str | None = "table"
     else:
