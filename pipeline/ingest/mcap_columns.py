@@ -112,12 +112,14 @@ class Records:
 
     @classmethod
     def at(cls, raw: np.ndarray, starts: np.ndarray) -> Records:
-        """Records at ``starts`` (ascending), their spacing found once."""
+        """Records at ``starts`` in ascending order (as writers index them,
+        else sorted: stable, a merge of ascending runs), their spacing found once."""
         if starts.size < 2:
             return cls(raw, starts, 1)
-        step = int(starts[1] - starts[0])
-        even = step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and bool(np.all(np.diff(starts) == step))
-        return cls(raw, starts, step if even else 0)
+        step, spacing = int(starts[1] - starts[0]), np.diff(starts)
+        if step > 0 and (spacing == step).all():
+            return cls(raw, starts, step)
+        return cls(raw, starts if (spacing > 0).all() else np.sort(starts, kind="stable"), 0)
 
     @property
     def count(self) -> int:

@@ -37,10 +37,13 @@ from rotcal.ingest.mcap_records import McapFile, chunk_data, chunk_records, pars
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
-# Chunks are decompressed together (on a thread pool) up to this many bytes,
-# compressed and decompressed, counted from their declared sizes, in two
-# batches (one decoded while the next is decompressed); a batch holds one
-# chunk at least (at most the record limit).
+# Chunks are read and handed to the thread pool together up to this many
+# bytes, compressed and decompressed, counted from their declared sizes, in
+# two batches (one read while the other is decompressed and decoded); a batch
+# holds one chunk at least (at most the record limit). Each thread
+# decompresses into one buffer of its own, reused from chunk to chunk (no
+# page faults, and the chunk is still in its cache when it is decoded); a
+# batch of a chunk above half this is done in the reading thread alone.
 BATCH_BYTES = 32 * 1024 * 1024
 _MESSAGE_HEAD = struct.Struct("<BQH")  # a message record's opcode, length and channel id
 
@@ -57,15 +60,21 @@ class _State:
     topics: set[str]
     counts: dict[int, int]
     chunk_bytes: int
-    # two batches' decompressed chunks: one decoded while the next is decompressed
-    buffers: list[np.ndarray] = field(default_factory=lambda: [np.empty(0, np.uint8)] * 2)
-    turn: int = 0
+    # each thread's buffer for the chunk it decompresses and decodes
+    buffers: dict[int, np.ndarray] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
     found: dict[str, DecodedTopic] = field(default_factory=dict)
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
     # the last chunk launched, decoded once this is set (chunks are decoded in file order)
     last: threading.Event = field(default_factory=lambda: _done_event())
     failed: bool = False
+
+    def buffer(self, size: int) -> np.ndarray:
+        """This thread's buffer, ``size`` bytes of it."""
+        own = self.buffers.get(threading.get_ident(), np.empty(0, np.uint8))
+        if own.size < size:
+            own = self.buffers[threading.get_ident()] = np.empty(size, np.uint8)
+        return own[:size]
 
     def schema(self, body: bytes | memoryview) -> None:
         record = parse_schema(body, self.where)
@@ -111,29 +120,29 @@ def _declared(body: bytes) -> int:
 
 @dataclass
 class _Job:
-    """One chunk of a batch: decompressed into ``out`` (``raw``), then decoded
-    once the chunk before it (``previous``) is, which then sets ``decoded``."""
+    """One chunk of a batch, decoded once the chunk before it is
+    (``previous`` set), which then sets ``decoded``."""
 
     chunk: tuple[int, bytes, list[bytes]]
-    out: memoryview
-    raw: np.ndarray
     previous: threading.Event
     decoded: threading.Event = field(default_factory=threading.Event)
 
 
 def _inflate(state: _State, job: _Job) -> None:
-    """One chunk, on a pool thread: decompressed, CRC-checked and its records
-    located (side by side with the other threads: zstd, crc32 and numpy's
-    copies release the GIL), then decoded into the topics' columns in file
-    order (the schemas and channels a chunk defines apply to the chunks after
-    it). A failure anywhere marks the read failed: later chunks skip their decoding."""
+    """One chunk, on a pool thread: decompressed into the thread's buffer,
+    CRC-checked and its records located (side by side with the other
+    threads: zstd, crc32 and numpy's copies release the GIL), then decoded
+    into the topics' columns in file order (the schemas and channels a chunk
+    defines apply to the chunks after it). A failure anywhere marks the read
+    failed: later chunks skip their decoding."""
     try:
         offset, body, indexes = job.chunk
-        chunk_data(body, offset, state.where, job.out)
-        by_channel, gaps = _tiles(job.raw, indexes)
+        raw = state.buffer(_declared(body))
+        chunk_data(body, offset, state.where, raw.data)
+        by_channel, gaps = _tiles(raw, indexes)
         job.previous.wait()
         if not state.failed:
-            _decode(state, job.raw, by_channel, gaps)
+            _decode(state, raw, by_channel, gaps)
     except BaseException:
         state.failed = True
         raise
@@ -143,37 +152,26 @@ def _inflate(state: _State, job: _Job) -> None:
 
 @dataclass
 class _Flight:
-    """A batch whose chunks are being decompressed and decoded side by side
-    into ``raw``: ``done`` yields as each one is."""
+    """A batch whose chunks are being decompressed and decoded: ``done``
+    yields as each one is."""
 
-    raw: np.ndarray
     done: Iterator
     size: int
 
 
-def _launch(state: _State, batch: _Batch, mapper: Callable, overlap: bool) -> _Flight:
-    """Start decompressing a batch with ``mapper`` (a thread pool's map, which
-    submits every chunk at once) into a buffer: the other one of two where a
-    batch is still in flight (``overlap``), else the one last used (the
-    other is freed)."""
-    sizes = [_declared(body) for _, body, _ in batch.chunks]
-    if max(sizes) > state.where.limits.max_mcap_record_bytes:
+def _launch(state: _State, batch: _Batch, mapper: Callable) -> _Flight:
+    """Start decompressing and decoding a batch with ``mapper`` (a thread
+    pool's map, which submits every chunk at once), or in this thread (as
+    it is landed) when a chunk is larger than half ``BATCH_BYTES``."""
+    largest = max(_declared(body) for _, body, _ in batch.chunks)
+    if largest > state.where.limits.max_mcap_record_bytes:
         raise Unsupported("a chunk declares more than the record limit")  # the per-message path says so
-    bases = np.r_[0, np.cumsum(sizes, dtype=np.int64)].tolist()
-    if overlap:
-        state.turn ^= 1
-    else:
-        state.buffers[state.turn ^ 1] = np.empty(0, np.uint8)  # one batch at a time: one buffer
-    if state.buffers[state.turn].size < bases[-1]:
-        state.buffers[state.turn] = np.empty(bases[-1], np.uint8)
-    raw = state.buffers[state.turn][: bases[-1]]
-    view = raw.data
     jobs = []
-    for chunk, lo, hi in zip(batch.chunks, bases[:-1], bases[1:]):
-        jobs.append(_Job(chunk, view[lo:hi], raw[lo:hi], state.last))
+    for chunk in batch.chunks:
+        jobs.append(_Job(chunk, state.last))
         state.last = jobs[-1].decoded
     size, batch.chunks, batch.size = batch.size, [], 0
-    return _Flight(raw, mapper(partial(_inflate, state), jobs), size)
+    return _Flight((map if largest > BATCH_BYTES // 2 else mapper)(partial(_inflate, state), jobs), size)
 
 
 def _relay(state: _State, batch: _Batch, mapper: Callable, flight: _Flight | None) -> _Flight:
@@ -182,7 +180,7 @@ def _relay(state: _State, batch: _Batch, mapper: Callable, flight: _Flight | Non
     if flight is not None and flight.size + batch.size > BATCH_BYTES:
         _land(flight)
         flight = None
-    launched = _launch(state, batch, mapper, overlap=flight is not None)
+    launched = _launch(state, batch, mapper)
     _land(flight)
     return launched
 
@@ -207,11 +205,15 @@ def _indexed(raw: np.ndarray, indexes: list[bytes]) -> dict[int, Records]:
     for index in indexes:
         channel_id, length = struct.unpack_from("<HI", index, 0)
         pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
-        offsets = _ascending(pairs[:, 1].astype(np.int64))
-        if offsets.size and (offsets[0] < 0 or offsets[-1] > raw.size - MESSAGE_HEADER):
+        parts.setdefault(channel_id, []).append(pairs[:, 1].astype(np.int64))
+    by_channel = {}
+    for channel_id, offsets in parts.items():
+        records = Records.at(raw, offsets[0] if len(offsets) == 1 else np.concatenate(offsets))
+        if records.count and (records.starts[0] < 0 or records.starts[-1] > raw.size - MESSAGE_HEADER):
             raise Unsupported("message index points outside its chunk")
-        parts.setdefault(channel_id, []).append(offsets)
-    return {cid: Records.at(raw, p[0] if len(p) == 1 else _ascending(np.concatenate(p))) for cid, p in parts.items()}
+        if records.count:
+            by_channel[channel_id] = records
+    return by_channel
 
 
 def _uniform(records: Records, channel_id: int) -> Records | None:
@@ -224,7 +226,7 @@ def _uniform(records: Records, channel_id: int) -> Records | None:
         return None
     head = int.from_bytes(_MESSAGE_HEAD.pack(Opcode.MESSAGE, records.step - 9, channel_id), "little")
     first, second = head & (1 << 64) - 1, head >> 24  # opcode and length; the rest of the length and the channel
-    if np.all(fields(records, 0, "<u8") == first) and np.all(fields(records, 3, "<u8") == second):
+    if (fields(records, 0, "<u8") == first).all() and (fields(records, 3, "<u8") == second).all():
         return replace(records, uniform=True)
     return None
 
@@ -233,20 +235,26 @@ def _tiles(raw: np.ndarray, indexes: list[bytes]) -> tuple[dict[int, Records], l
     """Each channel's message records in a decompressed chunk, and the gaps
     between them (where the other records, schemas and channels, are),
     checked to tile the chunk: no overlap, nothing outside it. Uniform runs
-    count as one extent each; anything else is checked record by record."""
-    by_channel = {cid: r for cid, r in _indexed(raw, indexes).items() if r.count}
+    count as one extent each (a few, walked in Python); anything else is
+    checked record by record."""
+    by_channel = _indexed(raw, indexes)
     uniform = {cid: _uniform(r, cid) for cid, r in by_channel.items()}
     if all(r is not None for r in uniform.values()):
-        by_channel = uniform
-        spans = np.array(sorted((int(r.starts[0]), int(r.starts[0]) + r.step * r.count) for r in by_channel.values()),
-                         np.int64).reshape(-1, 2)
-        starts, ends = spans[:, 0], spans[:, 1]
-    else:
-        starts = _ascending(np.concatenate([r.starts for r in by_channel.values()]))
-        every = Records(raw, starts, 0)
-        if np.any(fields(every, 0, "u1") != Opcode.MESSAGE):
-            raise Unsupported("message index points at something other than a message")
-        ends = starts + 9 + fields(every, 1, "<u8").astype(np.int64)
+        gaps, end = [], 0
+        for first, last in sorted((int(r.starts[0]), int(r.starts[0]) + r.step * r.count) for r in uniform.values() if r):
+            if first < end:
+                raise Unsupported("overlapping message records")
+            if first > end:
+                gaps.append((end, first))
+            end = last
+        if end > raw.size:
+            raise Unsupported("overlapping message records")
+        return {cid: r for cid, r in uniform.items() if r}, [*gaps, (end, raw.size)] if end < raw.size else gaps
+    starts = _ascending(np.concatenate([r.starts for r in by_channel.values()]))
+    every = Records(raw, starts, 0)
+    if np.any(fields(every, 0, "u1") != Opcode.MESSAGE):
+        raise Unsupported("message index points at something other than a message")
+    ends = starts + 9 + fields(every, 1, "<u8").astype(np.int64)
     bounds = np.array([0, raw.size])  # the chunk's bounds as empty records
     starts, ends = np.concatenate((bounds[:1], starts, bounds[1:])), np.concatenate((bounds[:1], ends, bounds[1:]))
     if np.any(ends[:-1] > starts[1:]) or np.any(ends < starts):
