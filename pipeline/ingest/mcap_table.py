@@ -43,16 +43,19 @@ class TableTrack:
         at the rate; at rest it is held (``dt * 0 / 1 * -1`` is -0.0, which
         leaves every angle, -0.0 included, as it is). Computed once for all
         blocks of samples."""
-        rate, t_ns = self.rate_hz, self.t_ns
+        rate, t_ns, m = self.rate_hz, self.t_ns, self.t_ns.size
+        axis_, rate_, angle_ = _after(-1, self.axis), _after(np.nan, rate), _after(np.nan, self.angle_deg)
+        t_, p, q, r = _after(0, t_ns), _after(0.0, 360.0 * rate), np.full(m + 1, 1e9), np.ones(m + 1)
+        span = np.diff(t_ns)
         same_run = (self.axis[1:] == self.axis[:-1]) & (rate[1:] == rate[:-1])
-        expected = 360.0 * rate[:-1] * np.diff(t_ns) / 1e9
+        expected = 360.0 * rate[:-1] * span / 1e9
         increment = expected + (np.diff(self.angle_deg) - expected + 180.0) % 360.0 - 180.0
-        p, q, r = 360.0 * rate, np.full(rate.size, 1e9), np.ones(rate.size)
-        p[:-1][same_run], q[:-1][same_run], r[:-1][same_run] = 1.0, np.diff(t_ns)[same_run], increment[same_run]
-        held = rate == 0
+        within = np.flatnonzero(same_run) + 1  # the entries (message + 1) followed by one of their run
+        p[within], q[within], r[within] = 1.0, span[within - 1], increment[within - 1]
+        held = np.flatnonzero(rate_ == 0)
         p[held], q[held], r[held] = 0.0, 1.0, -1.0
-        return (_after(-1, self.axis), _after(np.nan, rate), _after(np.nan, self.angle_deg),
-                _after(0, t_ns), _after(0.0, p), _after(1.0, q), _after(-1.0, r))
+        p[0], q[0], r[0] = 0.0, 1.0, -1.0
+        return axis_, rate_, angle_, t_, p, q, r
 
 
 def _after(before, values: np.ndarray) -> np.ndarray:
@@ -287,8 +290,11 @@ def table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     # the first sample under each entry of the law (none yet, then each message): one search a message
     first = np.concatenate(([0], np.searchsorted(t_ns, track.t_ns, side="left")))
     law = track.law
-    axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
-    for start in range(0, t_ns.size, _LABEL_BLOCK):
+    if t_ns.size <= _LABEL_BLOCK:
+        axis, rate, angle = map_table(t_ns, law, first)
+    else:
+        axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
+    for start in range(0, t_ns.size if t_ns.size > _LABEL_BLOCK else 0, _LABEL_BLOCK):
         block = slice(start, start + _LABEL_BLOCK)
         lo = int(np.searchsorted(first, start, side="right")) - 1  # the entry in force at the block's start
         hi = int(np.searchsorted(first, start + _LABEL_BLOCK, side="left"))
