@@ -8,7 +8,6 @@ both give the same track."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -30,32 +29,35 @@ class TableTrack:
     rate_hz: np.ndarray
     angle_deg: np.ndarray
 
-    @cached_property
-    def law(self) -> tuple[np.ndarray, ...]:
-        """Per message, extended by an entry -1 for "no message yet" (NaN
-        labels): the axis code, rate, angle, time and the factors (p, q, r)
-        of the angle after it, ``angle + dt_ns * p / q * r`` (``map_table``'s
-        three cases in one expression, each factor exact where it is 1 or
-        0: bit for bit the same angles). Within a run (same axis and rate) the
-        angle is interpolated towards the next message's, after unwrapping
-        with the commanded rate (only sin and cos of theta are used, so no
-        running sum is needed); after a run's last message it is extrapolated
-        at the rate; at rest it is held (``dt * 0 / 1 * -1`` is -0.0, which
-        leaves every angle, -0.0 included, as it is). Computed once for all
-        blocks of samples."""
-        rate, t_ns, m = self.rate_hz, self.t_ns, self.t_ns.size
-        axis_, rate_, angle_ = _after(-1, self.axis), _after(np.nan, rate), _after(np.nan, self.angle_deg)
-        t_, p, q, r = _after(0, t_ns), _after(0.0, 360.0 * rate), np.full(m + 1, 1e9), np.ones(m + 1)
+    def law(self, lo: int, hi: int) -> tuple[np.ndarray, ...]:
+        """Entries ``lo`` to ``hi - 1`` of the table's law: entry 0 for "no
+        message yet" (NaN labels), entry k for message k - 1: the axis code,
+        rate, angle, time and the factors (p, q, r) of the angle after it,
+        ``angle + dt_ns * p / q * r`` (three cases in one expression, each
+        factor exact where it is 1 or 0, so bit for bit the angles of each
+        case's own formula). Within a run (same axis and rate) the angle is
+        interpolated towards the next message's, after unwrapping with the
+        commanded rate (only sin and cos of theta are used, so no running sum
+        is needed); after a run's last message it is extrapolated at the
+        rate; at rest it is held (``dt * 0 / 1 * -1`` is -0.0, which leaves
+        every angle, -0.0 included, as it is). Computed a block at a time:
+        its temporaries stay small."""
+        begin, stop = max(lo - 1, 0), min(hi - 1, self.t_ns.size)  # the entries' messages, and the one after
+        with_next = slice(begin, min(stop + 1, self.t_ns.size))
+        axis, rate, angle, t_ns = self.axis[with_next], self.rate_hz[with_next], self.angle_deg[with_next], self.t_ns[with_next]
+        k = stop - begin
         span = np.diff(t_ns)
-        same_run = (self.axis[1:] == self.axis[:-1]) & (rate[1:] == rate[:-1])
+        same_run = np.flatnonzero(((axis[1:] == axis[:-1]) & (rate[1:] == rate[:-1]))[:k])
         expected = 360.0 * rate[:-1] * span / 1e9
-        increment = expected + (np.diff(self.angle_deg) - expected + 180.0) % 360.0 - 180.0
-        within = np.flatnonzero(same_run) + 1  # the entries (message + 1) followed by one of their run
-        p[within], q[within], r[within] = 1.0, span[within - 1], increment[within - 1]
-        held = np.flatnonzero(rate_ == 0)
+        increment = expected + (np.diff(angle) - expected + 180.0) % 360.0 - 180.0
+        p, q, r = 360.0 * rate[:k], np.full(k, 1e9), np.ones(k)
+        p[same_run], q[same_run], r[same_run] = 1.0, span[same_run], increment[same_run]
+        held = np.flatnonzero(rate[:k] == 0)
         p[held], q[held], r[held] = 0.0, 1.0, -1.0
-        p[0], q[0], r[0] = 0.0, 1.0, -1.0
-        return axis_, rate_, angle_, t_, p, q, r
+        law = (axis[:k], rate[:k], angle[:k], t_ns[:k], p, q, r)
+        if lo > 0:
+            return law
+        return tuple(_after(before, v) for before, v in zip((-1, np.nan, np.nan, 0, 0.0, 1.0, -1.0), law))
 
 
 def _after(before, values: np.ndarray) -> np.ndarray:
@@ -259,7 +261,7 @@ def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
 def map_table(t_ns: np.ndarray, law: tuple[np.ndarray, ...], first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The axis code (-1 before the first message), rate and angle at each
     DUT stamp of ``t_ns`` (ascending; docs/inputs.md, "Table channel"), given
-    the messages in force over them (``TableTrack.law``, sliced) and the
+    the messages in force over them (``TableTrack.law``) and the
     first sample under each (``first``, from 0).
 
     Labels hold from the last table message. Angles are linearly interpolated
@@ -278,28 +280,25 @@ def map_table(t_ns: np.ndarray, law: tuple[np.ndarray, ...], first: np.ndarray) 
     return axis, rate, angle
 
 
-_LABEL_BLOCK = 1 << 18
+_LABEL_BLOCK = 1 << 15  # a block's temporaries stay in the cache, and the heap reuses them
 
 
 def table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     """``map_table`` a block of samples at a time (a sample's labels depend
-    only on its own time stamp), so its temporaries stay small; ``t_ns``
+    only on its own time stamp), so its temporaries stay small (and fast:
+    in the cache, no fresh pages); ``t_ns``
     ascending (``labels.time_ordered``); ``axis`` as the sample table's Enum
     (one byte a sample). The columns are filled in place: blocks kept as
     chunks would pin the freed temporaries between them in the heap."""
     # the first sample under each entry of the law (none yet, then each message): one search a message
     first = np.concatenate(([0], np.searchsorted(t_ns, track.t_ns, side="left")))
-    law = track.law
-    if t_ns.size <= _LABEL_BLOCK:
-        axis, rate, angle = map_table(t_ns, law, first)
-    else:
-        axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
-    for start in range(0, t_ns.size if t_ns.size > _LABEL_BLOCK else 0, _LABEL_BLOCK):
+    axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
+    for start in range(0, t_ns.size, _LABEL_BLOCK):
         block = slice(start, start + _LABEL_BLOCK)
         lo = int(np.searchsorted(first, start, side="right")) - 1  # the entry in force at the block's start
         hi = int(np.searchsorted(first, start + _LABEL_BLOCK, side="left"))
         under = np.maximum(first[lo:hi], start) - start
-        axis[block], rate[block], angle[block] = map_table(t_ns[block], tuple(v[lo:hi] for v in law), under)
+        axis[block], rate[block], angle[block] = map_table(t_ns[block], track.law(lo, hi), under)
     return pl.DataFrame({
         "axis": pl.Series(np.ma.masked_array(axis.view(np.uint8), axis < 0)).cat.to(pl.Enum(AXES)),  # codes as they are
         "rate_hz": pl.Series(rate).fill_nan(None),
