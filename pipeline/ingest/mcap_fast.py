@@ -1,11 +1,13 @@
 """MCAP records without a Python call per message.
 
-A chunk is decompressed once; its message index records (which every
-indexed MCAP writer puts after each chunk) give each channel's message
-offsets, so the records are located with array arithmetic and checked to
-tile the chunk exactly; the few other records in a chunk (schemas, channels)
-are read one by one in the gaps. The messages of the kept channels become
-columns in ``mcap_columns``.
+A chunk is decompressed once, by one thread of a pool, into that thread's
+buffer; its message index records (which every indexed MCAP writer puts
+after each chunk) give each channel's message offsets, so the records are
+located with array arithmetic and checked to tile the chunk exactly (a run
+of one channel's messages of one size, back to back, with two strided reads
+a message); the few other records in a chunk (schemas, channels) are read
+one by one in the gaps, in file order. The messages of the kept channels
+become columns in ``mcap_columns``, decoded by the same thread.
 
 Records are read by ``mcap_records``, as the per-message path reads them
 (declared sizes checked, CRCs checked). Anything else (no message index or
@@ -312,9 +314,10 @@ def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
 
 def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) -> dict[str, DecodedTopic]:
     """Every channel by topic, with the messages of ``topics`` and of any Imu
-    or JointState channel decoded into columns; chunks are decompressed on
-    ``parallel.cores(workers)`` threads (one: in this thread, no pool), at
-    most ``BATCH_BYTES`` at a time, while the batch before is decoded.
+    or JointState channel decoded into columns; chunks are decompressed and
+    decoded on ``parallel.cores(workers)`` threads (one: in this thread, no
+    pool), handed over at most ``BATCH_BYTES`` at a time while the next
+    batch is read.
 
     Raises ``Unsupported`` for anything but a chunked, indexed file of
     layouts this module decodes, damaged files included (the per-message
