@@ -360,3 +360,26 @@ def test_a_message_running_into_the_next_chunk_is_refused(capture, tmp_path):
     with pytest.raises(mcap_columns.Unsupported):
         mcap_fast.read_topics(path, {"/imu"}, Limits())
     refused(path, "corrupt MCAP: a record at byte", "of the chunk at byte 70 declares", "bytes where")
+
+
+def _middle_message(field: str):
+    """A patch of the middle Imu message of the second chunk: its channel id
+    set to another channel's, or its opcode to a private record's. The
+    message index still lists it among the evenly spaced Imu messages, so a
+    check of the run's first and last records alone would pass it."""
+    def patch(k, raw):
+        if k == 1:
+            found = messages(raw, IMU)
+            at = found[len(found) // 2]
+            if field == "channel":
+                raw[at + 9 : at + 11] = struct.pack("<H", TABLE)
+            else:
+                raw[at] = 0x80
+    return patch
+
+
+@pytest.mark.parametrize("field", ["channel", "opcode"])
+def test_every_record_of_an_even_run_is_checked(capture, tmp_path, field):
+    path = rewrite(capture, tmp_path / f"{field}.mcap", _middle_message(field))
+    with pytest.raises(mcap_columns.Unsupported):
+        mcap_fast.read_topics(path, {"/imu"}, Limits())

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
@@ -101,46 +101,86 @@ class DecodedTopic:
         return columns
 
 
-def fields(raw: np.ndarray, starts: np.ndarray, offset: int, dtype: str, count: int = 1) -> np.ndarray:
-    """``count`` values of ``dtype`` at byte ``offset`` of each record (its
-    start in ``starts``) of the decompressed chunk ``raw``, as an (n,) or
-    (n, count) array: a strided view of ``raw`` where the records are evenly
-    spaced (one channel's run of messages of one size), else gathered through
-    a view with a row at every byte; no record is copied whole, so each value
-    is copied once, into its column (``DecodedTopic.add``)."""
-    kind = np.dtype(dtype)
+@dataclass(frozen=True)
+class Records:
+    """Message records of one channel in a decompressed chunk ``raw``: where
+    each starts, ``step`` (bytes) when they are evenly spaced (0 otherwise),
+    and fields read ``skip`` bytes into each record (``data``: past the
+    message header); ``uniform`` once checked to be messages of their
+    channel, each ``step`` bytes, back to back (``mcap_fast``)."""
+
+    raw: np.ndarray
+    starts: np.ndarray
+    step: int
+    skip: int = 0
+    uniform: bool = False
+
+    @classmethod
+    def at(cls, raw: np.ndarray, starts: np.ndarray) -> Records:
+        """Records at ``starts`` in ascending order (as writers index them,
+        else sorted: stable, a merge of ascending runs), their spacing found once."""
+        if starts.size < 2:
+            return cls(raw, starts, 1)
+        step, spacing = int(starts[1] - starts[0]), np.diff(starts)
+        if step > 0 and (spacing == step).all():
+            return cls(raw, starts, step)
+        return cls(raw, starts if (spacing > 0).all() else np.sort(starts, kind="stable"), 0)
+
+    @property
+    def count(self) -> int:
+        return self.starts.size
+
+    def data(self) -> Records:
+        """The same records, fields counted from the message data."""
+        return replace(self, skip=self.skip + MESSAGE_HEADER)
+
+    def first(self, size: int) -> bytes:
+        """The first record's ``size`` bytes (from ``skip``)."""
+        start = int(self.starts[0]) + self.skip
+        return self.raw[start : start + size].tobytes()
+
+
+def fields(records: Records, offset: int, dtype: str, count: int = 1) -> np.ndarray:
+    """``count`` values of ``dtype`` at byte ``offset`` of each record, as an
+    (n,) or (n, count) array: a strided view of the chunk where the records
+    are evenly spaced (a channel's run of messages of one size), else gathered
+    through a view with a row at every byte; no record is copied whole, so
+    each value is copied once, into its column (``DecodedTopic.add``)."""
+    kind, raw, starts = np.dtype(dtype), records.raw, records.starts
     width = kind.itemsize * count
     shape = (starts.size,) if count == 1 else (starts.size, count)
     if starts.size == 0 or width == 0:
         return np.zeros(shape, kind)
-    step = int(starts[1] - starts[0]) if starts.size > 1 else 1
-    if step > 0 and starts[-1] == starts[0] + step * (starts.size - 1) and np.all(np.diff(starts) == step):
+    offset += records.skip
+    if records.step:
         first = int(starts[0]) + offset
-        return np.ndarray(shape, kind, raw, first, (step, kind.itemsize)[: len(shape)])
+        return np.ndarray(shape, kind, raw, first, (records.step, kind.itemsize)[: len(shape)])
     window = np.ndarray((raw.size - width + 1, count), kind, raw, 0, (1, kind.itemsize))
     return window[starts + offset].reshape(shape)
 
 
-def _stamp_or_log(raw: np.ndarray, data: np.ndarray, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
-    t_ns = fields(raw, data, stamp_offset, "<i4").astype(np.int64) * 1_000_000_000 + fields(raw, data, stamp_offset + 4, "<u4")
+def _stamp_or_log(data: Records, stamp_offset: int, log_ns: np.ndarray) -> np.ndarray:
+    t_ns = fields(data, stamp_offset, "<i4").astype(np.int64)
+    t_ns *= 1_000_000_000
+    t_ns += fields(data, stamp_offset + 4, "<u4")
     return np.where(t_ns == 0, log_ns, t_ns)
 
 
-def _check_cdr(raw: np.ndarray, data: np.ndarray) -> None:
-    if np.any(fields(raw, data, 0, "<u4") != _CDR_LE):
+def _check_cdr(data: Records) -> None:
+    if np.any(fields(data, 0, "<u4") != _CDR_LE):
         raise Unsupported("CDR messages in another byte order")
 
 
-def _decode_imu(raw: np.ndarray, data: np.ndarray, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """Imu messages of one ``size`` (their data at ``data`` in ``raw``) into columns."""
+def _decode_imu(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """Imu messages of one ``size`` (``data``: their data) into columns."""
     if size < 16:  # the encapsulation, the stamp and the frame_id length
         raise Unsupported("Imu message shorter than its header")
-    lay = imu_layout(int(fields(raw, data[:1], 12, "<u4")[0]))
-    _check_cdr(raw, data)
-    if size != lay.size or np.any(fields(raw, data, 12, "<u4") != lay.frame_id_len):
+    lay = imu_layout(int.from_bytes(data.first(16)[12:], "little"))
+    _check_cdr(data)
+    if size != lay.size or np.any(fields(data, 12, "<u4") != lay.frame_id_len):
         raise Unsupported("Imu frame_id of varying length")
-    acc = fields(raw, data, lay.linear_acceleration, "<f8", 3)
-    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+    acc = fields(data, lay.linear_acceleration, "<f8", 3)
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
 
 
 def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
@@ -165,23 +205,23 @@ def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
     return frame_len, tuple(lens), counts[1], counts[2]
 
 
-def _decode_joint(raw: np.ndarray, data: np.ndarray, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """JointState messages of one ``size`` (their data at ``data`` in ``raw``) into columns."""
+def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
+    """JointState messages of one ``size`` (``data``: their data) into columns."""
     try:
-        shape = _joint_shape(raw[data[0] : data[0] + size].tobytes())
+        shape = _joint_shape(data.first(size))
     except struct.error:
         raise Unsupported("JointState message shorter than its fields") from None
     lay = joint_layout(*shape)
     if size != lay.size:
         raise Unsupported("JointState messages of varying layout")
-    _check_cdr(raw, data)
-    if any(np.any(fields(raw, data, o, "<u4") != v) for o, v in lay.counts):
+    _check_cdr(data)
+    if any(np.any(fields(data, o, "<u4") != v) for o, v in lay.counts):
         raise Unsupported("JointState messages of varying layout")
     n_vel = shape[2]
-    names = np.column_stack([fields(raw, data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
-    position = fields(raw, data, lay.position, "<f8", len(lay.names)).reshape(data.size, -1)
-    velocity = fields(raw, data, lay.velocity, "<f8", n_vel).reshape(data.size, n_vel)
-    return {"t_ns": _stamp_or_log(raw, data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
+    names = np.column_stack([fields(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
+    position = fields(data, lay.position, "<f8", len(lay.names)).reshape(data.count, -1)
+    velocity = fields(data, lay.velocity, "<f8", n_vel).reshape(data.count, n_vel)
+    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
 
 
 def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
@@ -252,24 +292,32 @@ def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
     return frame
 
 
-def decode_messages(topic: DecodedTopic, raw: np.ndarray, offsets: np.ndarray, channel_id: int, chunk_bytes: int) -> None:
-    """Add the messages of one channel at ``offsets`` in a decompressed
-    chunk ``raw`` (each a complete record, by ``mcap_fast``) to ``topic``;
-    the chunks of the file expand to ``chunk_bytes``."""
-    sizes = fields(raw, offsets, 1, "<u8").astype(np.int64) - (MESSAGE_HEADER - 9)  # each message's data
-    # message indexes can claim any number of messages; the chunks hold no more than this many of this size
-    topic.capacity = min(topic.capacity, chunk_bytes // (int(sizes[0]) + MESSAGE_HEADER))
+def _message_sizes(records: Records, channel_id: int, kind: str) -> np.ndarray:
+    """Each message's data size, checked: records of ``channel_id``, of one
+    size unless JSON."""
+    if records.uniform:
+        return np.full(records.count, records.step - MESSAGE_HEADER)
+    sizes = fields(records, 1, "<u8").astype(np.int64) - (MESSAGE_HEADER - 9)
     if np.any(sizes < 0):
         raise Unsupported("message record shorter than its header")
-    if topic.kind != "json" and np.any(sizes != sizes[0]):
+    if kind != "json" and np.any(sizes != sizes[0]):
         raise Unsupported("CDR messages of varying size")
-    if np.any(fields(raw, offsets, 9, "<u2") != channel_id):
+    if np.any(fields(records, 9, "<u2") != channel_id):
         raise Unsupported("message index of another channel")
-    log_ns = fields(raw, offsets, 15, "<i8")
-    data = offsets + MESSAGE_HEADER
+    return sizes
+
+
+def decode_messages(topic: DecodedTopic, records: Records, channel_id: int, chunk_bytes: int) -> None:
+    """Add one channel's message ``records`` in a decompressed chunk (each a
+    complete record, by ``mcap_fast``) to ``topic``; the chunks of the file
+    expand to ``chunk_bytes``."""
+    sizes = _message_sizes(records, channel_id, topic.kind)
+    # message indexes can claim any number of messages; the chunks hold no more than this many of this size
+    topic.capacity = min(topic.capacity, chunk_bytes // (int(sizes[0]) + MESSAGE_HEADER))
+    log_ns = fields(records, 15, "<i8")
     if topic.kind == "json":
-        topic.add_json(log_ns.copy(), _json_lines(raw, data, sizes))
+        topic.add_json(log_ns.copy(), _json_lines(records.raw, records.starts + MESSAGE_HEADER, sizes))
     elif topic.kind == "imu":
-        topic.add(_decode_imu(raw, data, int(sizes[0]), log_ns))
+        topic.add(_decode_imu(records.data(), int(sizes[0]), log_ns))
     else:
-        topic.add(_decode_joint(raw, data, int(sizes[0]), log_ns))
+        topic.add(_decode_joint(records.data(), int(sizes[0]), log_ns))

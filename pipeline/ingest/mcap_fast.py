@@ -1,11 +1,13 @@
 """MCAP records without a Python call per message.
 
-A chunk is decompressed once; its message index records (which every
-indexed MCAP writer puts after each chunk) give each channel's message
-offsets, so the records are located with array arithmetic and checked to
-tile the chunk exactly; the few other records in a chunk (schemas, channels)
-are read one by one in the gaps. The messages of the kept channels become
-columns in ``mcap_columns``.
+A chunk is decompressed once, by one thread of a pool, into that thread's
+buffer; its message index records (which every indexed MCAP writer puts
+after each chunk) give each channel's message offsets, so the records are
+located with array arithmetic and checked to tile the chunk exactly (a run
+of one channel's messages of one size, back to back, with two strided reads
+a message); the few other records in a chunk (schemas, channels) are read
+one by one in the gaps, in file order. The messages of the kept channels
+become columns in ``mcap_columns``, decoded by the same thread.
 
 Records are read by ``mcap_records``, as the per-message path reads them
 (declared sizes checked, CRCs checked). Anything else (no message index or
@@ -18,10 +20,12 @@ error, so both paths give the same samples and the same messages.
 from __future__ import annotations
 
 import struct
+import threading
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,16 +34,26 @@ from mcap.records import Schema
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_columns import MESSAGE_HEADER, DecodedTopic, Unsupported, decode_messages, fields
+from rotcal.ingest.mcap_columns import MESSAGE_HEADER, DecodedTopic, Records, Unsupported, decode_messages, fields
 from rotcal.ingest.mcap_records import McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
-# Chunks are decompressed together (on a thread pool) up to this many bytes,
-# compressed and decompressed, counted from their declared sizes, in two
-# batches (one decoded while the next is decompressed); a batch holds one
-# chunk at least (at most the record limit).
+# Chunks are read and handed to the thread pool together up to this many
+# bytes, compressed and decompressed, counted from their declared sizes, in
+# two batches (one read while the other is decompressed and decoded); a batch
+# holds one chunk at least (at most the record limit). Each thread
+# decompresses into one buffer of its own, reused from chunk to chunk (no
+# page faults, and the chunk is still in its cache when it is decoded); a
+# batch of a chunk above half this is done in the reading thread alone.
 BATCH_BYTES = 32 * 1024 * 1024
+_MESSAGE_HEAD = struct.Struct("<BQH")  # a message record's opcode, length and channel id
+
+
+def _done_event() -> threading.Event:
+    event = threading.Event()
+    event.set()
+    return event
 
 
 @dataclass
@@ -48,12 +62,21 @@ class _State:
     topics: set[str]
     counts: dict[int, int]
     chunk_bytes: int
-    # two batches' decompressed chunks: one decoded while the next is decompressed
-    buffers: list[np.ndarray] = field(default_factory=lambda: [np.empty(0, np.uint8)] * 2)
-    turn: int = 0
+    # each thread's buffer for the chunk it decompresses and decodes
+    buffers: dict[int, np.ndarray] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
     found: dict[str, DecodedTopic] = field(default_factory=dict)
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
+    # the last chunk launched, decoded once this is set (chunks are decoded in file order)
+    last: threading.Event = field(default_factory=lambda: _done_event())
+    failed: bool = False
+
+    def buffer(self, size: int) -> np.ndarray:
+        """This thread's buffer, ``size`` bytes of it."""
+        own = self.buffers.get(threading.get_ident(), np.empty(0, np.uint8))
+        if own.size < size:
+            own = self.buffers[threading.get_ident()] = np.empty(size, np.uint8)
+        return own[:size]
 
     def schema(self, body: bytes | memoryview) -> None:
         record = parse_schema(body, self.where)
@@ -97,63 +120,78 @@ def _declared(body: bytes) -> int:
     return struct.unpack_from("<Q", body, 16)[0] if len(body) >= 24 else 0
 
 
-def _inflate(out: memoryview, chunk: tuple[int, bytes, list[bytes]], where: McapFile) -> None:
-    offset, body, _ = chunk
-    chunk_data(body, offset, where, out)
+@dataclass
+class _Job:
+    """One chunk of a batch, decoded once the chunk before it is
+    (``previous`` set), which then sets ``decoded``."""
+
+    chunk: tuple[int, bytes, list[bytes]]
+    previous: threading.Event
+    decoded: threading.Event = field(default_factory=threading.Event)
+
+
+def _inflate(state: _State, job: _Job) -> None:
+    """One chunk, on a pool thread: decompressed into the thread's buffer,
+    CRC-checked and its records located (side by side with the other
+    threads: zstd, crc32 and numpy's copies release the GIL), then decoded
+    into the topics' columns in file order (the schemas and channels a chunk
+    defines apply to the chunks after it). A failure anywhere marks the read
+    failed: later chunks skip their decoding."""
+    try:
+        offset, body, indexes = job.chunk
+        raw = state.buffer(_declared(body))
+        chunk_data(body, offset, state.where, raw.data)
+        by_channel, gaps = _tiles(raw, indexes)
+        job.previous.wait()
+        if not state.failed:
+            _decode(state, raw, by_channel, gaps)
+    except BaseException:
+        state.failed = True
+        raise
+    finally:
+        job.decoded.set()
 
 
 @dataclass
 class _Flight:
-    """A batch whose chunks are being decompressed side by side into ``raw``
-    (chunk ``c`` from ``bases[c]``): ``done`` yields as each one is."""
+    """A batch whose chunks are being decompressed and decoded: ``done``
+    yields as each one is."""
 
-    raw: np.ndarray
-    bases: np.ndarray
-    indexes: list[list[bytes]]
     done: Iterator
     size: int
 
 
-def _launch(state: _State, batch: _Batch, mapper: Callable, overlap: bool) -> _Flight:
-    """Start decompressing a batch with ``mapper`` (a thread pool's map, which
-    submits every chunk at once: zstd and crc32 release the GIL) into a
-    buffer: the other one of two where a batch in flight is to be decoded
-    meanwhile (``overlap``), else the one last used (the other is freed)."""
-    sizes = [_declared(body) for _, body, _ in batch.chunks]
-    if max(sizes) > state.where.limits.max_mcap_record_bytes:
+def _launch(state: _State, batch: _Batch, mapper: Callable) -> _Flight:
+    """Start decompressing and decoding a batch with ``mapper`` (a thread
+    pool's map, which submits every chunk at once), or in this thread (as
+    it is landed) when a chunk is larger than half ``BATCH_BYTES``."""
+    largest = max(_declared(body) for _, body, _ in batch.chunks)
+    if largest > state.where.limits.max_mcap_record_bytes:
         raise Unsupported("a chunk declares more than the record limit")  # the per-message path says so
-    bases = np.r_[0, np.cumsum(sizes, dtype=np.int64)]
-    if overlap:
-        state.turn ^= 1
-    else:
-        state.buffers[state.turn ^ 1] = np.empty(0, np.uint8)  # one batch at a time: one buffer
-    if state.buffers[state.turn].size < bases[-1]:
-        state.buffers[state.turn] = np.empty(int(bases[-1]), np.uint8)
-    raw = state.buffers[state.turn][: bases[-1]]
-    view = raw.data
-    outs = [view[lo:hi] for lo, hi in zip(bases[:-1].tolist(), bases[1:].tolist())]
-    chunks, size, batch.chunks, batch.size = batch.chunks, batch.size, [], 0
-    done = mapper(_inflate, outs, chunks, [state.where] * len(chunks))
-    return _Flight(raw, bases, [indexes for _, _, indexes in chunks], done, size)
+    jobs = []
+    for chunk in batch.chunks:
+        jobs.append(_Job(chunk, state.last))
+        state.last = jobs[-1].decoded
+    size, batch.chunks, batch.size = batch.size, [], 0
+    return _Flight((map if largest > BATCH_BYTES // 2 else mapper)(partial(_inflate, state), jobs), size)
 
 
 def _relay(state: _State, batch: _Batch, mapper: Callable, flight: _Flight | None) -> _Flight:
-    """Launch ``batch`` and decode the one in ``flight`` meanwhile, when both
-    fit in ``BATCH_BYTES`` (else one after the other)."""
+    """Launch ``batch`` while the one in ``flight`` finishes, when both fit
+    in ``BATCH_BYTES`` (else one after the other)."""
     if flight is not None and flight.size + batch.size > BATCH_BYTES:
-        _land(state, flight)
+        _land(flight)
         flight = None
-    launched = _launch(state, batch, mapper, overlap=flight is not None)
-    _land(state, flight)
+    launched = _launch(state, batch, mapper)
+    _land(flight)
     return launched
 
 
-def _land(state: _State, flight: _Flight | None) -> None:
-    """Wait for a batch's chunks, then decode their messages together."""
+def _land(flight: _Flight | None) -> None:
+    """Wait for a batch's chunks to be decoded (raising what any raised)."""
     if flight is not None:
         for _ in flight.done:
             pass
-        _decode(state, flight.raw, flight.bases, flight.indexes)
 
 
 def _ascending(offsets: np.ndarray) -> np.ndarray:
@@ -162,40 +200,77 @@ def _ascending(offsets: np.ndarray) -> np.ndarray:
     return offsets if np.all(offsets[1:] > offsets[:-1]) else np.sort(offsets, kind="stable")
 
 
-def _indexed(bases: np.ndarray, indexes: list[list[bytes]]) -> dict[int, np.ndarray]:
-    """Each channel's message offsets in the batch's buffer (chunk ``c`` at
-    ``bases[c]``), from the chunks' message indexes, each inside its chunk."""
+def _indexed(raw: np.ndarray, indexes: list[bytes]) -> dict[int, Records]:
+    """Each channel's message records in a decompressed chunk, from the
+    chunk's message indexes, each offset inside the chunk."""
     parts: dict[int, list[np.ndarray]] = {}
-    for base, end, chunk_indexes in zip(bases[:-1].tolist(), bases[1:].tolist(), indexes):
-        for index in chunk_indexes:
-            channel_id, length = struct.unpack_from("<HI", index, 0)
-            pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
-            offsets = _ascending(pairs[:, 1].astype(np.int64))
-            if offsets.size and (offsets[0] < 0 or offsets[-1] > end - base - MESSAGE_HEADER):
-                raise Unsupported("message index points outside its chunk")
-            parts.setdefault(channel_id, []).append(offsets + base)
-    return {channel_id: np.concatenate(p) for channel_id, p in parts.items()}
+    for index in indexes:
+        channel_id, length = struct.unpack_from("<HI", index, 0)
+        pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
+        parts.setdefault(channel_id, []).append(pairs[:, 1].astype(np.int64))
+    by_channel = {}
+    for channel_id, offsets in parts.items():
+        records = Records.at(raw, offsets[0] if len(offsets) == 1 else np.concatenate(offsets))
+        if records.count and (records.starts[0] < 0 or records.starts[-1] > raw.size - MESSAGE_HEADER):
+            raise Unsupported("message index points outside its chunk")
+        if records.count:
+            by_channel[channel_id] = records
+    return by_channel
 
 
-def _decode(state: _State, raw: np.ndarray, bases: np.ndarray, indexes: list[list[bytes]]) -> None:
-    """Decode the messages of the kept channels in the decompressed chunks
-    side by side in ``raw`` (chunk ``c`` from ``bases[c]``), checking that
-    the indexed messages and the records between them tile each chunk."""
-    by_channel = _indexed(bases, indexes)
-    starts = _ascending(np.concatenate([np.zeros(0, np.int64), *by_channel.values()]))
-    if np.any(raw[starts] != Opcode.MESSAGE):
+def _uniform(records: Records, channel_id: int) -> Records | None:
+    """``records`` marked uniform if they are messages of ``channel_id``,
+    each ``step`` bytes, back to back (a writer's run of one channel's
+    messages of one size): two strided reads of eight bytes a record."""
+    if records.count == 1:
+        records = replace(records, step=9 + int(fields(records, 1, "<u8")[0]))
+    if not MESSAGE_HEADER <= records.step <= records.raw.size:
+        return None
+    head = int.from_bytes(_MESSAGE_HEAD.pack(Opcode.MESSAGE, records.step - 9, channel_id), "little")
+    first, second = head & (1 << 64) - 1, head >> 24  # opcode and length; the rest of the length and the channel
+    if (fields(records, 0, "<u8") == first).all() and (fields(records, 3, "<u8") == second).all():
+        return replace(records, uniform=True)
+    return None
+
+
+def _tiles(raw: np.ndarray, indexes: list[bytes]) -> tuple[dict[int, Records], list[tuple[int, int]]]:
+    """Each channel's message records in a decompressed chunk, and the gaps
+    between them (where the other records, schemas and channels, are),
+    checked to tile the chunk: no overlap, nothing outside it. Uniform runs
+    count as one extent each (a few, walked in Python); anything else is
+    checked record by record."""
+    by_channel = _indexed(raw, indexes)
+    uniform = {cid: _uniform(r, cid) for cid, r in by_channel.items()}
+    if all(r is not None for r in uniform.values()):
+        gaps, end = [], 0
+        for first, last in sorted((int(r.starts[0]), int(r.starts[0]) + r.step * r.count) for r in uniform.values() if r):
+            if first < end:
+                raise Unsupported("overlapping message records")
+            if first > end:
+                gaps.append((end, first))
+            end = last
+        if end > raw.size:
+            raise Unsupported("overlapping message records")
+        return {cid: r for cid, r in uniform.items() if r}, [*gaps, (end, raw.size)] if end < raw.size else gaps
+    starts = _ascending(np.concatenate([r.starts for r in by_channel.values()]))
+    every = Records(raw, starts, 0)
+    if np.any(fields(every, 0, "u1") != Opcode.MESSAGE):
         raise Unsupported("message index points at something other than a message")
-    ends = starts + 9 + fields(raw, starts, 1, "<u8").astype(np.int64)
-    # each chunk's bounds as empty records, so that no record spans two chunks and each gap lies in one
-    at = np.searchsorted(starts, bases)
-    starts, ends = np.insert(starts, at, bases), np.insert(ends, at, bases)
+    ends = starts + 9 + fields(every, 1, "<u8").astype(np.int64)
+    bounds = np.array([0, raw.size])  # the chunk's bounds as empty records
+    starts, ends = np.concatenate((bounds[:1], starts, bounds[1:])), np.concatenate((bounds[:1], ends, bounds[1:]))
     if np.any(ends[:-1] > starts[1:]) or np.any(ends < starts):
         raise Unsupported("overlapping message records")
-    # the other records (schemas, channels) sit in the gaps between messages
     gap = np.flatnonzero(ends[:-1] < starts[1:])
+    return by_channel, list(zip(ends[gap].tolist(), starts[gap + 1].tolist()))
+
+
+def _decode(state: _State, raw: np.ndarray, by_channel: dict[int, Records], gaps: list[tuple[int, int]]) -> None:
+    """Read the records in a chunk's ``gaps`` (schemas, channels) and decode
+    the messages of the kept channels into their columns."""
     defined_at = {}
     view = raw.data
-    for lo, hi in zip(ends[gap].tolist(), starts[gap + 1].tolist()):
+    for lo, hi in gaps:
         for opcode, pos, record in chunk_records(view[lo:hi], 0, state.where):
             if opcode == Opcode.MESSAGE:
                 raise Unsupported("chunk record outside the message index")
@@ -203,13 +278,13 @@ def _decode(state: _State, raw: np.ndarray, bases: np.ndarray, indexes: list[lis
                 state.schema(record)
             elif opcode == Opcode.CHANNEL and (cid := state.channel(record)) is not None:
                 defined_at[cid] = lo + pos
-    for channel_id, offsets in by_channel.items():
+    for channel_id, records in by_channel.items():
         topic = state.keep.get(channel_id)
-        if topic is None or offsets.size == 0:
+        if topic is None or records.count == 0:
             continue  # the per-message path skips messages of channels it has not kept (yet)
-        if offsets[0] < defined_at.get(channel_id, -1):
+        if records.starts[0] < defined_at.get(channel_id, -1):
             raise Unsupported("messages before their channel record")
-        decode_messages(topic, raw, offsets, channel_id, state.chunk_bytes)
+        decode_messages(topic, records, channel_id, state.chunk_bytes)
 
 
 def _message_index(body: bytes) -> tuple[int, int]:
@@ -239,9 +314,10 @@ def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
 
 def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) -> dict[str, DecodedTopic]:
     """Every channel by topic, with the messages of ``topics`` and of any Imu
-    or JointState channel decoded into columns; chunks are decompressed on
-    ``parallel.cores(workers)`` threads (one: in this thread, no pool), at
-    most ``BATCH_BYTES`` at a time, while the batch before is decoded.
+    or JointState channel decoded into columns; chunks are decompressed and
+    decoded on ``parallel.cores(workers)`` threads (one: in this thread, no
+    pool), handed over at most ``BATCH_BYTES`` at a time while the next
+    batch is read.
 
     Raises ``Unsupported`` for anything but a chunked, indexed file of
     layouts this module decodes, damaged files included (the per-message
@@ -266,7 +342,7 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
                     flight = _relay(state, batch, mapper, flight)
                 if opcode != Opcode.CHUNK:  # a record outside chunks comes after the chunks before it
                     flight, landing = None, flight
-                    _land(state, landing)
+                    _land(landing)
                 if opcode == Opcode.CHUNK:
                     batch.add(offset, body)
                 elif opcode == Opcode.SCHEMA:
@@ -310,18 +386,18 @@ def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: in
             if not batch.chunks:
                 batch.size = 0
                 return {}
-        flight = _launch(state, batch, mapper, overlap=False)
         counts: dict[int, int] = {}
-        for chunk_indexes in flight.indexes:
+        for _, _, chunk_indexes in batch.chunks:
             for index in chunk_indexes:
                 channel_id, length = struct.unpack_from("<HI", index, 0)
                 counts[channel_id] = counts.get(channel_id, 0) + length // 16
+        chunk_bytes = sum(_declared(body) for _, body, _ in batch.chunks)
         for channel_id, topic in state.keep.items():  # fresh columns, sized for this batch
             state.keep[channel_id] = state.found[topic.channel.topic] = DecodedTopic(topic.schema, topic.channel, counts.get(channel_id, 0))
         # channels defined in this batch are sized from it too, not from the whole file
         whole = state.counts, state.chunk_bytes
-        state.counts, state.chunk_bytes = counts, int(flight.bases[-1])
-        _land(state, flight)
+        state.counts, state.chunk_bytes = counts, chunk_bytes
+        _land(_launch(state, batch, mapper))
         state.counts, state.chunk_bytes = whole
         decoded = {}
         for topic in state.keep.values():

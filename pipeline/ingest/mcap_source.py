@@ -126,8 +126,9 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)
+        if not values.null_count() and np.isfinite(values.to_numpy()).all():
+            continue  # one pass, no copy: the message is looked for only where there is one to write
         bad = (values.is_null() | ~values.is_finite()).arg_true()
-        if len(bad):
-            raise InputError(f"{name!r} of message {int(bad[0]) + 1} is not a finite number ({values[int(bad[0])]})", path=path)
+        raise InputError(f"{name!r} of message {int(bad[0]) + 1} is not a finite number ({values[int(bad[0])]})", path=path)
     # label_columns checks every other value where it enters (ingest.labels.check_values)
     return label_columns(frame, spec, path, label_source=source), notes

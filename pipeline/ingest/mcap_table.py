@@ -8,7 +8,6 @@ both give the same track."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -30,16 +29,40 @@ class TableTrack:
     rate_hz: np.ndarray
     angle_deg: np.ndarray
 
-    @cached_property
-    def runs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Each message's run (same axis and rate) and the angle increment to
-        the next message, unwrapped with the commanded rate (only sin and cos
-        of theta are used, so no running sum is needed); computed once for
-        all blocks of samples."""
-        run_break = np.r_[True, (self.axis[1:] != self.axis[:-1]) | (self.rate_hz[1:] != self.rate_hz[:-1])]
-        expected = 360.0 * self.rate_hz[:-1] * np.diff(self.t_ns) / 1e9
-        increment = expected + (np.diff(self.angle_deg) - expected + 180.0) % 360.0 - 180.0
-        return np.cumsum(run_break) - 1, increment
+    def law(self, lo: int, hi: int) -> tuple[np.ndarray, ...]:
+        """Entries ``lo`` to ``hi - 1`` of the table's law: entry 0 for "no
+        message yet" (NaN labels), entry k for message k - 1: the axis code,
+        rate, angle, time and the factors (p, q, r) of the angle after it,
+        ``angle + dt_ns * p / q * r`` (three cases in one expression, each
+        factor exact where it is 1 or 0, so bit for bit the angles of each
+        case's own formula). Within a run (same axis and rate) the angle is
+        interpolated towards the next message's, after unwrapping with the
+        commanded rate (only sin and cos of theta are used, so no running sum
+        is needed); after a run's last message it is extrapolated at the
+        rate; at rest it is held (``dt * 0 / 1 * -1`` is -0.0, which leaves
+        every angle, -0.0 included, as it is). Computed a block at a time:
+        its temporaries stay small."""
+        begin, stop = max(lo - 1, 0), min(hi - 1, self.t_ns.size)  # the entries' messages, and the one after
+        with_next = slice(begin, min(stop + 1, self.t_ns.size))
+        axis, rate, angle, t_ns = self.axis[with_next], self.rate_hz[with_next], self.angle_deg[with_next], self.t_ns[with_next]
+        k = stop - begin
+        span = np.diff(t_ns)
+        same_run = np.flatnonzero(((axis[1:] == axis[:-1]) & (rate[1:] == rate[:-1]))[:k])
+        expected = 360.0 * rate[:-1] * span / 1e9
+        increment = expected + (np.diff(angle) - expected + 180.0) % 360.0 - 180.0
+        p, q, r = 360.0 * rate[:k], np.full(k, 1e9), np.ones(k)
+        p[same_run], q[same_run], r[same_run] = 1.0, span[same_run], increment[same_run]
+        held = np.flatnonzero(rate[:k] == 0)
+        p[held], q[held], r[held] = 0.0, 1.0, -1.0
+        law = (axis[:k], rate[:k], angle[:k], t_ns[:k], p, q, r)
+        if lo > 0:
+            return law
+        return tuple(_after(before, v) for before, v in zip((-1, np.nan, np.nan, 0, 0.0, 1.0, -1.0), law))
+
+
+def _after(before, values: np.ndarray) -> np.ndarray:
+    """``values`` after one entry ``before``, of their type."""
+    return np.concatenate((np.array([before], values.dtype), values))
 
 
 def _joint_axis(names: list[str], position: list[float], velocity: list[float], previous: tuple | None) -> int:
@@ -231,52 +254,47 @@ def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
     return _track(t_ns, code, rate, angle, topic.channel.topic, path, cdr=True)
 
 
-def map_table(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The table message in force (index into ``track``, -1 before the
-    first), rate and angle at each DUT stamp (docs/inputs.md, "Table channel").
+def map_table(t_ns: np.ndarray, law: tuple[np.ndarray, ...], first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The axis code (-1 before the first message), rate and angle at each
+    DUT stamp of ``t_ns`` (ascending; docs/inputs.md, "Table channel"), given
+    the messages in force over them (``TableTrack.law``) and the
+    first sample under each (``first``, from 0).
 
     Labels hold from the last table message. Angles are linearly interpolated
     between messages of the same run (same axis and rate) after unwrapping
     with the commanded rate, extrapolated at that rate past a run's last
-    message, and held during static steps.
+    message, and held during static steps. Each message's values are
+    repeated over its samples: no search, no gather.
     """
-    n = t_ns.size
-    rate = np.full(n, np.nan)
-    angle = np.full(n, np.nan)
-    idx = np.searchsorted(track.t_ns, t_ns, side="right") - 1
-    if track.t_ns.size == 0:
-        return idx, rate, angle
-    run, increment = track.runs
-    have = idx >= 0
-    i = idx[have]
-    rate_i, angle_i, t_i = track.rate_hz[i], track.angle_deg[i], track.t_ns[i]  # each gathered once
-    rate[have] = rate_i
-    nxt = np.minimum(i + 1, track.t_ns.size - 1)
-    same_run = (nxt != i) & (run[nxt] == run[i])
-    dt_ns = t_ns[have] - t_i
-    span_ns = np.where(same_run, track.t_ns[nxt] - t_i, 1)
-    step = np.where(same_run, increment[np.minimum(i, increment.size - 1)] if increment.size else 0.0, 0.0)
-    interp = angle_i + dt_ns / span_ns * step
-    extrap = angle_i + 360.0 * rate_i * dt_ns / 1e9
-    angle[have] = np.where(rate_i != 0, np.where(same_run, interp, extrap), angle_i)
-    return idx, rate, angle
+    counts = np.diff(np.concatenate((first, [t_ns.size])))
+    axis, rate, angle, t_msg, p, q, r = (np.repeat(v, counts) for v in law)
+    term = (t_ns - t_msg).astype(np.float64)
+    term *= p
+    term /= q
+    term *= r
+    angle += term
+    return axis, rate, angle
 
 
-_LABEL_BLOCK = 1 << 18
+_LABEL_BLOCK = 1 << 15  # a block's temporaries stay in the cache, and the heap reuses them
 
 
 def table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
     """``map_table`` a block of samples at a time (a sample's labels depend
-    only on its own time stamp), so its temporaries stay small; ``axis``
-    as the sample table's Enum (one byte a sample). The columns are filled
-    in place: blocks kept as chunks would pin the freed temporaries between
-    them in the heap."""
-    codes = np.r_[track.axis, -1]  # the last entry serves index -1: no message yet
+    only on its own time stamp), so its temporaries stay small (and fast:
+    in the cache, no fresh pages); ``t_ns``
+    ascending (``labels.time_ordered``); ``axis`` as the sample table's Enum
+    (one byte a sample). The columns are filled in place: blocks kept as
+    chunks would pin the freed temporaries between them in the heap."""
+    # the first sample under each entry of the law (none yet, then each message): one search a message
+    first = np.concatenate(([0], np.searchsorted(t_ns, track.t_ns, side="left")))
     axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
     for start in range(0, t_ns.size, _LABEL_BLOCK):
         block = slice(start, start + _LABEL_BLOCK)
-        index, rate[block], angle[block] = map_table(t_ns[block], track)
-        axis[block] = codes[index]
+        lo = int(np.searchsorted(first, start, side="right")) - 1  # the entry in force at the block's start
+        hi = int(np.searchsorted(first, start + _LABEL_BLOCK, side="left"))
+        under = np.maximum(first[lo:hi], start) - start
+        axis[block], rate[block], angle[block] = map_table(t_ns[block], track.law(lo, hi), under)
     return pl.DataFrame({
         "axis": pl.Series(np.ma.masked_array(axis.view(np.uint8), axis < 0)).cat.to(pl.Enum(AXES)),  # codes as they are
         "rate_hz": pl.Series(rate).fill_nan(None),

@@ -14,7 +14,7 @@ of ``blocks()`` then follows the DUT channel and the table channel with
 two readers, the table's messages held for the time a block spans (the
 message in force at its first sample carried over, one past its last
 sample read ahead), and maps them onto the block's stamps with
-``mcap_table.map_table``'s rule (labels hold from the last message; angles
+``mcap_table.table_labels``'s rule (labels hold from the last message; angles
 interpolated within a run, extrapolated at the commanded rate past its
 end; docs/inputs.md, "Table channel").
 
@@ -46,10 +46,9 @@ from rotcal.ingest.labels import MAX_ABS_VALUE, label_columns, time_ordered
 from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import require
 from rotcal.ingest.mcap_source import chosen_topics
-from rotcal.ingest.mcap_table import TableTrack, fast_table_track, map_table
+from rotcal.ingest.mcap_table import TableTrack, fast_table_track, table_labels
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
-from rotcal.model.physics import AXES
 from rotcal.tables import conform
 from rotcal.timebase.check import TimebaseConfig, check_capture
 from rotcal.timebase.stream_grid import stream_grid
@@ -247,18 +246,7 @@ def _raw_blocks(path: Path, found: dict, imu_key: str, table_key: str | None, li
                 elif nxt.t_ns.size:
                     track = nxt if track is None else _joined(track, nxt)
             track = _window(track, int(t_ns[0]))
-            yield frame.hstack(_labels(t_ns, track).get_columns())
-
-
-def _labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
-    """``mcap_table.table_labels`` for one block (its track the window around it)."""
-    index, rate, angle = map_table(t_ns, track)
-    axis = np.r_[track.axis, -1][index]
-    return pl.DataFrame({
-        "axis": pl.Series(np.ma.masked_array(axis.view(np.uint8), axis < 0)).cat.to(pl.Enum(AXES)),
-        "rate_hz": pl.Series(rate).fill_nan(None),
-        "angle_deg": pl.Series(angle).fill_nan(None),
-    })
+            yield frame.hstack(table_labels(t_ns, track).get_columns())  # the track: the window around the block
 
 
 def _canonical(frame: pl.DataFrame, spec: CaptureSpec | None, path: Path, source: str, capture: str) -> pl.DataFrame:
