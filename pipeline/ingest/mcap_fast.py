@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -34,7 +34,8 @@ from mcap.records import Schema
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_columns import MESSAGE_HEADER, DecodedTopic, Records, Unsupported, decode_messages, fields
+from rotcal.ingest.mcap_chunks import tiles
+from rotcal.ingest.mcap_columns import DecodedTopic, Records, Unsupported, decode_messages
 from rotcal.ingest.mcap_records import McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
@@ -47,7 +48,6 @@ from rotcal.parallel import cores
 # page faults, and the chunk is still in its cache when it is decoded); a
 # batch of a chunk above half this is done in the reading thread alone.
 BATCH_BYTES = 32 * 1024 * 1024
-_MESSAGE_HEAD = struct.Struct("<BQH")  # a message record's opcode, length and channel id
 
 
 def _done_event() -> threading.Event:
@@ -141,7 +141,7 @@ def _inflate(state: _State, job: _Job) -> None:
         offset, body, indexes = job.chunk
         raw = state.buffer(_declared(body))
         chunk_data(body, offset, state.where, raw.data)
-        by_channel, gaps = _tiles(raw, indexes)
+        by_channel, gaps = tiles(raw, indexes)
         job.previous.wait()
         if not state.failed:
             _decode(state, raw, by_channel, gaps)
@@ -194,77 +194,6 @@ def _land(flight: _Flight | None) -> None:
             pass
 
 
-def _ascending(offsets: np.ndarray) -> np.ndarray:
-    """``offsets`` in ascending order: as writers index them, or sorted
-    (stable sort: a merge of ascending runs, such as channels' concatenated offsets)."""
-    return offsets if np.all(offsets[1:] > offsets[:-1]) else np.sort(offsets, kind="stable")
-
-
-def _indexed(raw: np.ndarray, indexes: list[bytes]) -> dict[int, Records]:
-    """Each channel's message records in a decompressed chunk, from the
-    chunk's message indexes, each offset inside the chunk."""
-    parts: dict[int, list[np.ndarray]] = {}
-    for index in indexes:
-        channel_id, length = struct.unpack_from("<HI", index, 0)
-        pairs = np.frombuffer(index, "<u8", count=length // 16 * 2, offset=6).reshape(-1, 2)
-        parts.setdefault(channel_id, []).append(pairs[:, 1].astype(np.int64))
-    by_channel = {}
-    for channel_id, offsets in parts.items():
-        records = Records.at(raw, offsets[0] if len(offsets) == 1 else np.concatenate(offsets))
-        if records.count and (records.starts[0] < 0 or records.starts[-1] > raw.size - MESSAGE_HEADER):
-            raise Unsupported("message index points outside its chunk")
-        if records.count:
-            by_channel[channel_id] = records
-    return by_channel
-
-
-def _uniform(records: Records, channel_id: int) -> Records | None:
-    """``records`` marked uniform if they are messages of ``channel_id``,
-    each ``step`` bytes, back to back (a writer's run of one channel's
-    messages of one size): two strided reads of eight bytes a record."""
-    if records.count == 1:
-        records = replace(records, step=9 + int(fields(records, 1, "<u8")[0]))
-    if not MESSAGE_HEADER <= records.step <= records.raw.size:
-        return None
-    head = int.from_bytes(_MESSAGE_HEAD.pack(Opcode.MESSAGE, records.step - 9, channel_id), "little")
-    first, second = head & (1 << 64) - 1, head >> 24  # opcode and length; the rest of the length and the channel
-    if (fields(records, 0, "<u8") == first).all() and (fields(records, 3, "<u8") == second).all():
-        return replace(records, uniform=True)
-    return None
-
-
-def _tiles(raw: np.ndarray, indexes: list[bytes]) -> tuple[dict[int, Records], list[tuple[int, int]]]:
-    """Each channel's message records in a decompressed chunk, and the gaps
-    between them (where the other records, schemas and channels, are),
-    checked to tile the chunk: no overlap, nothing outside it. Uniform runs
-    count as one extent each (a few, walked in Python); anything else is
-    checked record by record."""
-    by_channel = _indexed(raw, indexes)
-    uniform = {cid: _uniform(r, cid) for cid, r in by_channel.items()}
-    if all(r is not None for r in uniform.values()):
-        gaps, end = [], 0
-        for first, last in sorted((int(r.starts[0]), int(r.starts[0]) + r.step * r.count) for r in uniform.values() if r):
-            if first < end:
-                raise Unsupported("overlapping message records")
-            if first > end:
-                gaps.append((end, first))
-            end = last
-        if end > raw.size:
-            raise Unsupported("overlapping message records")
-        return {cid: r for cid, r in uniform.items() if r}, [*gaps, (end, raw.size)] if end < raw.size else gaps
-    starts = _ascending(np.concatenate([r.starts for r in by_channel.values()]))
-    every = Records(raw, starts, 0)
-    if np.any(fields(every, 0, "u1") != Opcode.MESSAGE):
-        raise Unsupported("message index points at something other than a message")
-    ends = starts + 9 + fields(every, 1, "<u8").astype(np.int64)
-    bounds = np.array([0, raw.size])  # the chunk's bounds as empty records
-    starts, ends = np.concatenate((bounds[:1], starts, bounds[1:])), np.concatenate((bounds[:1], ends, bounds[1:]))
-    if np.any(ends[:-1] > starts[1:]) or np.any(ends < starts):
-        raise Unsupported("overlapping message records")
-    gap = np.flatnonzero(ends[:-1] < starts[1:])
-    return by_channel, list(zip(ends[gap].tolist(), starts[gap + 1].tolist()))
-
-
 def _decode(state: _State, raw: np.ndarray, by_channel: dict[int, Records], gaps: list[tuple[int, int]]) -> None:
     """Read the records in a chunk's ``gaps`` (schemas, channels) and decode
     the messages of the kept channels into their columns."""
@@ -312,6 +241,33 @@ def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
     return counts, chunk_bytes
 
 
+def _handovers(fh, state: _State, batch: _Batch) -> Iterator[bool]:
+    """Walk the file's top-level records, filling ``batch`` with chunks and
+    their message indexes, and registering schemas and channels outside
+    chunks. Yields when the batch is to be handed over: False when it is
+    full, True when a record outside chunks follows (or the file ends), so
+    that every chunk handed over before it must be decoded first."""
+    for opcode, offset, length in top_records(fh, state.where):
+        if opcode == Opcode.MESSAGE_INDEX and batch.chunks:
+            batch.chunks[-1][2].append(fh.read(length))
+            continue
+        body = fh.read(length) if opcode in (Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL) else b""
+        if opcode == Opcode.CHUNK and batch.fits(body):
+            batch.add(offset, body)
+            continue
+        if batch.chunks or opcode != Opcode.CHUNK:
+            yield opcode != Opcode.CHUNK
+        if opcode == Opcode.CHUNK:
+            batch.add(offset, body)
+        elif opcode == Opcode.SCHEMA:
+            state.schema(body)
+        elif opcode == Opcode.CHANNEL:
+            state.channel(body)
+        elif opcode == Opcode.MESSAGE:
+            raise Unsupported("messages outside chunks")
+    yield True
+
+
 def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) -> dict[str, DecodedTopic]:
     """Every channel by topic, with the messages of ``topics`` and of any Imu
     or JointState channel decoded into columns; chunks are decompressed and
@@ -330,27 +286,12 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
         with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
             mapper = map if pool is None else pool.map
             state = _State(where, topics, *_message_counts(fh, where))
-            for opcode, offset, length in top_records(fh, where):
-                if opcode == Opcode.MESSAGE_INDEX and batch.chunks:
-                    batch.chunks[-1][2].append(fh.read(length))
-                    continue
-                body = fh.read(length) if opcode in (Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL) else b""
-                if opcode == Opcode.CHUNK and batch.fits(body):
-                    batch.add(offset, body)
-                    continue
+            for barrier in _handovers(fh, state, batch):
                 if batch.chunks:
                     flight = _relay(state, batch, mapper, flight)
-                if opcode != Opcode.CHUNK:  # a record outside chunks comes after the chunks before it
+                if barrier:
                     flight, landing = None, flight
                     _land(landing)
-                if opcode == Opcode.CHUNK:
-                    batch.add(offset, body)
-                elif opcode == Opcode.SCHEMA:
-                    state.schema(body)
-                elif opcode == Opcode.CHANNEL:
-                    state.channel(body)
-                elif opcode == Opcode.MESSAGE:
-                    raise Unsupported("messages outside chunks")
     except (InputError, struct.error, ValueError) as exc:
         raise Unsupported(f"damaged MCAP ({exc})") from None
     for topic in state.keep.values():
@@ -411,26 +352,9 @@ def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: in
         with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
             mapper = map if pool is None else pool.map
             state = _State(where, topics, *_message_counts(fh, where))
-            for opcode, offset, length in top_records(fh, where):
-                if opcode == Opcode.MESSAGE_INDEX and batch.chunks:
-                    batch.chunks[-1][2].append(fh.read(length))
-                    continue
-                body = fh.read(length) if opcode in (Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL) else b""
-                if opcode == Opcode.CHUNK and batch.fits(body):
-                    batch.add(offset, body)
-                    continue
+            for _ in _handovers(fh, state, batch):
                 if batch.chunks:
                     yield land(state, mapper)
-                if opcode == Opcode.CHUNK:
-                    batch.add(offset, body)
-                elif opcode == Opcode.SCHEMA:
-                    state.schema(body)
-                elif opcode == Opcode.CHANNEL:
-                    state.channel(body)
-                elif opcode == Opcode.MESSAGE:
-                    raise Unsupported("messages outside chunks")
-            if batch.chunks:
-                yield land(state, mapper)
     except (InputError, struct.error, ValueError) as exc:
         raise Unsupported(f"damaged MCAP ({exc})") from None
     for channel_id, topic in state.keep.items():
