@@ -32,26 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from batch_e2e import _simulate  # noqa: E402  (the same datasets as the batch bench)
+
 KINDS = ("clean", "mix")
-
-
-def effects_of(seed: int, mix: bool) -> tuple[str, ...]:
-    """bench/batch_e2e.py's mix: seeds not a multiple of 3 carry one effect in turn."""
-    from rotcal.diagnose.scenarios import draw_effect
-    from rotcal.model.effects import names
-
-    if not mix or seed % 3 == 0:
-        return ()
-    catalogue = names()
-    return (draw_effect(catalogue[seed % len(catalogue)], np.random.default_rng([300, seed])),)
-
-
-def _simulate(args: tuple[int, Path, bool]) -> None:
-    from rotcal.simulate import SimulationSpec, simulate, write_dataset
-
-    seed, directory, mix = args
-    spec = SimulationSpec().with_effects(*effects_of(seed, mix))
-    write_dataset(simulate(spec, seed), spec, directory, "csv")
 
 
 def measure(root: Path, profile: bool) -> dict:
