@@ -23,10 +23,11 @@ import struct
 import threading
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from mcap.opcode import Opcode
@@ -241,6 +242,16 @@ def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
     return counts, chunk_bytes
 
 
+@contextmanager
+def _reading(path: Path, where: McapFile, topics: set[str], workers: int) -> Iterator[tuple[BinaryIO, Callable, _State]]:
+    """The open file, the map that decompresses and decodes chunks (a pool
+    of ``parallel.cores(workers)`` threads, or this thread for one), and the
+    state of the read, sized from the message index records."""
+    threads = cores(workers)
+    with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
+        yield fh, map if pool is None else pool.map, _State(where, topics, *_message_counts(fh, where))
+
+
 def _handovers(fh, state: _State, batch: _Batch) -> Iterator[bool]:
     """Walk the file's top-level records, filling ``batch`` with chunks and
     their message indexes, and registering schemas and channels outside
@@ -282,10 +293,7 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
     batch, flight = _Batch(), None
     where = McapFile(path, limits)
     try:
-        threads = cores(workers)
-        with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
-            mapper = map if pool is None else pool.map
-            state = _State(where, topics, *_message_counts(fh, where))
+        with _reading(path, where, topics, workers) as (fh, mapper, state):
             for barrier in _handovers(fh, state, batch):
                 if batch.chunks:
                     flight = _relay(state, batch, mapper, flight)
@@ -348,10 +356,7 @@ def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: in
         return decoded
 
     try:
-        threads = cores(workers)
-        with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
-            mapper = map if pool is None else pool.map
-            state = _State(where, topics, *_message_counts(fh, where))
+        with _reading(path, where, topics, workers) as (fh, mapper, state):
             for _ in _handovers(fh, state, batch):
                 if batch.chunks:
                     yield land(state, mapper)
