@@ -175,6 +175,17 @@ def summarise(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def run_cases(jobs: list[tuple], workdir: str, workers: int) -> tuple[list[dict], list[tuple]]:
+    """Every job's ``case`` on a pool of ``workers``, then ``twin_z`` for the
+    cases whose refined values stay beyond 3u: (results, twins)."""
+    with ProcessPoolExecutor(workers) as pool:
+        results = list(pool.map(case, jobs))
+        left = [r for r in results if r["biased"][3]]
+        twins = [(r["label"], r["seed"], t) for r, ts in zip(left, pool.map(twin_z, left, [workdir] * len(left)))
+                 for t in ts]
+    return results, twins
+
+
 def arguments(doc: str) -> argparse.ArgumentParser:
     """The options every diagnosis acceptance script takes."""
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])
@@ -189,11 +200,7 @@ def main() -> None:
     args = arguments(__doc__).parse_args()
     with tempfile.TemporaryDirectory() as workdir:
         jobs = scenarios(args.seeds, args.clean, workdir)
-        with ProcessPoolExecutor(args.workers) as pool:
-            results = list(pool.map(case, jobs))
-            left = [r for r in results if r["biased"][3]]
-            twins = [(r["label"], r["seed"], t) for r, ts in zip(left, pool.map(twin_z, left, [workdir] * len(left)))
-                     for t in ts]
+        results, twins = run_cases(jobs, workdir, args.workers)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     print(summarise(results))

@@ -17,14 +17,13 @@ from __future__ import annotations
 import json
 import sys
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from diagnosis_acceptance import arguments, case, summarise_refined, twin_z  # noqa: E402 (the script beside this one)
+from diagnosis_acceptance import arguments, run_cases, summarise_refined  # noqa: E402 (the script beside this one)
 
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE  # noqa: E402
 from rotcal.diagnose.scenarios import draw_effect  # noqa: E402
@@ -91,11 +90,7 @@ def main() -> None:
         jobs = [j for j in scenarios(args.seeds, args.clean, workdir, args.recording)
                 if (not args.only or j[0] in args.only)
                 and (not args.done_only or (Path(workdir) / f"{j[0]}_{j[1]}" / "out" / "intrinsic.parquet").is_file())]
-        with ProcessPoolExecutor(args.workers) as pool:
-            results = list(pool.map(case, jobs))
-            left = [r for r in results if r["biased"][3]]
-            twins = [(r["label"], r["seed"], t) for r, ts in zip(left, pool.map(twin_z, left, [workdir] * len(left)))
-                     for t in ts]
+        results, twins = run_cases(jobs, workdir, args.workers)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     print(f"Recording: {args.recording}, t, u, v, w only, no [plan] rates; effects tested: {', '.join(shown())}.")
