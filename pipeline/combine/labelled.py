@@ -19,7 +19,6 @@ and sqrt(3); Eq. 17 pairs the wrong terms and drops correlations).
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,22 +70,12 @@ def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
 
 def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:
     """The ok static and rotation segments of every rate, rates ordered by
-    magnitude (rate 0, the static result, first). The last fits table's are
-    kept (by identity, weakly): the reduction and the metrology tables ask
-    for the same table's up to three times in a row (3 ms a call)."""
-    last_fits, last = _LAST_RATE_SEGMENTS
-    if last_fits is not None and last_fits() is fits:
-        return [(rate, list(segments)) for rate, segments in last]
+    magnitude (rate 0, the static result, first)."""
     fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]))
     rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
     rate_of = dict(fitted.select("segment", "rate_hz").iter_rows())
     segments = segment_coefficients(fitted)  # once for all rates: a polars pass per rate cost 15 ms a dataset
-    by_rate = [(rate, [s for s in segments if rate_of[s.segment] == rate]) for rate in rates]
-    _LAST_RATE_SEGMENTS[:] = [weakref.ref(fits), by_rate]
-    return [(rate, list(segments)) for rate, segments in by_rate]
-
-
-_LAST_RATE_SEGMENTS: list = [None, []]  # a weak reference to the last fits table, its rate segments
+    return [(rate, [s for s in segments if rate_of[s.segment] == rate]) for rate in rates]
 
 
 def estimates_for(segments: list[SegmentCoefficients]) -> list[Estimate]:
