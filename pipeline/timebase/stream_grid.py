@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rotcal.timebase.check import Gaps, GridStats, TimebaseConfig, grid_findings
-from rotcal.timebase.grid import intervals
+from rotcal.timebase.grid import grid_residuals, intervals
 from rotcal.timebase.streamed import Repairer, Stamps, StreamedTimebase, replaced
 
 GATHER = 1 << 18  # values gathered and sorted to pick a rank
@@ -196,10 +196,6 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def _residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> np.ndarray:
-    return s - offset[run] - period * k  # grid.grid_residuals, element by element
-
-
 def _white_jitter(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray) -> float:
     """``grid.white_jitter``: the robust sd of successive residual differences
     within runs, over sqrt(2). The differences are computed once, kept in a
@@ -207,7 +203,7 @@ def _white_jitter(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarr
     with tempfile.TemporaryFile() as spill:
         n = 0
         for s, k, run, _ in _walked(stamps, slots):
-            step = np.diff(_residuals(s, k, run, period, offset))[run[1:] == run[:-1]]
+            step = np.diff(grid_residuals(s, k, run, period, offset))[run[1:] == run[:-1]]
             spill.write(step.tobytes())
             n += step.size
         spill.flush()
@@ -266,7 +262,7 @@ def _statistics(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray
     slots two samples share, or slots going back within a run, raise ``_NotStreamed``."""
     sums = _Sums()
     for s, k, run, lead in _walked(stamps, slots):
-        r = _residuals(s, k, run, period, offset)
+        r = grid_residuals(s, k, run, period, offset)
         within = run[1:] == run[:-1]
         slot = k.astype(np.int64)
         if np.any(within & (slot[1:] <= slot[:-1])) or np.any(run[1:] < run[:-1]):
@@ -283,7 +279,7 @@ def _statistics(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray
     r_mean, k_mean = sums.r / sums.n, sums.k / sums.n
     x_mean, y_mean = sums.x / max(sums.pairs, 1), sums.y / max(sums.pairs, 1)
     for s, k, run, lead in _walked(stamps, slots):
-        r = _residuals(s, k, run, period, offset)
+        r = grid_residuals(s, k, run, period, offset)
         within = run[1:] == run[:-1]
         x, y = r[:-1][within] - x_mean, r[1:][within] - y_mean
         dr, dk = r[lead:] - r_mean, k[lead:] - k_mean
