@@ -46,14 +46,19 @@ class TableTrack:
         with_next = slice(begin, min(stop + 1, self.t_ns.size))
         axis, rate, angle, t_ns = self.axis[with_next], self.rate_hz[with_next], self.angle_deg[with_next], self.t_ns[with_next]
         k = stop - begin
-        span = np.diff(t_ns)
-        same_run = np.flatnonzero(((axis[1:] == axis[:-1]) & (rate[1:] == rate[:-1]))[:k])
+        span = np.diff(t_ns)  # to the next message, where there is one (all but possibly the last)
+        same_run = (axis[1:] == axis[:-1]) & (rate[1:] == rate[:-1])
         expected = 360.0 * rate[:-1] * span / 1e9
         increment = expected + (np.diff(angle) - expected + 180.0) % 360.0 - 180.0
-        p, q, r = 360.0 * rate[:k], np.full(k, 1e9), np.ones(k)
-        p[same_run], q[same_run], r[same_run] = 1.0, span[same_run], increment[same_run]
-        held = np.flatnonzero(rate[:k] == 0)
-        p[held], q[held], r[held] = 0.0, 1.0, -1.0
+        # the cases by masked copies, not index lists: a run covers nearly every message
+        p, q, r, m = 360.0 * rate[:k], np.full(k, 1e9), np.ones(k), span.size
+        np.copyto(p[:m], 1.0, where=same_run)
+        np.copyto(q[:m], span, where=same_run)
+        np.copyto(r[:m], increment, where=same_run)
+        held = rate[:k] == 0
+        np.copyto(p, 0.0, where=held)
+        np.copyto(q, 1.0, where=held)
+        np.copyto(r, -1.0, where=held)
         law = (axis[:k], rate[:k], angle[:k], t_ns[:k], p, q, r)
         if lo > 0:
             return law
