@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -68,19 +69,28 @@ class DecodedTopic:
             return {IMU_SCHEMA: "imu", JOINT_SCHEMA: "joint"}.get(self.schema.name, "other")
         return "other"
 
-    def add(self, part: dict[str, np.ndarray]) -> None:
-        """Copy one chunk's columns into the channel's arrays, allocated once
+    def add(self, part: dict[str, np.ndarray]) -> Callable[[], None]:
+        """Reserve one chunk's rows in the channel's arrays, allocated once
         for all its messages (counted from the message indexes), so no
-        column is ever held twice."""
+        column is ever held twice; returns the copy of ``part`` into them,
+        which may run after later chunks' ``add`` (chunks are added in file
+        order, then copied side by side on the pool's threads)."""
         if not self.columns:
             self.columns = {name: np.empty((self.capacity, *v.shape[1:]), v.dtype) for name, v in part.items()}
-        k = len(part["t_ns"])
+        k, start = len(part["t_ns"]), self._filled
         for name, values in part.items():
             column = self.columns[name]
             if column.shape[1:] != values.shape[1:] or column.dtype != values.dtype:
                 raise Unsupported("message layout changes between chunks")
-            column[self._filled : self._filled + k] = values
+            if start + k > len(column):
+                raise Unsupported("more messages than the message indexes count")
         self._filled += k
+        columns = self.columns
+
+        def copy() -> None:
+            for name, values in part.items():
+                columns[name][start : start + k] = values
+        return copy
 
     def add_json(self, log_ns: np.ndarray, lines: bytes) -> None:
         """Keep one chunk's JSON messages (one a line), parsed together at ``finish``."""
@@ -307,17 +317,22 @@ def _message_sizes(records: Records, channel_id: int, kind: str) -> np.ndarray:
     return sizes
 
 
-def decode_messages(topic: DecodedTopic, records: Records, channel_id: int, chunk_bytes: int) -> None:
+def decode_messages(topic: DecodedTopic, records: Records, channel_id: int, chunk_bytes: int) -> Callable[[], None]:
     """Add one channel's message ``records`` in a decompressed chunk (each a
     complete record, by ``mcap_fast``) to ``topic``; the chunks of the file
-    expand to ``chunk_bytes``."""
+    expand to ``chunk_bytes``. Returns the copy into the columns still to
+    make (``DecodedTopic.add``)."""
     sizes = _message_sizes(records, channel_id, topic.kind)
     # message indexes can claim any number of messages; the chunks hold no more than this many of this size
     topic.capacity = min(topic.capacity, chunk_bytes // (int(sizes[0]) + MESSAGE_HEADER))
     log_ns = fields(records, 15, "<i8")
     if topic.kind == "json":
         topic.add_json(log_ns.copy(), _json_lines(records.raw, records.starts + MESSAGE_HEADER, sizes))
-    elif topic.kind == "imu":
-        topic.add(_decode_imu(records.data(), int(sizes[0]), log_ns))
-    else:
-        topic.add(_decode_joint(records.data(), int(sizes[0]), log_ns))
+        return _nothing
+    if topic.kind == "imu":
+        return topic.add(_decode_imu(records.data(), int(sizes[0]), log_ns))
+    return topic.add(_decode_joint(records.data(), int(sizes[0]), log_ns))
+
+
+def _nothing() -> None:
+    """No copy left to make."""

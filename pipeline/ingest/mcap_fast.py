@@ -135,17 +135,20 @@ def _inflate(state: _State, job: _Job) -> None:
     """One chunk, on a pool thread: decompressed into the thread's buffer,
     CRC-checked and its records located (side by side with the other
     threads: zstd, crc32 and numpy's copies release the GIL), then decoded
-    into the topics' columns in file order (the schemas and channels a chunk
-    defines apply to the chunks after it). A failure anywhere marks the read
-    failed: later chunks skip their decoding."""
+    in file order (the schemas and channels a chunk defines apply to the
+    chunks after it; its rows in the columns are reserved), then its values
+    copied into their rows, side by side with the next chunk's decoding. A
+    failure anywhere marks the read failed: later chunks skip their decoding."""
     try:
         offset, body, indexes = job.chunk
         raw = state.buffer(_declared(body))
         chunk_data(body, offset, state.where, raw.data)
         by_channel, gaps = tiles(raw, indexes)
         job.previous.wait()
-        if not state.failed:
-            _decode(state, raw, by_channel, gaps)
+        copies = [] if state.failed else _decode(state, raw, by_channel, gaps)
+        job.decoded.set()  # the next chunk may be decoded while this one's columns are copied
+        for copy in copies:
+            copy()
     except BaseException:
         state.failed = True
         raise
@@ -195,9 +198,10 @@ def _land(flight: _Flight | None) -> None:
             pass
 
 
-def _decode(state: _State, raw: np.ndarray, by_channel: dict[int, Records], gaps: list[tuple[int, int]]) -> None:
+def _decode(state: _State, raw: np.ndarray, by_channel: dict[int, Records], gaps: list[tuple[int, int]]) -> list[Callable[[], None]]:
     """Read the records in a chunk's ``gaps`` (schemas, channels) and decode
-    the messages of the kept channels into their columns."""
+    the messages of the kept channels, their rows in the columns reserved;
+    returns the copies into them still to make."""
     defined_at = {}
     view = raw.data
     for lo, hi in gaps:
@@ -208,13 +212,15 @@ def _decode(state: _State, raw: np.ndarray, by_channel: dict[int, Records], gaps
                 state.schema(record)
             elif opcode == Opcode.CHANNEL and (cid := state.channel(record)) is not None:
                 defined_at[cid] = lo + pos
+    copies = []
     for channel_id, records in by_channel.items():
         topic = state.keep.get(channel_id)
         if topic is None or records.count == 0:
             continue  # the per-message path skips messages of channels it has not kept (yet)
         if records.starts[0] < defined_at.get(channel_id, -1):
             raise Unsupported("messages before their channel record")
-        decode_messages(topic, records, channel_id, state.chunk_bytes)
+        copies.append(decode_messages(topic, records, channel_id, state.chunk_bytes))
+    return copies
 
 
 def _message_index(body: bytes) -> tuple[int, int]:

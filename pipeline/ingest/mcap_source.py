@@ -87,10 +87,10 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
         raise InputError("the file is empty", path=path)
     topics = {meta.imu_topic, meta.table_topic}
     try:
-        return _capture(mcap_fast.read_topics(path, topics, limits, workers), path, meta, spec, fast=True)
+        return _capture(mcap_fast.read_topics(path, topics, limits, workers), path, meta, spec, workers, fast=True)
     except Unsupported:
         pass  # read again below, not in this handler: the exception's traceback holds the fast path's chunks
-    return _capture(read_records(path, topics, limits), path, meta, spec, fast=False)
+    return _capture(read_records(path, topics, limits), path, meta, spec, workers, fast=False)
 
 
 def chosen_topics(found: dict, path: Path, meta: DatasetMeta) -> tuple[str, str | None, tuple[str, ...]]:
@@ -110,7 +110,7 @@ def chosen_topics(found: dict, path: Path, meta: DatasetMeta) -> tuple[str, str 
     return imu_key, table_key, notes
 
 
-def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
+def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | None, workers: int, fast: bool) -> tuple[pl.DataFrame, tuple[str, ...]]:
     imu_key, table_key, notes = chosen_topics(found, path, meta)
     require(found[imu_key].schema, found[imu_key].channel, IMU_SCHEMA, path)
     frame = (_fast_imu_frame if fast else _imu_frame)(found[imu_key], path)
@@ -122,7 +122,7 @@ def _capture(found: dict, path: Path, meta: DatasetMeta, spec: CaptureSpec | Non
         # the track is a temporary, gone before label_columns builds the final columns
         require(found[table_key].schema, found[table_key].channel, JOINT_SCHEMA, path)
         make_track = fast_table_track if fast else table_track
-        frame = frame.hstack(table_labels(frame["t_ns"].to_numpy(), make_track(found[table_key], path)).get_columns())
+        frame = frame.hstack(table_labels(frame["t_ns"].to_numpy(), make_track(found[table_key], path), workers).get_columns())
         source = "table"
     for name in ("u", "v", "w"):
         values = frame[name].cast(pl.Float64)

@@ -7,6 +7,7 @@ both give the same track."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from rotcal.ingest.labels import MAX_ABS_TIME_S
 from rotcal.ingest.mcap_columns import NUMBER_FIELDS, TEXT_FIELDS, DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import MessageTopic, decoder
 from rotcal.model.physics import AXES, JOINT_SIGN
+from rotcal.parallel import cores
 
 
 @dataclass(frozen=True)
@@ -284,22 +286,32 @@ def map_table(t_ns: np.ndarray, law: tuple[np.ndarray, ...], first: np.ndarray) 
 _LABEL_BLOCK = 1 << 15  # a block's temporaries stay in the cache, and the heap reuses them
 
 
-def table_labels(t_ns: np.ndarray, track: TableTrack) -> pl.DataFrame:
+def table_labels(t_ns: np.ndarray, track: TableTrack, workers: int = 1) -> pl.DataFrame:
     """``map_table`` a block of samples at a time (a sample's labels depend
     only on its own time stamp), so its temporaries stay small (and fast:
-    in the cache, no fresh pages); ``t_ns``
+    in the cache, no fresh pages), the blocks shared out over
+    ``parallel.cores(workers)`` threads (numpy releases the GIL); ``t_ns``
     ascending (``labels.time_ordered``); ``axis`` as the sample table's Enum
     (one byte a sample). The columns are filled in place: blocks kept as
     chunks would pin the freed temporaries between them in the heap."""
     # the first sample under each entry of the law (none yet, then each message): one search a message
     first = np.concatenate(([0], np.searchsorted(t_ns, track.t_ns, side="left")))
     axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
-    for start in range(0, t_ns.size, _LABEL_BLOCK):
+
+    def label(start: int) -> None:
         block = slice(start, start + _LABEL_BLOCK)
         lo = int(np.searchsorted(first, start, side="right")) - 1  # the entry in force at the block's start
         hi = int(np.searchsorted(first, start + _LABEL_BLOCK, side="left"))
         under = np.maximum(first[lo:hi], start) - start
         axis[block], rate[block], angle[block] = map_table(t_ns[block], track.law(lo, hi), under)
+
+    starts = range(0, t_ns.size, _LABEL_BLOCK)
+    threads = min(cores(workers), len(starts))
+    if threads > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(label, starts))
+    else:
+        list(map(label, starts))
     return pl.DataFrame({
         "axis": pl.Series(np.ma.masked_array(axis.view(np.uint8), axis < 0)).cat.to(pl.Enum(AXES)),  # codes as they are
         "rate_hz": pl.Series(rate).fill_nan(None),
