@@ -76,7 +76,7 @@ class DecodedTopic:
         which may run after later chunks' ``add`` (chunks are added in file
         order, then copied side by side on the pool's threads)."""
         if not self.columns:
-            self.columns = {name: np.empty((self.capacity, *v.shape[1:]), v.dtype) for name, v in part.items()}
+            self.columns = _columns(self.capacity, part)
         k, start = len(part["t_ns"]), self._filled
         for name, values in part.items():
             column = self.columns[name]
@@ -109,6 +109,18 @@ class DecodedTopic:
         """The columns, handed over: the topic keeps no reference to them."""
         columns, self.columns = self.columns, {}
         return columns
+
+
+def _columns(rows: int, part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Columns of ``rows`` rows shaped as ``part``'s, carved out of one
+    block: over 4 MiB numpy asks the kernel for huge pages, so filling them
+    costs a few page faults where columns of their own took a fault every
+    4 KiB (about half the copying's time)."""
+    sizes = [rows * v.dtype.itemsize * int(np.prod(v.shape[1:])) for v in part.values()]
+    starts = np.cumsum([0, *(-(-size // 64) * 64 for size in sizes)])  # each column on a cache line of its own
+    block = np.empty(int(starts[-1]), np.uint8)
+    return {name: block[start : start + size].view(v.dtype).reshape((rows, *v.shape[1:]))
+            for (name, v), start, size in zip(part.items(), starts.tolist(), sizes)}
 
 
 @dataclass(frozen=True)
