@@ -10,8 +10,6 @@ then words the error)."""
 from __future__ import annotations
 
 import struct
-from dataclasses import replace
-
 import numpy as np
 from mcap.opcode import Opcode
 
@@ -48,14 +46,14 @@ def uniform_run(records: Records, channel_id: int) -> Records | None:
     """``records`` marked uniform if they are messages of ``channel_id``,
     each ``step`` bytes, back to back (a writer's run of one channel's
     messages of one size): two strided reads of eight bytes a record."""
-    if records.count == 1:
-        records = replace(records, step=9 + int(fields(records, 1, "<u8")[0]))
-    if not MESSAGE_HEADER <= records.step <= records.raw.size:
+    step = records.step if records.count > 1 else 9 + int(fields(records, 1, "<u8")[0])
+    if not MESSAGE_HEADER <= step <= records.raw.size:
         return None
-    head = int.from_bytes(_MESSAGE_HEAD.pack(Opcode.MESSAGE, records.step - 9, channel_id), "little")
+    records = Records(records.raw, records.starts, step)
+    head = int.from_bytes(_MESSAGE_HEAD.pack(Opcode.MESSAGE, step - 9, channel_id), "little")
     first, second = head & (1 << 64) - 1, head >> 24  # opcode and length; the rest of the length and the channel
     if (fields(records, 0, "<u8") == first).all() and (fields(records, 3, "<u8") == second).all():
-        return replace(records, uniform=True)
+        return Records(records.raw, records.starts, step, uniform=True)
     return None
 
 

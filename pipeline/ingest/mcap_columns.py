@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -154,12 +154,15 @@ class Records:
 
     def data(self) -> Records:
         """The same records, fields counted from the message data."""
-        return replace(self, skip=self.skip + MESSAGE_HEADER)
+        return Records(self.raw, self.starts, self.step, self.skip + MESSAGE_HEADER, self.uniform)
 
     def first(self, size: int) -> bytes:
         """The first record's ``size`` bytes (from ``skip``)."""
         start = int(self.starts[0]) + self.skip
         return self.raw[start : start + size].tobytes()
+
+
+_DTYPES: dict[str, np.dtype] = {}  # by their names: np.dtype("<u4") costs more than the view it describes
 
 
 def fields(records: Records, offset: int, dtype: str, count: int = 1) -> np.ndarray:
@@ -168,7 +171,7 @@ def fields(records: Records, offset: int, dtype: str, count: int = 1) -> np.ndar
     are evenly spaced (a channel's run of messages of one size), else gathered
     through a view with a row at every byte; no record is copied whole, so
     each value is copied once, into its column (``DecodedTopic.add``)."""
-    kind, raw, starts = np.dtype(dtype), records.raw, records.starts
+    kind, raw, starts = _DTYPES.get(dtype) or _DTYPES.setdefault(dtype, np.dtype(dtype)), records.raw, records.starts
     width = kind.itemsize * count
     shape = (starts.size,) if count == 1 else (starts.size, count)
     if starts.size == 0 or width == 0:
@@ -189,7 +192,7 @@ def _stamp_or_log(data: Records, stamp_offset: int, log_ns: np.ndarray) -> np.nd
 
 
 def _check_cdr(data: Records) -> None:
-    if np.any(fields(data, 0, "<u4") != _CDR_LE):
+    if (fields(data, 0, "<u4") != _CDR_LE).any():
         raise Unsupported("CDR messages in another byte order")
 
 
@@ -199,7 +202,7 @@ def _decode_imu(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.nd
         raise Unsupported("Imu message shorter than its header")
     lay = imu_layout(int.from_bytes(data.first(16)[12:], "little"))
     _check_cdr(data)
-    if size != lay.size or np.any(fields(data, 12, "<u4") != lay.frame_id_len):
+    if size != lay.size or (fields(data, 12, "<u4") != lay.frame_id_len).any():
         raise Unsupported("Imu frame_id of varying length")
     acc = fields(data, lay.linear_acceleration, "<f8", 3)
     return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
@@ -237,7 +240,7 @@ def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.
     if size != lay.size:
         raise Unsupported("JointState messages of varying layout")
     _check_cdr(data)
-    if any(np.any(fields(data, o, "<u4") != v) for o, v in lay.counts):
+    if any((fields(data, o, "<u4") != v).any() for o, v in lay.counts):
         raise Unsupported("JointState messages of varying layout")
     n_vel = shape[2]
     names = np.column_stack([fields(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
