@@ -294,16 +294,18 @@ def table_labels(t_ns: np.ndarray, track: TableTrack, workers: int = 1) -> pl.Da
     ascending (``labels.time_ordered``); ``axis`` as the sample table's Enum
     (one byte a sample). The columns are filled in place: blocks kept as
     chunks would pin the freed temporaries between them in the heap."""
-    # the first sample under each entry of the law (none yet, then each message): one search a message
-    first = np.concatenate(([0], np.searchsorted(t_ns, track.t_ns, side="left")))
     axis, rate, angle = np.empty(t_ns.size, np.int8), np.empty(t_ns.size), np.empty(t_ns.size)
 
     def label(start: int) -> None:
         block = slice(start, start + _LABEL_BLOCK)
-        lo = int(np.searchsorted(first, start, side="right")) - 1  # the entry in force at the block's start
-        hi = int(np.searchsorted(first, start + _LABEL_BLOCK, side="left"))
-        under = np.maximum(first[lo:hi], start) - start
-        axis[block], rate[block], angle[block] = map_table(t_ns[block], track.law(lo, hi), under)
+        t_block = t_ns[block]
+        # the entries of the law in force over the block (entry k: k messages at or before the stamp)
+        lo, hi = (int(k) for k in np.searchsorted(track.t_ns, t_block[[0, -1]], side="right") + (0, 1))
+        # the first sample of the block under each: one search a message, within the block
+        under = np.searchsorted(t_block, track.t_ns[max(lo - 1, 0) : hi - 1], side="left")
+        if lo == 0:
+            under = _after(0, under)
+        axis[block], rate[block], angle[block] = map_table(t_block, track.law(lo, hi), under)
 
     starts = range(0, t_ns.size, _LABEL_BLOCK)
     threads = min(cores(workers), len(starts))
