@@ -188,7 +188,7 @@ def _stamp_or_log(data: Records, stamp_offset: int, log_ns: np.ndarray) -> np.nd
     t_ns = fields(data, stamp_offset, "<i4").astype(np.int64)
     t_ns *= 1_000_000_000
     t_ns += fields(data, stamp_offset + 4, "<u4")
-    return np.where(t_ns == 0, log_ns, t_ns)
+    return t_ns if t_ns.all() else np.where(t_ns == 0, log_ns, t_ns)  # stamps are rarely zero: one reduction, no mask
 
 
 def _check_cdr(data: Records) -> None:

@@ -12,6 +12,7 @@ sits at the same offset, so a block of messages is a strided array.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -38,6 +39,7 @@ class ImuLayout:
     linear_acceleration: int
 
 
+@lru_cache(maxsize=64)  # once per chunk: the layouts are few (bounded: a hostile file may vary them)
 def imu_layout(frame_id_len: int) -> ImuLayout:
     body = _align(12 + frame_id_len, 8)  # sec, nanosec, string length, string; then float64s
     return ImuLayout(
@@ -85,6 +87,7 @@ class JointLayout:
     counts: tuple[tuple[int, int], ...]
 
 
+@lru_cache(maxsize=64)
 def joint_layout(frame_id_len: int, name_lens: tuple[int, ...], n_velocity: int, n_effort: int) -> JointLayout:
     n = len(name_lens)
     counts = [(8, frame_id_len)]
