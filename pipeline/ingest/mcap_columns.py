@@ -69,27 +69,26 @@ class DecodedTopic:
             return {IMU_SCHEMA: "imu", JOINT_SCHEMA: "joint"}.get(self.schema.name, "other")
         return "other"
 
-    def add(self, part: dict[str, np.ndarray]) -> Callable[[], None]:
-        """Reserve one chunk's rows in the channel's arrays, allocated once
-        for all its messages (counted from the message indexes), so no
-        column is ever held twice; returns the copy of ``part`` into them,
-        which may run after later chunks' ``add`` (chunks are added in file
-        order, then copied side by side on the pool's threads)."""
+    def add(self, k: int, layout: Layout, values: Callable[[], dict[str, np.ndarray]]) -> Callable[[], None]:
+        """Reserve one chunk's ``k`` rows in the channel's arrays (of
+        ``layout``), allocated once for all its messages (counted from the
+        message indexes), so no column is ever held twice; returns the
+        checking and copying of the chunk's ``values`` into them, which may
+        run after later chunks' ``add`` (chunks are added in file order, then
+        checked and copied side by side on the pool's threads)."""
         if not self.columns:
-            self.columns = _columns(self.capacity, part)
-        k, start = len(part["t_ns"]), self._filled
-        for name, values in part.items():
-            column = self.columns[name]
-            if column.shape[1:] != values.shape[1:] or column.dtype != values.dtype:
-                raise Unsupported("message layout changes between chunks")
-            if start + k > len(column):
-                raise Unsupported("more messages than the message indexes count")
+            self.columns = _columns(self.capacity, layout)
+        start = self._filled
+        if {name: (c.dtype, c.shape[1:]) for name, c in self.columns.items()} != layout:
+            raise Unsupported("message layout changes between chunks")
+        if start + k > len(self.columns["t_ns"]):
+            raise Unsupported("more messages than the message indexes count")
         self._filled += k
         columns = self.columns
 
         def copy() -> None:
-            for name, values in part.items():
-                columns[name][start : start + k] = values
+            for name, column in values().items():
+                columns[name][start : start + k] = column
         return copy
 
     def add_json(self, log_ns: np.ndarray, lines: bytes) -> None:
@@ -111,16 +110,19 @@ class DecodedTopic:
         return columns
 
 
-def _columns(rows: int, part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Columns of ``rows`` rows shaped as ``part``'s, carved out of one
+Layout = dict[str, tuple[np.dtype, tuple[int, ...]]]  # each column's type and the shape of its rows
+
+
+def _columns(rows: int, layout: Layout) -> dict[str, np.ndarray]:
+    """Columns of ``rows`` rows of ``layout``, carved out of one
     block: over 4 MiB numpy asks the kernel for huge pages, so filling them
     costs a few page faults where columns of their own took a fault every
     4 KiB (about half the copying's time)."""
-    sizes = [rows * v.dtype.itemsize * int(np.prod(v.shape[1:])) for v in part.values()]
+    sizes = [rows * dtype.itemsize * int(np.prod(shape)) for dtype, shape in layout.values()]
     starts = np.cumsum([0, *(-(-size // 64) * 64 for size in sizes)])  # each column on a cache line of its own
     block = np.empty(int(starts[-1]), np.uint8)
-    return {name: block[start : start + size].view(v.dtype).reshape((rows, *v.shape[1:]))
-            for (name, v), start, size in zip(part.items(), starts.tolist(), sizes)}
+    return {name: block[start : start + size].view(dtype).reshape((rows, *shape))
+            for (name, (dtype, shape)), start, size in zip(layout.items(), starts.tolist(), sizes)}
 
 
 @dataclass(frozen=True)
@@ -196,16 +198,26 @@ def _check_cdr(data: Records) -> None:
         raise Unsupported("CDR messages in another byte order")
 
 
-def _decode_imu(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """Imu messages of one ``size`` (``data``: their data) into columns."""
+_STAMP = np.dtype(np.int64)
+_IMU_LAYOUT: Layout = {"t_ns": (_STAMP, ()), "x": (np.dtype("<f8"), ()), "y": (np.dtype("<f8"), ()), "z": (np.dtype("<f8"), ())}
+
+
+def _decode_imu(data: Records, size: int, log_ns: np.ndarray) -> tuple[Layout, Callable[[], dict[str, np.ndarray]]]:
+    """Imu messages of one ``size`` (``data``: their data): the columns'
+    layout (from the first message) and their values, checked, when asked."""
     if size < 16:  # the encapsulation, the stamp and the frame_id length
         raise Unsupported("Imu message shorter than its header")
     lay = imu_layout(int.from_bytes(data.first(16)[12:], "little"))
-    _check_cdr(data)
-    if size != lay.size or (fields(data, 12, "<u4") != lay.frame_id_len).any():
+    if size != lay.size:
         raise Unsupported("Imu frame_id of varying length")
-    acc = fields(data, lay.linear_acceleration, "<f8", 3)
-    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+
+    def values() -> dict[str, np.ndarray]:
+        _check_cdr(data)
+        if (fields(data, 12, "<u4") != lay.frame_id_len).any():
+            raise Unsupported("Imu frame_id of varying length")
+        acc = fields(data, lay.linear_acceleration, "<f8", 3)
+        return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "x": acc[:, 0], "y": acc[:, 1], "z": acc[:, 2]}
+    return _IMU_LAYOUT, values
 
 
 def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
@@ -230,8 +242,9 @@ def _joint_shape(message: bytes) -> tuple[int, tuple[int, ...], int, int]:
     return frame_len, tuple(lens), counts[1], counts[2]
 
 
-def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.ndarray]:
-    """JointState messages of one ``size`` (``data``: their data) into columns."""
+def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> tuple[Layout, Callable[[], dict[str, np.ndarray]]]:
+    """JointState messages of one ``size`` (``data``: their data): the
+    columns' layout (from the first message) and their values, checked, when asked."""
     try:
         shape = _joint_shape(data.first(size))
     except struct.error:
@@ -239,14 +252,19 @@ def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.
     lay = joint_layout(*shape)
     if size != lay.size:
         raise Unsupported("JointState messages of varying layout")
-    _check_cdr(data)
-    if any((fields(data, o, "<u4") != v).any() for o, v in lay.counts):
-        raise Unsupported("JointState messages of varying layout")
-    n_vel = shape[2]
-    names = np.column_stack([fields(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
-    position = fields(data, lay.position, "<f8", len(lay.names)).reshape(data.count, -1)
-    velocity = fields(data, lay.velocity, "<f8", n_vel).reshape(data.count, n_vel)
-    return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
+    n_joints, n_vel = len(lay.names), shape[2]
+    layout: Layout = {"t_ns": (_STAMP, ()), "name": (np.dtype(f"S{max(lay.name_lens) - 1}"), (n_joints,)),
+                      "position": (np.dtype("<f8"), (n_joints,)), "velocity": (np.dtype("<f8"), (n_vel,))}
+
+    def values() -> dict[str, np.ndarray]:
+        _check_cdr(data)
+        if any((fields(data, o, "<u4") != v).any() for o, v in lay.counts):
+            raise Unsupported("JointState messages of varying layout")
+        names = np.column_stack([fields(data, o, f"S{k - 1}") for o, k in zip(lay.names, lay.name_lens)])
+        position = fields(data, lay.position, "<f8", n_joints).reshape(data.count, -1)
+        velocity = fields(data, lay.velocity, "<f8", n_vel).reshape(data.count, n_vel)
+        return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
+    return layout, values
 
 
 def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
@@ -319,9 +337,9 @@ def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
 
 def _message_sizes(records: Records, channel_id: int, kind: str) -> np.ndarray:
     """Each message's data size, checked: records of ``channel_id``, of one
-    size unless JSON."""
-    if records.uniform:
-        return np.full(records.count, records.step - MESSAGE_HEADER)
+    size unless JSON (of a uniform run of CDR messages, the one size only)."""
+    if records.uniform:  # one size: CDR reads the first only
+        return np.full(records.count if kind == "json" else 1, records.step - MESSAGE_HEADER)
     sizes = fields(records, 1, "<u8").astype(np.int64) - (MESSAGE_HEADER - 9)
     if np.any(sizes < 0):
         raise Unsupported("message record shorter than its header")
@@ -344,9 +362,8 @@ def decode_messages(topic: DecodedTopic, records: Records, channel_id: int, chun
     if topic.kind == "json":
         topic.add_json(log_ns.copy(), _json_lines(records.raw, records.starts + MESSAGE_HEADER, sizes))
         return _nothing
-    if topic.kind == "imu":
-        return topic.add(_decode_imu(records.data(), int(sizes[0]), log_ns))
-    return topic.add(_decode_joint(records.data(), int(sizes[0]), log_ns))
+    decode = _decode_imu if topic.kind == "imu" else _decode_joint
+    return topic.add(records.count, *decode(records.data(), int(sizes[0]), log_ns))
 
 
 def _nothing() -> None:

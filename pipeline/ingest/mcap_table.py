@@ -196,6 +196,8 @@ def _track(t_ns: np.ndarray, axis: np.ndarray, rate_hz: np.ndarray, angle_deg: n
     """Table messages in time order (stable), rates to the nearest nanohertz;
     rates and angles must be finite (in JSON, NaN marks one not given)."""
     for label, values in (("rate", rate_hz), ("angle", angle_deg)):
+        if cdr and values.size and np.isfinite(values.min()) and np.isfinite(values.max()):
+            continue  # two reductions, no mask: a NaN or an infinity is an extreme
         bad = ~np.isfinite(values) if cdr else np.isinf(values)
         if bad.any():
             k = int(bad.argmax())
