@@ -102,12 +102,12 @@ def test_fast_path_equals_per_message_path_on_the_real_jackal_file(monkeypatch):
     assert frame.height == 3061
 
 
-def _imu_file(path: Path, frame_ids: list[str], n_joints: int = 0) -> Path:
+def _imu_file(path: Path, frame_ids: list[str], n_joints: int = 0, chunk_size: int = 1024 * 1024) -> Path:
     """Imu messages with the given frame ids (a varying length forces the
     per-message path) and optionally a 3-joint table."""
     rng = np.random.default_rng(5)
     with path.open("wb") as fh:
-        writer = Ros2Writer(fh, compression=CompressionType.LZ4)
+        writer = Ros2Writer(fh, chunk_size=chunk_size, compression=CompressionType.LZ4)
         imu = writer.register_msgdef("sensor_msgs/msg/Imu", ros2_msgdefs.IMU)
         joint = writer.register_msgdef("sensor_msgs/msg/JointState", ros2_msgdefs.JOINT_STATE)
         for k, frame_id in enumerate(frame_ids):
@@ -133,6 +133,22 @@ def _imu_file(path: Path, frame_ids: list[str], n_joints: int = 0) -> Path:
 def test_three_joint_table_and_lz4_chunks_decode_alike(tmp_path, monkeypatch):
     frame = _both(monkeypatch, _imu_file(tmp_path / "joints.mcap", ["imu"] * 600, n_joints=3))
     assert set(frame["axis"].drop_nulls()) == {"x", "y", "z"}
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_many_chunks_on_several_threads_decode_alike(tmp_path, monkeypatch, workers):
+    """Chunks of a few kilobytes, both channels in each (records checked one
+    by one), decoded in file order and copied into their rows side by side
+    on the pool's threads: the per-message path's samples, row for row."""
+    path = _imu_file(tmp_path / "chunks.mcap", ["imu"] * 3000, n_joints=3, chunk_size=4096)
+    monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 64 * 1024)  # several batches in flight, one after the other
+    found = mcap_fast.read_topics(path, {"/imu"}, Limits(), workers)  # decodes, does not decline
+    assert found["/imu"].count == 3000 and found["/table/joint_states"].count == 1000
+    with monkeypatch.context() as m:
+        m.setattr(mcap_source, "read_records", None)  # no fallback: the samples are the fast path's
+        fast = mcap_source.read_mcap_capture(path, load_meta(None), None, Limits(), workers)
+    assert_frame_equal(fast[0], _per_message(monkeypatch, path, None)[0])
+    assert fast[0].height == 3000 and fast[0]["t_ns"].is_sorted()
 
 
 def test_unknown_layout_falls_back_with_identical_samples(tmp_path, monkeypatch):

@@ -55,9 +55,10 @@ def case():
     return np.sort(t_ns), track  # in time order, as ingest gives them
 
 
-def test_labels_follow_the_formulas_bit_for_bit(case):
+@pytest.mark.parametrize("workers", [1, 2, 3])  # the blocks shared out over threads
+def test_labels_follow_the_formulas_bit_for_bit(case, workers):
     t_ns, track = case
-    frame = table_labels(t_ns, track)
+    frame = table_labels(t_ns, track, workers)
     axis, rate, angle = _expected(t_ns, track)
     codes = frame["axis"].to_physical().fill_null(-1).to_numpy()
     np.testing.assert_array_equal(codes, axis)
@@ -65,3 +66,20 @@ def test_labels_follow_the_formulas_bit_for_bit(case):
     got = frame["angle_deg"].fill_null(np.nan).to_numpy()
     np.testing.assert_array_equal(got.view(np.int64), angle.view(np.int64))  # -0.0 held as -0.0
     assert np.isnan(got[:50]).all() and (np.signbit(got) & (got == 0)).any()
+
+
+@pytest.mark.parametrize("block", [3, 4, 1 << 15])
+def test_samples_on_message_times_take_the_last_message_at_that_time(monkeypatch, block):
+    """A sample stamped at a message's time is under that message (the last
+    of several at one time), also where a block of samples starts or ends
+    on it; distinct rates and axes make any other message visible."""
+    monkeypatch.setattr(mcap_table, "_LABEL_BLOCK", block)
+    track = TableTrack(np.array([10, 20, 20, 30, 40]), np.array([0, 1, 2, 0, 1], np.int8),
+                       np.array([0.5, 0.25, 0.125, 0.0, 2.0]), np.array([1.0, 2.0, 3.0, 4.0, 5.0]))
+    t_ns = np.array([5, 10, 15, 20, 20, 25, 30, 30, 35, 40, 45])
+    frame = table_labels(t_ns, track, 2)
+    axis, rate, angle = _expected(t_ns, track)
+    np.testing.assert_array_equal(frame["axis"].to_physical().fill_null(-1).to_numpy(), axis)
+    np.testing.assert_array_equal(frame["rate_hz"].fill_null(np.nan).to_numpy(), rate)
+    np.testing.assert_array_equal(frame["angle_deg"].fill_null(np.nan).to_numpy(), angle)
+    assert frame["rate_hz"].to_list()[3:5] == [0.125, 0.125]
