@@ -10,6 +10,7 @@ then words the error)."""
 from __future__ import annotations
 
 import struct
+
 import numpy as np
 from mcap.opcode import Opcode
 
