@@ -117,7 +117,7 @@ def _columns(rows: int, layout: Layout) -> dict[str, np.ndarray]:
     """Columns of ``rows`` rows of ``layout``, carved out of one
     block: over 4 MiB numpy asks the kernel for huge pages, so filling them
     costs a few page faults where columns of their own took a fault every
-    4 KiB (about half the copying's time)."""
+    4 KiB (most of the copying's time on the bench capture)."""
     sizes = [rows * dtype.itemsize * int(np.prod(shape)) for dtype, shape in layout.values()]
     starts = np.cumsum([0, *(-(-size // 64) * 64 for size in sizes)])  # each column on a cache line of its own
     block = np.empty(int(starts[-1]), np.uint8)
