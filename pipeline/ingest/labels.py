@@ -39,6 +39,11 @@ def time_ordered(frame: pl.DataFrame) -> pl.DataFrame:
     return frame.sort("t_ns", maintain_order=True)
 
 
+def nanoseconds(seconds: pl.Expr) -> pl.Expr:
+    """Times in seconds as int64 nanoseconds, by one rounding (half away from zero)."""
+    return (seconds * 1e9).round().cast(pl.Int64)
+
+
 def canonical_rate(rate: pl.Expr) -> pl.Expr:
     """Rates to the nearest nanohertz, so one plan rate compares equal whatever
     path (CSV text, a joint velocity in rad/s) it arrived by."""
@@ -121,7 +126,7 @@ def label_columns(
     check_values(frame, path)
     check_references(frame, path)
     if "t_ns" not in frame.columns:
-        frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
+        frame = frame.with_columns(t_ns=nanoseconds(pl.col("t")))
     back: list[int] | pl.Series = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
     if len(back):
         row = int(back[0])
