@@ -97,6 +97,16 @@ def test_what_the_joined_read_does_not_cover_goes_to_the_per_file_reader(dataset
     assert joined_calls[0] is None and rotation.name in str(caught.value)
 
 
+def test_a_step_back_beyond_the_range_of_a_difference_is_refused(tmp_path, joined_calls):
+    """From +9e9 s to -9e9 s: the difference of the stamps, -1.8e19 ns,
+    would wrap to a positive int64; the step back is still found."""
+    (tmp_path / "a.csv").write_text(HEADER + "3,1,2,3,x,0,0\n9e9,1,2,3,x,0,0\n-9e9,1,2,3,x,0,0\n5,1,2,3,x,0,0\n")
+    (tmp_path / "b.csv").write_text(HEADER + "4,1,2,3,x,0,0\n")  # before a.csv's end: the samples are sorted
+    with pytest.raises(InputError, match="a.csv: time goes backwards at row 3"):
+        load_dataset(tmp_path)
+    assert joined_calls[0] is None
+
+
 @pytest.fixture
 def dataset_copy(make_dataset, tmp_path):
     dst = tmp_path / "dut"

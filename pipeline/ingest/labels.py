@@ -179,7 +179,8 @@ def _canonical(axis: pl.Series) -> bool:
 
 def _check_time_order(t_ns: pl.Series, path: Path) -> None:
     """Refuse the first sample earlier than the one before it."""
-    back: list[int] | pl.Series = [] if t_ns.is_sorted() else t_ns.diff().lt(0).arg_true()
+    # compared with the one before, not differenced: a difference may pass 2^63 ns and wrap
+    back: list[int] | pl.Series = [] if t_ns.is_sorted() else (t_ns < t_ns.shift(1)).fill_null(False).arg_true()
     if len(back):
         row = int(back[0])
         raise InputError(f"time goes backwards at row {row + 1} ({t_ns[row] / 1e9:.6f} s after {t_ns[row - 1] / 1e9:.6f} s)",
