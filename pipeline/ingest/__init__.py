@@ -12,6 +12,7 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
+from rotcal.ingest.csv_joined import read_joined
 from rotcal.ingest.csv_source import read_csv_capture
 from rotcal.ingest.duplicates import distinct_captures
 from rotcal.ingest.files import require_regular
@@ -108,12 +109,16 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
     root = path if path.is_dir() else path.parent
     files = capture_files(path, meta)
     captures, copies = distinct_captures(files, root)
+    names = [Path(os.path.relpath(file.resolve(), root.resolve())).as_posix() for file, _ in captures]
+    inputs = tuple(f for f, _ in files) + (() if meta_path is None else (Path(meta_path),))
     frames, summaries, notes = [], {}, [*meta.notes, *(f"duplicate capture: {c!r} holds the same bytes as {o!r}: "
                                                        f"read once, {c!r} skipped" for c, o in copies)]
-    for file, spec in captures:
+    plain = read_joined(captures, names, meta.csv_format, limits)  # None: read capture by capture
+    if plain is not None:
+        frames.append(plain)
+    for (file, spec), name in zip(captures if plain is None else (), names):
         frame, capture_notes = read_capture(file, spec, meta, limits, workers)
         notes += capture_notes
-        name = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
         if MEANS[0] in frame.columns:
             summaries[name] = frame
         else:
@@ -121,7 +126,6 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
     if summaries and frames:
         raise InputError(f"{next(iter(summaries))!r} holds pose summaries and {frames[0]['capture'][0]!r} samples: "
                          "a dataset is one or the other", path=path)
-    inputs = tuple(f for f, _ in files) + (() if meta_path is None else (Path(meta_path),))
     if summaries:
         return Dataset(name=dataset_name(path), root=root, meta=meta, samples=schema("samples").empty(),
                        notes=tuple(notes), copies=copies, inputs=inputs, summaries=pl.concat(summaries.values()))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 from typing import BinaryIO
 
@@ -69,8 +70,8 @@ def _sample_lines(fh: BinaryIO, start: int, comment: str | None) -> list[bytes]:
     if len(text) == SNIFF_BYTES and len(lines) > 1:
         lines = lines[:-1]
     prefix = comment.encode() if comment else None
-    kept = [line.rstrip(b"\r") for line in lines if line.strip() and not (prefix and line.lstrip().startswith(prefix))]
-    return kept[:SNIFF_LINES]
+    kept = (line.rstrip(b"\r") for line in lines if line.strip() and not (prefix and line.lstrip().startswith(prefix)))
+    return list(islice(kept, SNIFF_LINES))  # stops at the last line kept: a sample holds thousands
 
 
 def _splits(sep: str, lines: list[bytes], header: bool) -> bool:

@@ -37,7 +37,7 @@ def _blocks(fh: BinaryIO) -> Iterator[bytes]:
         yield block
 
 
-def _lines_within(text: mmap.mmap, max_line_bytes: int) -> bool:
+def lines_within(text: mmap.mmap, max_line_bytes: int) -> bool:
     """Whether every whole span of ``(max_line_bytes + 2) // 2`` bytes, laid
     end to end from the file's start, holds a newline: a longer line would
     cover one such span, so then none is (a search per span, each stopping at
@@ -200,7 +200,7 @@ def read_csv_capture(path: Path, fmt: CsvFormat, spec: CaptureSpec | None, limit
             raise InputError("the file is empty", path=path)
         text = _mapped(fh)
         try:
-            if text is None or not _lines_within(text, limits.max_line_bytes):
+            if text is None or not lines_within(text, limits.max_line_bytes):
                 check_line_lengths(fh, path, limits.max_line_bytes)
             lay = layout(fh, fmt, path)
             source = _whitespace_to_commas(fh, lay.separator) if lay.whitespace else fh

@@ -39,6 +39,11 @@ def time_ordered(frame: pl.DataFrame) -> pl.DataFrame:
     return frame.sort("t_ns", maintain_order=True)
 
 
+def nanoseconds(seconds: pl.Expr) -> pl.Expr:
+    """Times in seconds as int64 nanoseconds, by one rounding (half away from zero)."""
+    return (seconds * 1e9).round().cast(pl.Int64)
+
+
 def canonical_rate(rate: pl.Expr) -> pl.Expr:
     """Rates to the nearest nanohertz, so one plan rate compares equal whatever
     path (CSV text, a joint velocity in rad/s) it arrived by."""
@@ -52,7 +57,8 @@ def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("
     columns possibly empty."""
     bounds = {name: MAX_ABS_VALUE for name in ("u", "v", "w")} | {"t": MAX_ABS_TIME_S}
     bounds |= {name: MAX_ABS_VALUE for name in (*OPTIONAL_FLOATS, *required) if name != "t"}
-    checked = [name for name in bounds if name in frame.columns and not _within(frame[name], bounds[name])]
+    within = _within(frame, bounds)
+    checked = [name for name in bounds if name in frame.columns and name not in within]
     if not checked:
         return
     first_bad = frame.select(
@@ -66,14 +72,21 @@ def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("
             raise InputError(f"column {name!r}, row {row + 1} {_fault(frame[name][row], bounds[name], name)}", path=path)
 
 
-def _within(values: pl.Series, bound: float) -> bool:
-    """True if a float column without nulls lies within ``±bound`` (its
-    extremes, two passes, no copy; NaN fails); False sends it to the row
-    by row search for the fault (as does any other column)."""
-    if values.dtype != pl.Float64 or values.null_count() or not len(values):
-        return False
-    array = values.to_numpy()
-    return bool(array.max() <= bound and array.min() >= -bound)
+def _within(frame: pl.DataFrame, bounds: dict[str, float]) -> set[str]:
+    """The float columns without nulls that lie within their ``±bound``, by
+    their extremes and their sum (which NaN makes NaN: the extremes skip
+    it), in one select of three passes per column without a copy, the
+    columns in parallel; any other column goes to the row by row search
+    for the fault."""
+    names = [name for name in bounds if name in frame.columns and frame.schema[name] == pl.Float64
+             and not frame[name].null_count()]
+    if not names or not frame.height:
+        return set()
+    stats = frame.select(pl.col(names).min().name.suffix(" min"), pl.col(names).max().name.suffix(" max"),
+                         pl.col(names).sum().name.suffix(" sum")).row(0)
+    lows, highs, totals = stats[:len(names)], stats[len(names):2 * len(names)], stats[2 * len(names):]
+    return {n for n, low, high, total in zip(names, lows, highs, totals)
+            if -bounds[n] <= low and high <= bounds[n] and math.isfinite(total)}
 
 
 def check_references(frame: pl.DataFrame, path: Path) -> None:
@@ -120,19 +133,13 @@ def label_columns(
     """
     check_values(frame, path)
     check_references(frame, path)
-    if "t_ns" not in frame.columns:
-        frame = frame.with_columns(t_ns=(pl.col("t") * 1e9).round().cast(pl.Int64))
-    back: list[int] | pl.Series = [] if frame["t_ns"].is_sorted() else frame["t_ns"].diff().lt(0).arg_true()
-    if len(back):
-        row = int(back[0])
-        raise InputError(
-            f"time goes backwards at row {row + 1} "
-            f"({frame['t_ns'][row] / 1e9:.6f} s after {frame['t_ns'][row - 1] / 1e9:.6f} s)",
-            path=path,
-        )
     labelled_in_file = "axis" in frame.columns or "rate_hz" in frame.columns
-    canonical = "axis" in frame.columns and (frame["axis"].is_in(AXES) | frame["axis"].is_null()).all()
-    if "axis" in frame.columns and not canonical:  # new strings only where some label needs it
+    relabel = "axis" in frame.columns and not _canonical(frame["axis"])
+    if relabel and "t_ns" not in frame.columns:  # the time check comes before the labels'
+        frame = frame.with_columns(t_ns=nanoseconds(pl.col("t")))
+    if "t_ns" in frame.columns:
+        _check_time_order(frame["t_ns"], path)
+    if relabel:  # new strings only where some label needs it
         frame = frame.with_columns(pl.col("axis").str.strip_chars().str.to_lowercase())
         bad = frame["axis"].is_not_null() & ~frame["axis"].is_in(AXES)
         if bad.any():
@@ -141,26 +148,48 @@ def label_columns(
                 f"unknown axis label {frame['axis'][row]!r} at row {row + 1} (expected x, y or z)", path=path
             )
     spec = spec or CaptureSpec(file=path.name)
-    fills = {"axis": spec.axis, "rate_hz": spec.rate_hz}
-    frame = frame.with_columns(
-        (pl.lit(value) if name not in frame.columns else pl.col(name).fill_null(value)).alias(name)
-        for name, value in fills.items()
-        if value is not None or name not in frame.columns
-    )
-    frame = frame.with_columns(pl.col("rate_hz").cast(pl.Float64))
+    axis, rate = _filled(frame, "axis", spec.axis), _filled(frame, "rate_hz", spec.rate_hz).cast(pl.Float64)
+    columns = {name: pl.col(name) if name in frame.columns else pl.lit(None, pl.Float64) for name in OPTIONAL_FLOATS}
+    t_ns = pl.col("t_ns") if "t_ns" in frame.columns else nanoseconds(pl.col("t"))  # computed with the others
     if "angle_deg" not in frame.columns and spec.theta0_deg is not None and spec.rate_hz is not None:
-        elapsed_s = (pl.col("t_ns") - pl.col("t_ns").first()).cast(pl.Float64) / 1e9
-        frame = frame.with_columns(angle_deg=spec.theta0_deg + 360.0 * spec.rate_hz * elapsed_s)
-    frame = frame.with_columns(
-        pl.lit(None, pl.Float64).alias(c) for c in OPTIONAL_FLOATS if c not in frame.columns
-    ).with_columns(rate_hz=canonical_rate(pl.col("rate_hz")))
+        elapsed_s = (t_ns - t_ns.first()).cast(pl.Float64) / 1e9
+        columns["angle_deg"] = spec.theta0_deg + 360.0 * spec.rate_hz * elapsed_s
     pose = pl.col("pose").str.strip_chars() if "pose" in frame.columns else pl.lit(None, pl.String)
-    has_labels = pl.col("axis").is_not_null() | pl.col("rate_hz").is_not_null()
+    has_labels = axis.is_not_null() | rate.is_not_null()
     source = label_source if labelled_in_file else ("toml" if spec.axis or spec.rate_hz is not None else None)
     all_labelled = frame.select(has_labels.all()).item()
-    frame = frame.with_columns(
-        pose=pl.when(pose.is_in(POSES)).then(pose).otherwise(None),
-        label_source=pl.lit(source, pl.String) if all_labelled else pl.when(has_labels).then(pl.lit(source, pl.String)).otherwise(None),
-        capture=pl.lit(spec.file),
-    )
-    return frame.select(pl.col(c).cast(t) for c, t in schema("samples").polars_schema.items())
+    columns |= {"capture": pl.lit(spec.file), "t_ns": t_ns, "u": pl.col("u"), "v": pl.col("v"), "w": pl.col("w"),
+                "axis": axis, "rate_hz": canonical_rate(rate), "pose": pl.when(pose.is_in(POSES)).then(pose).otherwise(None),
+                "label_source": pl.lit(source, pl.String) if all_labelled
+                else pl.when(has_labels).then(pl.lit(source, pl.String)).otherwise(None)}
+    # one select: the columns are computed in parallel, no intermediate table
+    samples = frame.select(columns[c].cast(t).alias(c) for c, t in schema("samples").polars_schema.items())
+    if "t_ns" not in frame.columns:
+        _check_time_order(samples["t_ns"], path)
+    return samples
+
+
+def _canonical(axis: pl.Series) -> bool:
+    """Whether every axis label is x, y, z or empty (by its type alone for
+    labels parsed into the sample table's Enum)."""
+    if isinstance(axis.dtype, pl.Enum) and set(axis.dtype.categories) <= set(AXES):
+        return True
+    return bool((axis.is_in(AXES) | axis.is_null()).all())
+
+
+def _check_time_order(t_ns: pl.Series, path: Path) -> None:
+    """Refuse the first sample earlier than the one before it."""
+    # compared with the one before, not differenced: a difference may pass 2^63 ns and wrap
+    back: list[int] | pl.Series = [] if t_ns.is_sorted() else (t_ns < t_ns.shift(1)).fill_null(False).arg_true()
+    if len(back):
+        row = int(back[0])
+        raise InputError(f"time goes backwards at row {row + 1} ({t_ns[row] / 1e9:.6f} s after {t_ns[row - 1] / 1e9:.6f} s)",
+                         path=path)
+
+
+def _filled(frame: pl.DataFrame, name: str, value: object) -> pl.Expr:
+    """Column ``name`` with ``value`` (a ``[[capture]]`` label) where it is empty, or
+    ``value`` alone where the capture has no such column."""
+    if name not in frame.columns:
+        return pl.lit(value)
+    return pl.col(name) if value is None else pl.col(name).fill_null(value)
