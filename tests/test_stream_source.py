@@ -27,19 +27,23 @@ from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
 from rotcal.simulate.streamed import write_streamed
-from rotcal.timebase import repair_timebase
+from rotcal.timebase import repair_timebase, stream_grid
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
 SPEC = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))  # 18,600 samples
 
 
-@pytest.fixture
-def small_batches(monkeypatch):
+@pytest.fixture(params=["histograms", "held"])
+def small_batches(monkeypatch, request):
     """Batches of a few chunks and stamps read back 1000 at a time, so that
-    a capture is many batches and its time base many blocks."""
+    a capture is many batches and its time base many blocks; the time
+    base's medians narrowed by histograms over passes (as for captures
+    past ``stream_grid.HELD``), or picked among the values held."""
     monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 100_000)
     monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
+    if request.param == "histograms":
+        monkeypatch.setattr(stream_grid, "HELD", 1000)
 
 
 NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
