@@ -149,21 +149,27 @@ class _Slots:
 
         def walk(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             last, run0_last, k0_last = carry
-            full = s if last is None else np.r_[last, s]
-            steps = intervals(full) / self.first_period  # as grid_slots: any advance is at least one slot
+            steps = np.empty(s.size)  # the intervals from the stamp before, in slots
+            steps[0] = 0.0 if last is None else float(s[0]) - float(last)
+            np.subtract(s[1:], s[:-1], out=steps[1:], dtype=np.float64)
+            steps /= self.first_period
             np.rint(steps, out=steps)
-            np.maximum(steps, 1.0, out=steps)
+            np.maximum(steps, 1.0, out=steps)  # as grid_slots: any advance is at least one slot
             if last is None:
-                steps = np.r_[0.0, steps]
-            run0 = run0_last + np.cumsum(steps >= 2)
-            k0 = k0_last + np.cumsum(steps)
-            carry[:] = [s[-1], int(run0[-1]), float(k0[-1])]
+                steps[0] = 0.0
+            jumps = steps >= 2
+            # a block within one run (most): its run's numbers taken once, not looked up a sample at a time
+            run0: np.ndarray | int = run0_last + np.cumsum(jumps) if jumps.any() else run0_last
             if self.grid is None:
-                base = k0
+                base = k0_last + np.cumsum(steps)  # whole numbers: exact in any order
+                k0_last = float(base[-1])
             else:
                 offset, period, gmap = self.grid
                 base = np.rint((s - offset[gmap[run0]]) / period)
-            return base + self.shift[run0], self.rmap[run0]
+                k0_last += float(steps.sum())
+            carry[:] = [s[-1], int(run0 if isinstance(run0, int) else run0[-1]), k0_last]
+            run = self.rmap[run0]
+            return base + self.shift[run0], run if isinstance(run0, np.ndarray) else np.full(s.size, run)
         return walk
 
 
@@ -177,8 +183,15 @@ def _walked(stamps: Stamps, slots: _Slots) -> Iterator[tuple[np.ndarray, np.ndar
         if previous is None:
             yield s, k, run, 0
         else:
-            yield np.r_[previous[0], s], np.r_[previous[1], k], np.r_[previous[2], run], 1
+            yield _led(previous[0], s), _led(previous[1], k), _led(previous[2], run), 1
         previous = (s[-1], k[-1], run[-1])
+
+
+def _led(first: np.generic, rest: np.ndarray) -> np.ndarray:
+    """``np.r_[first, rest]`` without its parsing of the arguments (thousands of blocks)."""
+    out = np.empty(rest.size + 1, rest.dtype)
+    out[0], out[1:] = first, rest
+    return out
 
 
 def _fit(stamps: Stamps, slots: _Slots, n_runs: int) -> tuple[float, np.ndarray]:
