@@ -35,9 +35,8 @@ def room_for(size: int) -> bool:
 
 
 class Spill:
-    """Columns of fixed types (``dtypes``: name to type; a column's rows
-    may be fixed-size rows of several values) appended batch by batch and
-    read back in pieces of rows, in the order written."""
+    """Columns of fixed types (``dtypes``: name to type) appended batch by
+    batch and read back in pieces of rows, in the order written."""
 
     def __init__(self, dtypes: dict[str, np.dtype]):
         self.dtypes = {name: np.dtype(d) for name, d in dtypes.items()}
