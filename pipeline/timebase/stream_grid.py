@@ -11,7 +11,9 @@ the blocks in turn is ``np.bincount``'s loop), so the means are the
 in-memory means bit for bit; the cross products come in another order
 (to rounding). The medians (first period, the robust jitter) are exact:
 a histogram of the values narrows each rank to one bin, whose values are
-then gathered (``_ranked``), each step one pass over the stamps.
+then gathered (``_ranked``), each step one pass over the stamps; up to
+``HELD`` values (a memory bound, not the capture's), all are gathered and
+partitioned in one pass.
 
 Captures with repeated stamps (duplicates, collisions to place) or whose
 slots would need a sort are left to the in-memory check (``None``).
