@@ -100,7 +100,7 @@ def run(dataset: Path, n: int, ways: dict[str, int | None]) -> None:
     import polars as pl
 
     rotcal = Path(sys.executable).with_name("rotcal")
-    cpu, outs = {}, []
+    cpu, wall, outs = {}, {}, []
     for name, above in ways.items():
         out = dataset.parent / f"run-{len(outs)}"
         config = ["--config", str(dataset.parent / "stream.toml")] if above is not None else []
@@ -110,8 +110,8 @@ def run(dataset: Path, n: int, ways: dict[str, int | None]) -> None:
                               check=True, capture_output=True, text=True)
         field = dict(line.strip().rsplit(": ", 1) for line in done.stderr.splitlines() if ": " in line)
         cpu[name] = float(field["User time (seconds)"]) + float(field["System time (seconds)"])
-        wall = sum(float(p) * 60 ** i for i, p in enumerate(reversed(field["Elapsed (wall clock) time (h:mm:ss or m:ss)"].split(":"))))
-        print(f"rotcal run, {name}: CPU {cpu[name] * 1e9 / n:,.0f} ns/sample ({cpu[name]:,.1f} s), wall {wall:,.1f} s, "
+        wall[name] = sum(float(p) * 60 ** i for i, p in enumerate(reversed(field["Elapsed (wall clock) time (h:mm:ss or m:ss)"].split(":"))))
+        print(f"rotcal run, {name}: CPU {cpu[name] * 1e9 / n:,.0f} ns/sample ({cpu[name]:,.1f} s), wall {wall[name]:,.1f} s, "
               f"peak resident {int(field['Maximum resident set size (kbytes)']) / 1024:,.0f} MB", flush=True)
         outs.append(out)
     if len(outs) == 2:
@@ -122,7 +122,8 @@ def run(dataset: Path, n: int, ways: dict[str, int | None]) -> None:
                 x, y = (np.array(f[c].explode().fill_null(np.nan).to_numpy(), float) for f in (a, b))
                 worst = max(worst, float(np.nanmax(np.abs(x - y), initial=0.0) / max(np.nanmax(np.abs(y), initial=0.0), 1e-300)))
         first, second = ways
-        print(f"rotcal run, {first} / {second}: CPU time per sample {cpu[first] / cpu[second]:.2f}x; "
+        print(f"rotcal run, {first} / {second}: CPU time per sample {cpu[first] / cpu[second]:.2f}x, "
+              f"wall time {wall[first] / wall[second]:.2f}x (the target: at most 1.00x); "
               f"largest difference between their tables {worst:.1e} of the column's largest value")
 
 

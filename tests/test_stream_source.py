@@ -24,22 +24,27 @@ from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import load_dataset, mcap_fast, mcap_source, stream
 from rotcal.ingest.meta import load_meta
+from rotcal.ingest.spill import Spill
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
 from rotcal.simulate.streamed import write_streamed
-from rotcal.timebase import repair_timebase
+from rotcal.timebase import repair_timebase, stream_grid
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
 SPEC = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))  # 18,600 samples
 
 
-@pytest.fixture
-def small_batches(monkeypatch):
+@pytest.fixture(params=["histograms", "held"])
+def small_batches(monkeypatch, request):
     """Batches of a few chunks and stamps read back 1000 at a time, so that
-    a capture is many batches and its time base many blocks."""
+    a capture is many batches and its time base many blocks; the time
+    base's medians narrowed by histograms over passes (as for captures
+    past ``stream_grid.HELD``), or picked among the values held."""
     monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 100_000)
     monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
+    if request.param == "histograms":
+        monkeypatch.setattr(stream_grid, "HELD", 1000)
 
 
 NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
@@ -110,6 +115,48 @@ def test_captures_with_time_base_defects(tmp_path, small_batches, defects):
     spec = SPEC.with_timebase(defects)
     directory = write_dataset(simulate(spec, 3), spec, tmp_path / "defects", "mcap-cdr", "dut")
     assert_streams_alike(directory, 777, bounded="drift" not in defects, grid_streamed="jitter_s=0.002" in defects)
+
+
+@pytest.mark.parametrize("room", [True, False])
+def test_the_capture_is_decoded_once(tmp_path, monkeypatch, room):
+    """The first pass keeps the decoded samples and table messages on disk:
+    the chunks are read once however many passes follow (three here), and
+    the passes give the in-memory samples. With too little free disk the
+    capture is decoded again on each pass (two readers: the DUT's channel
+    and the table's), with a note, and gives the same samples."""
+    directory = write_streamed(SPEC, 7, tmp_path / "clean", "dut")
+    ds, tb = in_memory(directory)
+    monkeypatch.setattr(stream, "room_for", lambda size: room)
+    reads = []
+    original = mcap_fast.iter_topic_batches
+    monkeypatch.setattr(mcap_fast, "iter_topic_batches", lambda *a, **k: reads.append(1) or original(*a, **k))
+    capture = open_stream(directory / "capture.mcap", ds.meta, block_samples=5000)
+    for _ in range(3):
+        assert_frame_equal(pl.concat(list(capture.blocks())), tb.samples.select(COLUMNS))
+    assert len(reads) == (1 if room else 1 + 3 * 2)
+    assert (stream.SPILL_NOTE in capture.notes) == (not room)
+    assert tuple(n for n in capture.notes if n != stream.SPILL_NOTE) == ds.notes
+
+
+def test_a_spill_gives_back_what_was_written():
+    """Batches of any length (none too), read back in pieces of any length: the same values, in order."""
+    rng = np.random.default_rng(4)
+    spill = Spill({"t_ns": np.int64, "axis": np.int8, "x": np.float64})
+    sizes = [0, 1, 999, 0, 4096, 17]
+    written = {"t_ns": rng.integers(-2**62, 2**62, sum(sizes)), "axis": rng.integers(-1, 3, sum(sizes)).astype(np.int8),
+               "x": rng.normal(size=sum(sizes))}
+    cuts = np.cumsum([0, *sizes])
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        spill.append({k: v[a:b] for k, v in written.items()})
+    assert spill.rows == sum(sizes)
+    for rows in (1, 7, 1000, 1 << 20):
+        pieces = list(spill.pieces(rows))
+        assert [p["x"].size for p in pieces[:-1]] == [rows] * (len(pieces) - 1) and 0 < pieces[-1]["x"].size <= rows
+        for k, v in written.items():
+            read = np.concatenate([p[k] for p in pieces])
+            assert read.dtype == v.dtype and np.array_equal(read, v), k
+    assert [list(p) for p in spill.pieces(4096, ("x",))] == [["x"], ["x"]]
+    spill.close()
 
 
 def _refusal(read) -> str:

@@ -7,13 +7,16 @@ a block at a time, with exactly the values ``load_dataset`` and
 An MCAP capture of CDR ``sensor_msgs/msg/Imu`` with an optional
 ``JointState`` table channel is read by ``mcap_fast.iter_topic_batches``
 a batch of chunks at a time. A first pass checks what the in-memory reader
-checks (topics, schemas, values, time order) and keeps only the stamps (in
-an anonymous temporary file: 8 bytes a sample on disk, none in memory);
-the time base is checked on them (``timebase.stream_grid``). Each pass
-of ``blocks()`` then follows the DUT channel and the table channel with
-two readers, the table's messages held for the time a block spans (the
-message in force at its first sample carried over, one past its last
-sample read ahead), and maps them onto the block's stamps with
+checks (topics, schemas, values, time order) and keeps the decoded
+columns on disk (``ingest.spill``: 32 bytes a sample, the table's messages
+as many a message, none in memory); the time base is checked on the
+stamps (``timebase.stream_grid``). Each pass of ``blocks()`` then reads
+the DUT's samples and the table's messages back from there (where the
+disk is short, it decompresses and decodes the capture again, following
+the two channels with two readers), the table's messages held for the
+time a block spans (the message in force at its first sample carried
+over, one past its last sample read ahead), and maps them onto the
+block's stamps with
 ``mcap_table.table_labels``'s rule (labels hold from the last message; angles
 interpolated within a run, extrapolated at the commanded rate past its
 end; docs/inputs.md, "Table channel").
@@ -28,13 +31,10 @@ one-line message for bad input, by construction.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import polars as pl
@@ -45,10 +45,12 @@ from rotcal.ingest import mcap_fast
 from rotcal.ingest.labels import MAX_ABS_VALUE, label_columns, time_ordered
 from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import require
+from rotcal.ingest.mcap_records import McapFile
 from rotcal.ingest.mcap_source import chosen_topics
 from rotcal.ingest.mcap_table import TableTrack, fast_table_track, table_labels
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.ingest.spill import Spill, room_for
 from rotcal.tables import conform
 from rotcal.timebase.check import TimebaseConfig, check_capture
 from rotcal.timebase.stream_grid import stream_grid
@@ -58,6 +60,10 @@ Blocks = Callable[[], Iterator[pl.DataFrame]]
 BLOCK_SAMPLES = 1 << 20
 COLUMNS = ("t_ns", "u", "v", "w", "axis", "rate_hz", "angle_deg")  # the columns blocks carry
 _STAMP_BLOCK = 1 << 16  # stamps read back a block at a time (the time base's temporaries: about 80 bytes a stamp)
+SAMPLE_COLUMNS = {"t_ns": np.int64, "x": np.float64, "y": np.float64, "z": np.float64}
+TABLE_COLUMNS = {"t_ns": np.int64, "axis": np.int8, "rate_hz": np.float64, "angle_deg": np.float64}
+SPILL_NOTE = ("decompressed and decoded again on each pass over the capture: too little free disk in the temporary "
+              "directory to keep its decoded samples (docs/streaming.md)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,7 +88,7 @@ class StreamedCapture:
     timebase: StreamedTimebase
     blocks: Blocks
     bounded: bool = True
-    _files: tuple = field(default=(), repr=False)  # the stamps' temporary file, closed with the capture
+    _files: tuple = field(default=(), repr=False)  # the spills (``ingest.spill``), removed with the capture
 
 
 class _InMemory(Exception):
@@ -97,7 +103,7 @@ class _Seen:
     last_ns: int = np.iinfo(np.int64).min
     ordered: bool = True
     refused: bool = False  # a value the in-memory reader refuses: it words the error
-    stamps: Any = None  # Imu: the stamps, int64, in a temporary file
+    spill: Spill | None = None  # Imu: the stamps (and the channels, when kept) on disk; table: its messages
     tie_at: list = field(default_factory=list)  # Imu: positions i with t[i + 1] == t[i], and i + 1
     tie_values: list = field(default_factory=list)
     previous: tuple = ()  # Imu: the last sample (t, x, y, z) of the batch before
@@ -114,12 +120,12 @@ class _Seen:
         self.count += t_ns.size
 
 
-def _samples_batch(seen: _Seen, c: dict[str, np.ndarray]) -> None:
+def _samples_batch(seen: _Seen, c: dict[str, np.ndarray], keep: bool) -> None:
     t_ns, xyz = c["t_ns"], [c["x"], c["y"], c["z"]]
     seen.refused |= any(not np.all(np.abs(a) <= MAX_ABS_VALUE) for a in xyz)  # NaN fails too
-    if seen.stamps is None:
-        seen.stamps = tempfile.TemporaryFile()
-    seen.stamps.write(np.ascontiguousarray(t_ns, np.int64).tobytes())
+    if seen.spill is None:
+        seen.spill = Spill(SAMPLE_COLUMNS if keep else {"t_ns": np.int64})
+    seen.spill.append(c)
     # repeated stamps: the values on both sides, for the duplicate check (the batch before's last sample too)
     t = np.r_[seen.previous[0], t_ns] if seen.previous else t_ns
     first = seen.count - (1 if seen.previous else 0)
@@ -133,7 +139,7 @@ def _samples_batch(seen: _Seen, c: dict[str, np.ndarray]) -> None:
     seen.ordered_from(t_ns)
 
 
-def _table_batch(seen: _Seen, topic: DecodedTopic, path: Path) -> TableTrack:
+def _table_batch(seen: _Seen, topic: DecodedTopic, path: Path, keep: bool) -> None:
     if topic.columns["position"].shape[1] != 1:
         raise _InMemory("a table of several joints: which joint moves depends on the message before")
     seen.ordered_from(topic.columns["t_ns"])
@@ -143,11 +149,28 @@ def _table_batch(seen: _Seen, topic: DecodedTopic, path: Path) -> TableTrack:
         raise _InMemory("table messages the in-memory reader refuses or reads message by message") from None
     seen.peak_angle_deg = max(seen.peak_angle_deg, float(np.abs(track.angle_deg).max()))
     seen.peak_rate_hz = max(seen.peak_rate_hz, float(np.abs(track.rate_hz).max()))
-    return track
+    if keep:
+        seen.spill = seen.spill or Spill(TABLE_COLUMNS)
+        seen.spill.append({name: getattr(track, name) for name in TABLE_COLUMNS})
 
 
-def _first_pass(path: Path, meta: DatasetMeta, limits: Limits, workers: int) -> tuple[dict, dict[str, _Seen]]:
-    """Every channel by topic, and what the first pass over the chunks learnt of the decoded ones."""
+def _room(path: Path, limits: Limits) -> bool:
+    """Whether the temporary directory holds the capture's decoded columns
+    (32 bytes a message of any channel, counted from the message indexes;
+    twice the file's size where they cannot be counted)."""
+    try:
+        with path.open("rb") as fh:
+            counts = mcap_fast._message_counts(fh, McapFile(path, limits))[0]
+        size = 32 * sum(counts.values())
+    except (Unsupported, InputError, OSError):
+        size = 2 * path.stat().st_size
+    return room_for(size)
+
+
+def _first_pass(path: Path, meta: DatasetMeta, limits: Limits, workers: int,
+                keep: bool) -> tuple[dict, dict[str, _Seen]]:
+    """Every channel by topic, and what the first pass over the chunks learnt
+    of the decoded ones (their columns kept on disk where ``keep``, else the stamps)."""
     seen: dict[str, _Seen] = {}
     batches = mcap_fast.iter_topic_batches(path, {meta.imu_topic, meta.table_topic}, limits, workers)
     try:
@@ -155,9 +178,9 @@ def _first_pass(path: Path, meta: DatasetMeta, limits: Limits, workers: int) -> 
             for name, topic in next(batches).items():
                 mine = seen.setdefault(name, _Seen())
                 if topic.kind == "imu":
-                    _samples_batch(mine, topic.take())
+                    _samples_batch(mine, topic.take(), keep)
                 elif topic.kind == "joint":
-                    _table_batch(mine, topic, path)
+                    _table_batch(mine, topic, path, keep)
                 else:
                     raise _InMemory(f"topic {name!r}: JSON messages")
     except StopIteration as done:
@@ -168,13 +191,11 @@ def _first_pass(path: Path, meta: DatasetMeta, limits: Limits, workers: int) -> 
 
 def _stamps(seen: _Seen) -> Callable[[], Iterator[np.ndarray]]:
     """The capture's stamps as written by the first pass, a block at a time."""
-    seen.stamps.flush()
-    fd = seen.stamps.fileno()
+    spill = seen.spill
+    assert spill is not None
 
     def blocks() -> Iterator[np.ndarray]:
-        for start in range(0, seen.count, _STAMP_BLOCK):
-            n = min(_STAMP_BLOCK, seen.count - start)
-            yield np.frombuffer(os.pread(fd, 8 * n, 8 * start), np.int64)
+        return (piece["t_ns"] for piece in spill.pieces(_STAMP_BLOCK, ("t_ns",)))
     return blocks
 
 
@@ -210,33 +231,48 @@ def _following(path: Path, topic: str, channel_id: int, limits: Limits, workers:
             yield batch[topic]
 
 
-def _raw_blocks(path: Path, found: dict, imu_key: str, table_key: str | None, limits: Limits, workers: int,
+def _sources(path: Path, found: dict, keys: tuple[str, str | None], seen: tuple[_Seen, _Seen | None], limits: Limits,
+             workers: int, block: int) -> tuple[Iterator[dict[str, np.ndarray]], Iterator[TableTrack] | None]:
+    """For one pass: the DUT's sample columns (t_ns, x, y, z) and the table's
+    messages (None without a table channel), read back from the first
+    pass's spills, or, where it kept only the stamps, decoded again."""
+    (imu_key, table_key), (imu, table) = keys, seen
+    assert imu.spill is not None
+    if "x" in imu.spill.dtypes:
+        tables = None if table is None or table.spill is None else \
+            (TableTrack(**piece) for piece in table.spill.pieces(block))  # a block's worth: the labels' temporaries
+        return imu.spill.pieces(block), tables
+    samples = (topic.take() for topic in _following(path, imu_key, found[imu_key].channel.id, limits, workers))
+    if table_key is None:
+        return samples, None
+    return samples, (fast_table_track(t, path) for t in _following(path, table_key, found[table_key].channel.id, limits,
+                                                                    workers))
+
+
+def _raw_blocks(samples: Iterator[dict[str, np.ndarray]], tables: Iterator[TableTrack] | None,
                 block: int) -> Iterator[pl.DataFrame]:
     """The DUT's samples (t_ns, u, v, w, and axis, rate_hz, angle_deg from
-    the table where it has one), ``block`` rows at a time, before the time base."""
-    samples = _following(path, imu_key, found[imu_key].channel.id, limits, workers)
-    tables = (fast_table_track(t, path) for t in _following(path, table_key, found[table_key].channel.id, limits, workers)) \
-        if table_key is not None else iter(())
-    track, more = None, table_key is not None
+    the table's messages where it has them), ``block`` rows at a time, before the time base."""
+    track, more = None, tables is not None
     pending: list[dict[str, np.ndarray]] = []
     held_rows = 0
-    for topic in chain(samples, [None]):  # None: the end, the rest is the last block
-        if topic is not None:
-            pending.append(topic.take())
-            held_rows += pending[-1]["t_ns"].size
+    for columns in chain(samples, [None]):  # None: the end, the rest is the last block
+        if columns is not None:
+            pending.append(columns)
+            held_rows += columns["t_ns"].size
             if held_rows < block:
                 continue
         joined = {k: np.concatenate([p[k] for p in pending]) for k in ("t_ns", "x", "y", "z")} if pending else None
         if joined is None:
             break
-        cut = joined["t_ns"].size if topic is None else block * (joined["t_ns"].size // block)
+        cut = joined["t_ns"].size if columns is None else block * (joined["t_ns"].size // block)
         rest = {k: v[cut:] for k, v in joined.items()}
         pending, held_rows = ([rest], rest["t_ns"].size) if rest["t_ns"].size else ([], 0)
         for a in range(0, cut, block):
             t_ns = joined["t_ns"][a : min(a + block, cut)]
             frame = pl.DataFrame({"t_ns": t_ns, "u": joined["x"][a : a + t_ns.size], "v": joined["y"][a : a + t_ns.size],
                                   "w": joined["z"][a : a + t_ns.size]})
-            if table_key is None:
+            if tables is None:
                 yield frame
                 continue
             while more and (track is None or track.t_ns.size == 0 or track.t_ns[-1] <= t_ns[-1]):
@@ -278,7 +314,8 @@ def _in_memory(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: 
 
 def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int, capture: str,
               config: TimebaseConfig, block: int) -> StreamedCapture:
-    found, seen = _first_pass(path, meta, limits, workers)
+    keep = _room(path, limits)
+    found, seen = _first_pass(path, meta, limits, workers, keep)
     imu_key, table_key, notes = chosen_topics(found, path, meta)
     # the in-memory reader's checks, in its order (mcap_source._capture)
     require(found[imu_key].schema, found[imu_key].channel, IMU_SCHEMA, path)
@@ -297,18 +334,23 @@ def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: L
             raise _InMemory("table messages out of time order, or labels the in-memory reader may refuse")
         source: str | None = "table"
     else:
-        table_key = None
+        table_key, table = None, None
         if spec is not None and spec.theta0_deg is not None and spec.rate_hz is not None:
             raise _InMemory("angles from [[capture]] theta0_deg: counted from the capture's first stamp")
         source = "toml" if spec is not None and (spec.axis or spec.rate_hz is not None) else None
     timebase = _timebase(imu, capture, config)
+    # the spills of the other channels are not read again
+    for other in (s.spill for s in seen.values() if s is not imu and s is not table):
+        if other is not None:
+            other.close()
 
     def blocks() -> Iterator[pl.DataFrame]:
         repair = timebase.repairer()
-        for frame in _raw_blocks(path, found, imu_key, table_key, limits, workers, block):
+        samples, tables = _sources(path, found, (imu_key, table_key), (imu, table), limits, workers, block)
+        for frame in _raw_blocks(samples, tables, block):
             yield repair(_canonical(frame, spec, path, source or "file", capture))
-    return StreamedCapture(capture, timebase.n_kept, source, meta.angle_source, notes, timebase, blocks,
-                           _files=(imu.stamps,))
+    return StreamedCapture(capture, timebase.n_kept, source, meta.angle_source, notes if keep else (*notes, SPILL_NOTE),
+                           timebase, blocks, _files=tuple(s.spill for s in (imu, table) if s is not None))
 
 
 def open_stream(path: Path, meta: DatasetMeta, spec: CaptureSpec | None = None, limits: Limits = Limits(),
