@@ -79,16 +79,22 @@ def _dtype(column: dict) -> pl.DataType:
     return _DTYPES[column["type"]]
 
 
+def _require_columns(frame: pl.DataFrame, name: str) -> TableSchema:
+    """Contract ``name``, which ``frame`` has every column of; else ``KeyError`` naming the missing ones."""
+    sch = schema(name)
+    missing = [c for c in sch.columns if c not in frame.columns]
+    if missing:
+        raise KeyError(f"table {name!r} lacks columns {missing}")
+    return sch
+
+
 def conform(frame: pl.DataFrame, name: str) -> pl.DataFrame:
     """Select and cast ``frame``'s columns to the contract ``name``, in its order.
 
     Raises ``KeyError`` naming the missing columns: a missing column is a
     programming error, not a user's.
     """
-    sch = schema(name)
-    missing = [c for c in sch.columns if c not in frame.columns]
-    if missing:
-        raise KeyError(f"table {name!r} lacks columns {missing}")
+    sch = _require_columns(frame, name)
     return frame.select(pl.col(c).cast(t, strict=True) for c, t in zip(sch.columns, sch.dtypes))
 
 
@@ -99,17 +105,6 @@ def parquet_metadata(name: str) -> dict[bytes, bytes]:
         b"rotcal.schema_version": sch.version.encode(),
         b"rotcal.version": __version__.encode(),
     }
-
-
-def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
-    """Every NaN or infinite float published as null (missing): nothing
-    non-finite is ever published. Where a column means something by it
-    (infinite degrees of freedom), its schema description says so."""
-    floats = [c for c, dtype in frame.schema.items() if dtype in (pl.Float64, pl.Float32)]
-    lists = [c for c, dtype in frame.schema.items() if isinstance(dtype, pl.List) and dtype.inner in (pl.Float64, pl.Float32)]
-    finite = pl.when(pl.element().is_finite()).then(pl.element())  # a failed fit's covariance: NaN elements
-    return frame.with_columns(*(pl.when(pl.col(c).is_finite()).then(pl.col(c)).otherwise(None).alias(c) for c in floats),
-                              *(pl.col(c).list.eval(finite).alias(c) for c in lists))
 
 
 def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
@@ -125,10 +120,35 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+@cache
+def _published_columns(name: str) -> tuple[pl.Expr, ...]:
+    """The one projection that publishes a frame as contract ``name``: each
+    column cast to its type (strictly), and every NaN or infinite float,
+    alone or a list's element (a failed fit's covariance), made null
+    (missing): nothing non-finite is ever published. Where a column means
+    something by it (infinite degrees of freedom), its schema description
+    says so. Built once a process per contract."""
+    sch = schema(name)
+    finite_element = pl.when(pl.element().is_finite()).then(pl.element())
+
+    def column(name: str, dtype: pl.DataType) -> pl.Expr:
+        cast = pl.col(name).cast(dtype, strict=True)
+        if dtype == pl.Float64:
+            return pl.when(cast.is_finite()).then(cast).otherwise(None).alias(name)
+        if isinstance(dtype, pl.List) and dtype.inner == pl.Float64:
+            return cast.list.eval(finite_element).alias(name)
+        return cast
+
+    return tuple(column(c, t) for c, t in zip(sch.columns, sch.dtypes))
+
+
 def contract_table(frame: pl.DataFrame, name: str) -> pa.Table:
-    """``frame`` as the Arrow table of contract ``name``: conformed, nothing
-    non-finite (``finite_or_null``), the schema named in its metadata."""
-    table = finite_or_null(conform(frame, name)).to_arrow()
+    """``frame`` as the Arrow table of contract ``name``: its columns in the
+    contract's order and types, nothing non-finite (``_published_columns``:
+    one pass), the schema named in its metadata. Raises ``KeyError`` naming
+    missing columns (a programming error)."""
+    _require_columns(frame, name)
+    table = frame.select(_published_columns(name)).to_arrow()
     return table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
 
 

@@ -19,8 +19,7 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-
-import pyarrow as pa
+from typing import TYPE_CHECKING
 
 from rotcal import __version__
 from rotcal.batch.manifest import now
@@ -30,6 +29,9 @@ from rotcal.errors import ConfigError, RotcalError
 from rotcal.parallel import cores, share
 from rotcal.report.publish import OutputDir
 from rotcal.tables import write_table
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 # -- one job, on a worker -------------------------------------------------------
 
@@ -54,6 +56,8 @@ class JobResult:
 def _as_read(field: pa.Field) -> pa.Field:
     """``field`` as a Parquet reader returns it: a list's items named
     ``element`` (the Parquet LIST convention) where Polars names them ``item``."""
+    import pyarrow as pa  # on workers only: the coordinating process never writes a table (0.3 s of its imports)
+
     if pa.types.is_large_list(field.type):
         return field.with_type(pa.large_list(field.type.value_field.with_name("element")))
     return field
@@ -62,6 +66,8 @@ def _as_read(field: pa.Field) -> pa.Field:
 def _write_part(table: pa.Table, part_path: Path, dataset_path: str) -> None:
     """The table as published, as read back, with ``dataset_path`` in front
     (schema ``batch_combined``): the parts of every run have one schema."""
+    import pyarrow as pa
+
     table = table.cast(pa.schema([_as_read(f) for f in table.schema], metadata=table.schema.metadata))
     table = table.add_column(0, pa.field("dataset_path", pa.string()), pa.array([dataset_path] * table.num_rows, pa.string()))
     write_table(table.replace_schema_metadata({**(table.schema.metadata or {}), b"rotcal.combined": b"batch_combined 1.0"}),
