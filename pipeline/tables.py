@@ -120,33 +120,38 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def _finite(column: pl.Expr, dtype: pl.DataType) -> pl.Expr:
+    """``column`` (of type ``dtype``) with every NaN or infinite float, alone
+    or a list's element (a failed fit's covariance), made null (missing);
+    other types as they are."""
+    if dtype in (pl.Float64, pl.Float32):
+        return pl.when(column.is_finite()).then(column).otherwise(None)
+    if isinstance(dtype, pl.List) and dtype.inner in (pl.Float64, pl.Float32):
+        return column.list.eval(pl.when(pl.element().is_finite()).then(pl.element()))
+    return column
+
+
+def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
+    """Every NaN or infinite float of ``frame`` published as null (missing):
+    nothing non-finite is ever published. Where a column means something by
+    it (infinite degrees of freedom), its schema description says so."""
+    return frame.with_columns(_finite(pl.col(c), dtype).alias(c) for c, dtype in frame.schema.items())
+
+
 @cache
 def _published_columns(name: str) -> tuple[pl.Expr, ...]:
     """The one projection that publishes a frame as contract ``name``: each
-    column cast to its type (strictly), and every NaN or infinite float,
-    alone or a list's element (a failed fit's covariance), made null
-    (missing): nothing non-finite is ever published. Where a column means
-    something by it (infinite degrees of freedom), its schema description
-    says so. Built once a process per contract."""
+    column cast to its type (strictly) and made finite or null
+    (``finite_or_null``). Built once a process per contract."""
     sch = schema(name)
-    finite_element = pl.when(pl.element().is_finite()).then(pl.element())
-
-    def column(name: str, dtype: pl.DataType) -> pl.Expr:
-        cast = pl.col(name).cast(dtype, strict=True)
-        if dtype == pl.Float64:
-            return pl.when(cast.is_finite()).then(cast).otherwise(None).alias(name)
-        if isinstance(dtype, pl.List) and dtype.inner == pl.Float64:
-            return cast.list.eval(finite_element).alias(name)
-        return cast
-
-    return tuple(column(c, t) for c, t in zip(sch.columns, sch.dtypes))
+    return tuple(_finite(pl.col(c).cast(t, strict=True), t).alias(c) for c, t in zip(sch.columns, sch.dtypes))
 
 
 def contract_table(frame: pl.DataFrame, name: str) -> pa.Table:
     """``frame`` as the Arrow table of contract ``name``: its columns in the
-    contract's order and types, nothing non-finite (``_published_columns``:
-    one pass), the schema named in its metadata. Raises ``KeyError`` naming
-    missing columns (a programming error)."""
+    contract's order and types, nothing non-finite (``finite_or_null``, in
+    the same pass: ``_published_columns``), the schema named in its
+    metadata. Raises ``KeyError`` naming missing columns (a programming error)."""
     _require_columns(frame, name)
     table = frame.select(_published_columns(name)).to_arrow()
     return table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
