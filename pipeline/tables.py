@@ -79,16 +79,22 @@ def _dtype(column: dict) -> pl.DataType:
     return _DTYPES[column["type"]]
 
 
+def _require_columns(frame: pl.DataFrame, name: str) -> TableSchema:
+    """Contract ``name``, which ``frame`` has every column of; else ``KeyError`` naming the missing ones."""
+    sch = schema(name)
+    missing = [c for c in sch.columns if c not in frame.columns]
+    if missing:
+        raise KeyError(f"table {name!r} lacks columns {missing}")
+    return sch
+
+
 def conform(frame: pl.DataFrame, name: str) -> pl.DataFrame:
     """Select and cast ``frame``'s columns to the contract ``name``, in its order.
 
     Raises ``KeyError`` naming the missing columns: a missing column is a
     programming error, not a user's.
     """
-    sch = schema(name)
-    missing = [c for c in sch.columns if c not in frame.columns]
-    if missing:
-        raise KeyError(f"table {name!r} lacks columns {missing}")
+    sch = _require_columns(frame, name)
     return frame.select(pl.col(c).cast(t, strict=True) for c, t in zip(sch.columns, sch.dtypes))
 
 
@@ -99,17 +105,6 @@ def parquet_metadata(name: str) -> dict[bytes, bytes]:
         b"rotcal.schema_version": sch.version.encode(),
         b"rotcal.version": __version__.encode(),
     }
-
-
-def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
-    """Every NaN or infinite float published as null (missing): nothing
-    non-finite is ever published. Where a column means something by it
-    (infinite degrees of freedom), its schema description says so."""
-    floats = [c for c, dtype in frame.schema.items() if dtype in (pl.Float64, pl.Float32)]
-    lists = [c for c, dtype in frame.schema.items() if isinstance(dtype, pl.List) and dtype.inner in (pl.Float64, pl.Float32)]
-    finite = pl.when(pl.element().is_finite()).then(pl.element())  # a failed fit's covariance: NaN elements
-    return frame.with_columns(*(pl.when(pl.col(c).is_finite()).then(pl.col(c)).otherwise(None).alias(c) for c in floats),
-                              *(pl.col(c).list.eval(finite).alias(c) for c in lists))
 
 
 def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
@@ -125,10 +120,40 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     return path
 
 
+def _finite(column: pl.Expr, dtype: pl.DataType) -> pl.Expr:
+    """``column`` (of type ``dtype``) with every NaN or infinite float, alone
+    or a list's element (a failed fit's covariance), made null (missing);
+    other types as they are."""
+    if dtype in (pl.Float64, pl.Float32):
+        return pl.when(column.is_finite()).then(column).otherwise(None)
+    if isinstance(dtype, pl.List) and dtype.inner in (pl.Float64, pl.Float32):
+        return column.list.eval(pl.when(pl.element().is_finite()).then(pl.element()))
+    return column
+
+
+def finite_or_null(frame: pl.DataFrame) -> pl.DataFrame:
+    """Every NaN or infinite float of ``frame`` published as null (missing):
+    nothing non-finite is ever published. Where a column means something by
+    it (infinite degrees of freedom), its schema description says so."""
+    return frame.with_columns(_finite(pl.col(c), dtype).alias(c) for c, dtype in frame.schema.items())
+
+
+@cache
+def _published_columns(name: str) -> tuple[pl.Expr, ...]:
+    """The one projection that publishes a frame as contract ``name``: each
+    column cast to its type (strictly) and made finite or null
+    (``finite_or_null``). Built once a process per contract."""
+    sch = schema(name)
+    return tuple(_finite(pl.col(c).cast(t, strict=True), t).alias(c) for c, t in zip(sch.columns, sch.dtypes))
+
+
 def contract_table(frame: pl.DataFrame, name: str) -> pa.Table:
-    """``frame`` as the Arrow table of contract ``name``: conformed, nothing
-    non-finite (``finite_or_null``), the schema named in its metadata."""
-    table = finite_or_null(conform(frame, name)).to_arrow()
+    """``frame`` as the Arrow table of contract ``name``: its columns in the
+    contract's order and types, nothing non-finite (``finite_or_null``, in
+    the same pass: ``_published_columns``), the schema named in its
+    metadata. Raises ``KeyError`` naming missing columns (a programming error)."""
+    _require_columns(frame, name)
+    table = frame.select(_published_columns(name)).to_arrow()
     return table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(name)})
 
 

@@ -71,3 +71,36 @@ def test_round_trip_and_refusals(tmp_path):
     path.write_text('{"schema": "calibration", "version": NaN}')
     with pytest.raises(InputError, match="not a rotcal calibration"):
         Calibration.read(path)
+
+
+@pytest.mark.parametrize("break_it", [
+    lambda d: d["rates"][0]["P"][0].update(std_uncertainty=-1e-9),  # u >= 0
+    lambda d: d["rates"][0]["O"][2].update(dof=0.0),  # dof > 0
+    lambda d: d["rates"][0]["Q"][1].update(coverage_factor=0.99),  # k >= 1
+    lambda d: d["rates"][0].update(frame="lab"),  # a frame the conventions do not name
+    lambda d: d["rates"][0]["parameters"][3].update(name="phi_uw"),
+    lambda d: d["rates"][0]["correction_covariance"][11].pop(),  # 12 x 12
+    lambda d: d["g_local"].update(value=0.0),
+    lambda d: d["inputs"][0].update(sha256="0" * 63),
+    lambda d: d.update(rates=[]),
+    lambda d: d.update(extra=1),
+])
+def test_write_refuses_what_the_schema_refuses(tmp_path, break_it, monkeypatch):
+    """The compiled check a run writes through (fastjsonschema) refuses each
+    document jsonschema's reading of schemas/calibration.json refuses, and
+    writes nothing then; the untouched document passes both."""
+    import fastjsonschema
+
+    rc = rate_calibration(_result(), "table", "baseline", "the papers' model", "bit")
+    cal = Calibration("demo", {"id": "dut-1"}, "bit", G, U_G, "dataset.toml [site]", ({"path": "a.csv", "bytes": 3, "sha256": "0" * 64},),
+                      {"fit": {}}, "0.0", "2026-11-24T00:00:00Z", (rc,))
+    good = cal.to_dict()
+    bad = json.loads(json.dumps(good))
+    break_it(bad)
+    from rotcal.model.calibration import _validator
+
+    assert _validator().is_valid(good) and not _validator().is_valid(bad)
+    monkeypatch.setattr(Calibration, "to_dict", lambda self: bad)
+    with pytest.raises(fastjsonschema.JsonSchemaException):
+        cal.write(tmp_path / "calibration.json")
+    assert not (tmp_path / "calibration.json").exists()

@@ -171,8 +171,16 @@ def runs(tmp_path_factory):
     for kind, path in data.items():
         out[kind] = root / kind
         run_dataset(path, out[kind])  # writes calibration.json and the certificate
+        shutil.copy(out[kind] / CERTIFICATE, root / f"{kind}_as_run.html")
         write_certificate(out[kind])
     return out
+
+
+@pytest.mark.parametrize("kind", ["table", "static", "unlabelled"])
+def test_the_run_draws_the_page_its_files_give(runs, kind):
+    """The run draws its certificate from the tables as it publishes them;
+    ``rotcal certificate`` reads them back from the files: the same page."""
+    assert (runs[kind].parent / f"{kind}_as_run.html").read_bytes() == (runs[kind] / CERTIFICATE).read_bytes()
 
 
 @pytest.mark.parametrize("kind", ["table", "static", "unlabelled"])
@@ -252,7 +260,7 @@ def test_bad_run_directories_are_one_line_errors(runs, tmp_path, cli):
 def test_the_run_publishes_it_last_when_calibration_json_is_there(runs, tmp_path):
     assert PUBLISH_ORDER[-1] == "certificate"
     item = certificate_output(replace(RunConfig(), report=replace(RunConfig().report, figures=False)))
-    assert item.draw(tmp_path) is None  # no calibration.json: nothing to certify
+    assert item.draw(tmp_path, {}) is None  # no calibration.json: nothing to certify
     shutil.copy(runs["static"] / "calibration.json", tmp_path)
-    path = item.draw(tmp_path)
+    path = item.draw(tmp_path, {})  # the tables this publish wrote: none
     assert path == tmp_path / CERTIFICATE and "<img" not in path.read_text()  # figures off: tables only

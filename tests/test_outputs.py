@@ -47,3 +47,21 @@ def test_nothing_non_finite_is_published(tmp_path):
     assert back["std_uncertainty"].to_list() == [0.1, 0.2, None]
     assert back["dof"].to_list() == [None, 5.0, 6.0]
     assert back["expanded_uncertainty"].to_list() == [0.2, 0.5, None]
+
+
+def test_non_finite_list_elements_are_published_as_null(tmp_path):
+    """A failed fit's covariance (list columns): each NaN or infinite
+    element null, the finite ones and the list's length kept; an integer
+    column given as floats is cast to its contract's type."""
+    import numpy as np
+
+    from rotcal.tables import schema as table_schema
+    from rotcal.tables import write_parquet
+
+    sch = table_schema("fits")
+    row = {c: None for c in sch.columns} | {"segment": 3.0, "dof": 7.0, "C": np.nan,
+                                              "cov_u": [1.0, np.nan, 2.0], "cov_v": [np.inf, -np.inf], "cov_w": []}
+    frame = pl.DataFrame([row], schema=sch.polars_schema | {"segment": pl.Float64, "dof": pl.Float64})
+    back = pl.read_parquet(write_parquet(frame, tmp_path / "fits.parquet", "fits"))
+    assert back.schema == pl.Schema(sch.polars_schema)
+    assert back.row(0, named=True) | {} == row | {"segment": 3, "dof": 7, "C": None, "cov_u": [1.0, None, 2.0], "cov_v": [None, None]}

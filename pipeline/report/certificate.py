@@ -12,10 +12,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Mapping
+from functools import cache
 from html import escape
 from importlib.resources import files
 from pathlib import Path
 from string import Template
+from typing import TYPE_CHECKING
 
 import polars as pl
 
@@ -25,6 +28,9 @@ from rotcal.model.results import EXPANDED_COVERAGE
 from rotcal.report.certificate_checks import main_contributions, norm_check, norm_summary
 from rotcal.report.rounding import gum_round, gum_text
 from rotcal.tables import atomic_write, schema
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 CERTIFICATE = "certificate.html"
 # the published tables the page reads, each where the run wrote it
@@ -259,30 +265,39 @@ def _sha256(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
-def render(run_dir: Path, figures: bool = True, written: bool = False) -> str:
+@cache
+def _page() -> Template:
+    """The page's template (``certificate.html``), read once a process."""
+    return Template(files("rotcal.report").joinpath(CERTIFICATE).read_text(encoding="utf-8"))
+
+
+def render(run_dir: Path, figures: bool = True, written: bool = False,
+           published: Mapping[str, pa.Table] | None = None) -> str:
     """The certificate page of the run in ``run_dir``; raises ``InputError``
     when it holds no readable ``calibration.json`` or an unreadable table.
     ``written``: the run itself has just written (and validated) that
-    ``calibration.json``, so it is read without validating it again (the
-    schema check is about 20 ms of a batch's 200 ms per dataset)."""
+    ``calibration.json``, so it is read without validating it again.
+    ``published``: the tables that run wrote into ``run_dir``, as it wrote
+    them (by name), taken instead of reading the files back."""
     run_dir = Path(run_dir)
     path = run_dir / "calibration.json"
     cal = Calibration.from_dict(json.loads(path.read_text(encoding="utf-8"))) if written else Calibration.read(path)
-    tables = read_tables(run_dir)
+    tables = read_tables(run_dir) if published is None else {
+        name: pl.DataFrame(published[name]) for name in TABLES if name in published}
     kind = run_kind(tables)
     sections = [identification(cal, kind), method(cal, kind), results(cal),
                 frequency_response(run_dir, tables, cal, figures), norm_section(tables, cal, figures),
                 diagnosis(run_dir, tables, cal, figures), budget(tables, cal),
                 traceability(cal, run_dir, [run_dir / "calibration.json", *(run_dir / f"{n}.parquet" for n in tables),
                                    *(_embedded(run_dir) if figures else [])])]
-    page = Template(files("rotcal.report").joinpath(CERTIFICATE).read_text(encoding="utf-8"))
-    return page.substitute(dataset=escape(cal.dataset), kind=escape(KINDS[kind]), version=escape(cal.rotcal_version),
+    return _page().substitute(dataset=escape(cal.dataset), kind=escape(KINDS[kind]), version=escape(cal.rotcal_version),
                            created=escape(cal.created_utc), sections="\n".join(sections))
 
 
-def write_certificate(run_dir: Path, figures: bool = True, written: bool = False) -> Path:
+def write_certificate(run_dir: Path, figures: bool = True, written: bool = False,
+                      published: Mapping[str, pa.Table] | None = None) -> Path:
     """Write ``certificate.html`` into ``run_dir`` (atomically) from its
-    published files (``written``: as ``render``)."""
+    published files (``written``, ``published``: as ``render``)."""
     path = Path(run_dir) / CERTIFICATE
-    text = render(Path(run_dir), figures, written)
+    text = render(Path(run_dir), figures, written, published)
     return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))

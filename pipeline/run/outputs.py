@@ -5,7 +5,7 @@ the one writer, ``publish``, in ``PUBLISH_ORDER``."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,6 +24,8 @@ from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.tables import contract_table, write_table
 
 if TYPE_CHECKING:
+    import pyarrow as pa
+
     from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.static import StaticDiagnosis
 
@@ -85,35 +87,51 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
     return outputs
 
 
-def certificate_output(config: RunConfig) -> Figure:
+@dataclass(frozen=True, eq=False)
+class View:
+    """A file drawn from what was published before it (the certificate):
+    ``draw`` gets the output directory and the tables published there, by
+    name, as written; it returns its path, or None when there is nothing to draw."""
+
+    name: str
+    draw: Callable[[Path, Mapping[str, pa.Table]], Path | None]
+
+
+def certificate_output(config: RunConfig) -> View:
     """The certificate (``report.certificate``), published last: a view of
     the files published before it, drawn when they include calibration.json."""
-    def draw(out: Path) -> Path | None:
+    def draw(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
         if not (out / "calibration.json").is_file():
             return None
         from rotcal.report.certificate import write_certificate
 
-        # calibration_output wrote and validated calibration.json in this same publish
-        return write_certificate(out, config.report.figures, written=True)
+        # calibration_output wrote and validated calibration.json in this same
+        # publish, and the tables are those just written: neither is read back
+        return write_certificate(out, config.report.figures, written=True, published=published)
 
-    return Figure("certificate", draw)
+    return View("certificate", draw)
 
 
-def publish(outputs: Sequence[Table | Figure], out: OutputDir) -> tuple[Path, ...]:
+def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[Path, ...]:
     """Publish what the run produced as the whole of ``out``, in
     ``PUBLISH_ORDER`` (an item it does not name after those it does): each
     table as Parquet under its schema (``tables.contract_table``; handed to
-    ``out.on_table`` too), each figure drawn, staged beside ``out``, listed
-    and swapped in (``report.publish``); the paths published."""
+    ``out.on_table`` too), each figure drawn, each view drawn from the
+    tables before it, staged beside ``out``, listed and swapped in
+    (``report.publish``); the paths published."""
+    published: dict[str, pa.Table] = {}
+
     def write(staging: Path) -> list[Path]:
         order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
         paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: order.get(o.name, len(order))))
         return [path for path in paths if path is not None]
 
-    def write_item(item: Table | Figure, staging: Path) -> Path | None:
+    def write_item(item: Table | Figure | View, staging: Path) -> Path | None:
         if isinstance(item, Figure):
             return item.draw(staging)
-        table = contract_table(item.data, item.name)
+        if isinstance(item, View):
+            return item.draw(staging, published)
+        table = published[item.name] = contract_table(item.data, item.name)
         if out.on_table is not None:
             out.on_table(item.name, table)
         return write_table(table, staging / f"{item.name}.parquet")
