@@ -37,6 +37,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.labelled import STATE, segment_input, units
+from rotcal.fit.normal import SineSums
 from rotcal.fit.segments import segment_rows
 from rotcal.fit.sinemodel import basis, normal_from, precision_from, residuals, solve
 from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
@@ -108,6 +109,12 @@ class SegmentSums:
     y_max: float
     kappa: None = None  # the commanded rate is trusted (three-parameter fits only)
 
+    @classmethod
+    def of_fit(cls, segment: int, axis: str, n: int, fit: SineSums) -> SegmentSums:
+        """The sums a segment's three-parameter fit left (``fit.segments``): an
+        in-memory run's, the same as a streamed run accumulates."""
+        return cls(segment, axis, n, fit.gram, fit.xty.T.copy(), fit.coef, fit.rtr, fit.y_max)
+
     def sums(self, coef: np.ndarray, beta: np.ndarray, kappa_index: int | None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """As ``SegmentSamples.sums``, on the basis's first three functions."""
@@ -117,13 +124,20 @@ class SegmentSums:
         return self.gram, self.zty - self.gram @ coef[:, :3].T, rtr, self.y_max
 
 
-def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool) -> list[SegmentSamples]:
-    """The ok segments of one rate with their samples, in segment order."""
-    ok = _ok(fits, rate_hz)
-    rows, out = segment_rows(samples), []
+def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool,
+                    sums: Mapping[int, SineSums] | None = None) -> list[SegmentSamples | SegmentSums]:
+    """The ok segments of one rate, in segment order: from the sums of their
+    three-parameter fits where ``sums`` holds them (the same normal
+    equations, without another pass over the samples), else with their samples."""
+    ok, sums = _ok(fits, rate_hz), sums or {}
+    rows, out = None, []
     for row in ok.iter_rows(named=True):
-        part = samples.slice(*rows[row["segment"]])
         rotating = four_parameter and row["kind"] == "rotation"
+        if not rotating and row["segment"] in sums:
+            out.append(SegmentSums.of_fit(row["segment"], row["axis"], row["n_samples"], sums[row["segment"]]))
+            continue
+        rows = segment_rows(samples) if rows is None else rows
+        part = samples.slice(*rows[row["segment"]])
         out.append(SegmentSamples(row["segment"], row["axis"], part["angle_deg"].to_numpy(),
                                   tuple(part[c].to_numpy() for c in CHANNELS),
                                   row["rate_fit_hz"] / row["rate_hz"] if rotating else None))
@@ -205,9 +219,10 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
 
 
 def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_uncertainty: float,
-                 four_parameter: bool = False) -> list[IntrinsicResult | Failure]:
-    """Every rate's simultaneous solution (rate 0, the static result, first)."""
-    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter), g_local, g_uncertainty)
+                 four_parameter: bool = False, sums: Mapping[int, SineSums] | None = None) -> list[IntrinsicResult | Failure]:
+    """Every rate's simultaneous solution (rate 0, the static result, first);
+    ``sums``: the three-parameter fits' sums by segment (``segment_samples``)."""
+    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter, sums), g_local, g_uncertainty)
             for rate in _rates(fits)]
 
 
