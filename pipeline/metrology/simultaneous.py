@@ -130,7 +130,7 @@ def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, f
     three-parameter fits where ``sums`` holds them (the same normal
     equations, without another pass over the samples), else with their samples."""
     ok, sums = _ok(fits, rate_hz), sums or {}
-    rows, out = None, []
+    rows, out = None, list[SegmentSamples | SegmentSums]()
     for row in ok.iter_rows(named=True):
         rotating = four_parameter and row["kind"] == "rotation"
         if not rotating and row["segment"] in sums:
