@@ -151,10 +151,11 @@ def _ok(fits: pl.DataFrame, rate_hz: float) -> pl.DataFrame:
 
 
 def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
-                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float]]:
     """One segment's normal equations at ``beta`` with the channel weight
-    matrix ``weight`` (``sinemodel``), and the weight its residuals give
-    (``precision``; computed here so that no segment's residuals are kept)."""
+    matrix ``weight`` (``sinemodel``), and its residual products R^T R with
+    the largest |y|, from which the weight its residuals give is computed
+    (``_precision``; returned so that no segment's residuals are kept)."""
     a = axis_index(seg.axis)
     coef, design = np.zeros((3, 5)), np.zeros((3, 5, n_params))
     for r in range(3):
@@ -164,7 +165,13 @@ def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int 
         if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
             design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
     gram, ze, rtr, y_max = seg.sums(coef, beta, kappa_index)
-    return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), precision_from(rtr, seg.n, y_max, 3))
+    return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), (rtr, y_max))
+
+
+def _precision(seg: SegmentSamples | SegmentSums, residual: tuple[np.ndarray, float]) -> np.ndarray:
+    """The channel weight of a segment's residuals (``sinemodel.precision_from``); unit for noise-free data."""
+    weight = precision_from(residual[0], seg.n, residual[1], 3)
+    return np.eye(3) if weight is None else weight
 
 
 def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
@@ -202,7 +209,7 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
                 break
         else:
             return Failure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
-        weights = [b[2] if b[2] is not None else np.eye(3) for b in blocks]
+        weights = [_precision(s, b[2]) for s, b in zip(segs, blocks)] if stage == 0 else weights
     transform = np.zeros((12, p))
     transform[:9, :9] = np.eye(9)
     var = np.diag(cov)
