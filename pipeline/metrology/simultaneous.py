@@ -126,12 +126,18 @@ class SegmentSums:
 
 def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool,
                     sums: Mapping[int, SineSums] | None = None) -> list[SegmentSamples | SegmentSums]:
-    """The ok segments of one rate, in segment order: from the sums of their
+    """The ok segments of one rate, in segment order (``_segments``)."""
+    return _segments(samples, _ok_by_rate(fits).get(rate_hz, []), four_parameter, sums)
+
+
+def _segments(samples: pl.DataFrame, ok: list[dict], four_parameter: bool,
+              sums: Mapping[int, SineSums] | None) -> list[SegmentSamples | SegmentSums]:
+    """The segments of the fits rows ``ok``: from the sums of their
     three-parameter fits where ``sums`` holds them (the same normal
     equations, without another pass over the samples), else with their samples."""
-    ok, sums = _ok(fits, rate_hz), sums or {}
+    sums = sums or {}
     rows, out = None, list[SegmentSamples | SegmentSums]()
-    for row in ok.iter_rows(named=True):
+    for row in ok:
         rotating = four_parameter and row["kind"] == "rotation"
         if not rotating and row["segment"] in sums:
             out.append(SegmentSums.of_fit(row["segment"], row["axis"], row["n_samples"], sums[row["segment"]]))
@@ -144,10 +150,15 @@ def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, f
     return out
 
 
-def _ok(fits: pl.DataFrame, rate_hz: float) -> pl.DataFrame:
-    """The fits of the ok segments of one rate, in segment order."""
-    return (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
-            .unique("segment", keep="first").sort("segment"))
+def _ok_by_rate(fits: pl.DataFrame) -> dict[float, list[dict]]:
+    """The ok static and rotation fits, one row a segment in segment order,
+    by rate; rates ordered by magnitude (rate 0, the static result, first)."""
+    ok = (fits.filter((pl.col("status") == "ok") & pl.col("kind").is_in(["static", "rotation"]))
+          .unique("segment", keep="first").sort("segment"))
+    by_rate: dict[float, list[dict]] = {}
+    for row in ok.iter_rows(named=True):
+        by_rate.setdefault(row["rate_hz"], []).append(row)
+    return {rate: by_rate[rate] for rate in sorted(by_rate, key=lambda r: (abs(r), r))}
 
 
 def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
@@ -228,22 +239,16 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
 def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_uncertainty: float,
                  four_parameter: bool = False, sums: Mapping[int, SineSums] | None = None) -> list[IntrinsicResult | Failure]:
     """Every rate's simultaneous solution (rate 0, the static result, first);
-    ``sums``: the three-parameter fits' sums by segment (``segment_samples``)."""
-    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter, sums), g_local, g_uncertainty)
-            for rate in _rates(fits)]
+    ``sums``: the three-parameter fits' sums by segment (``_segments``)."""
+    return [simultaneous_rate(rate, _segments(samples, ok, four_parameter, sums), g_local, g_uncertainty)
+            for rate, ok in _ok_by_rate(fits).items()]
 
 
 def simultaneous_from_sums(sums: Mapping[int, SegmentSums], fits: pl.DataFrame, g_local: float,
                            g_uncertainty: float) -> list[IntrinsicResult | Failure]:
     """``simultaneous`` of three-parameter segments from their sums (a streamed run's)."""
-    return [simultaneous_rate(rate, [sums[s] for s in _ok(fits, rate)["segment"].to_list()], g_local, g_uncertainty)
-            for rate in _rates(fits)]
-
-
-def _rates(fits: pl.DataFrame) -> list[float]:
-    """The rates of the ok static and rotation fits, rate 0 (the static result) first."""
-    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]) & (pl.col("status") == "ok"))
-    return sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
+    return [simultaneous_rate(rate, [sums[row["segment"]] for row in ok], g_local, g_uncertainty)
+            for rate, ok in _ok_by_rate(fits).items()]
 
 
 def simultaneous_frame(sim: list[IntrinsicResult], per_segment: list[IntrinsicResult], dataset: str, output_unit: str) -> pl.DataFrame:
