@@ -333,16 +333,14 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
 
 
 def capture_rows(capture: pl.Series, n_captures: int) -> list[slice | np.ndarray | None]:
-    """The rows of each capture in order of first appearance: None for the
-    whole table (one capture), a slice where each capture is one contiguous
-    run of rows (as ingest reads them, file after file), else its row numbers."""
+    """Each capture's rows, in order of first appearance: None (the one capture), slices where each
+    is one run of rows (as ingest reads them, file after file), else row numbers."""
     if n_captures == 1:
         return [None]
     code = capture.to_physical().to_numpy()
     edges = np.r_[0, np.flatnonzero(code[1:] != code[:-1]) + 1, code.size]
-    if edges.size - 1 == n_captures:
-        return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
-    return [np.flatnonzero(code == c) for c in capture.unique(maintain_order=True).to_physical().to_numpy()]
+    return ([slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])] if edges.size - 1 == n_captures
+            else [np.flatnonzero(code == c) for c in capture.unique(maintain_order=True).to_physical().to_numpy()])
 
 
 def classify_gaps(result: TimebaseResult, samples: pl.DataFrame, segments: pl.DataFrame) -> TimebaseResult:
