@@ -86,3 +86,29 @@ def test_a_wrong_model_makes_the_two_solutions_disagree(make_dataset):
     fast = frame.filter(frame["rate_hz"] == 0.5)
     assert np.abs(fast["difference_over_u"].to_numpy()).max() > 20
     assert np.abs(frame.filter(frame["rate_hz"] == 0.0)["difference_over_u"].to_numpy()).max() < 0.5  # static steps: exact angles
+
+
+@pytest.mark.parametrize("seed, spec", [(31, SimulationSpec()), (32, NOISE_FREE)])
+def test_the_fits_sums_give_the_solution_of_the_samples(make_dataset, seed, spec):
+    """An in-memory run solves its three-parameter segments from the sums
+    their fits left (``fit.normal.SineSums``) instead of passing over the
+    samples every iteration: the same normal equations, so the same solution
+    to rounding (and, noise-free, the truth)."""
+    from rotcal.fit import fit_segments
+    from rotcal.metrology.simultaneous import SegmentSums, segment_samples
+    from rotcal.segment import segment_by_labels
+
+    path = make_dataset(seed, spec=spec)
+    red, sim = _both(path)
+    data = red.data
+    samples, segments = segment_by_labels(data.samples, data.name, data.meta.angle_source)
+    sums = {f.segment: f.sums for f in fit_segments(samples, segments, FitConfig(), workers=1) if f.sums is not None}
+    assert all(isinstance(s, SegmentSums) for s in segment_samples(red.samples, red.fits, 0.1, False, sums))
+    from_sums = simultaneous(red.samples, red.fits, data.meta.g_local, data.meta.g_local_uncertainty, False, sums)
+    assert [r.rate_hz for r in from_sums] == [r.rate_hz for r in sim]
+    truth = np.array([truth_of(path)["intrinsic"][p] for p in INTRINSIC])
+    for a, b in zip(from_sums, sim):
+        np.testing.assert_allclose(a.value, b.value, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(a.std_uncertainty, b.std_uncertainty, rtol=1e-9, atol=1e-15)
+        if spec is NOISE_FREE:
+            np.testing.assert_allclose(a.value, truth, rtol=1e-10, atol=1e-9)

@@ -183,6 +183,28 @@ def test_repaired_table_keeps_rows_in_time_and_capture_order():
     assert out.findings.filter(pl.col("check") == "duplicated_samples").select("capture", "value").rows() == [("a.csv", 0.0), ("b.csv", 1.0)]
 
 
+def test_captures_one_after_another_are_repaired_each_on_its_own_rows():
+    """Captures whose rows follow one another (as ingest reads files) are
+    checked as runs of the table: a record written twice in the second is
+    dropped and its jittered stamps are replaced by its fitted grid, exactly
+    as when that capture is checked alone, and the first keeps its rows."""
+    import polars as pl
+
+    from rotcal.timebase.check import repair_timebase
+    a_t = 1_000_000_000 + np.arange(400) * PERIOD_NS
+    b_grid = a_t[-1] + 50 * PERIOD_NS + np.arange(500) * PERIOD_NS
+    b_t = b_grid + np.rint(np.random.default_rng(5).normal(0, 0.01 * PERIOD_NS, 500)).astype(np.int64)
+    b_t, b_u = np.insert(b_t, 10, b_t[9]), np.insert(-np.arange(500.0), 10, -9.0)  # record 9 written twice
+    both = pl.concat([_samples("a.csv", a_t, np.arange(400.0)), _samples("b.csv", b_t, b_u)])
+    out = repair_timebase(both, "ds").samples
+    alone = check_capture(b_t, [b_u, np.zeros(b_u.size), np.zeros(b_u.size)], "b.csv")
+    assert out.height == 900 and int(alone.keep.sum()) == 500
+    np.testing.assert_array_equal(out["t_ns"].to_numpy()[:400], a_t)
+    np.testing.assert_array_equal(out["t_ns"].to_numpy()[400:], alone.t_ns)
+    np.testing.assert_array_equal(out["u"].to_numpy()[400:], -np.arange(500.0))
+    assert np.ptp(np.diff(alone.t_ns)) <= 1 < np.ptp(np.diff(b_t[np.r_[0:10, 11:501]]))  # refit: on a regular grid
+
+
 def test_jitter_never_stamps_a_sample_before_the_logger_starts(cli, tmp_path):
     """Stamp jitter larger than the first samples' times would give negative
     stamps, which an MCAP log time cannot hold (rotcal simulate stopped with

@@ -19,6 +19,7 @@ rounding.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -85,3 +86,19 @@ def coefficient_covariance(rtr: np.ndarray, xtx_inv: np.ndarray, n: int) -> np.n
     """Sigma (x) (X^T X)^-1, channel-major, with Sigma = R^T R / (n - 3)."""
     k = rtr.shape[0]
     return (rtr[:, None, :, None] / max(n - 3, 1) * xtx_inv[None, :, None, :]).reshape(3 * k, 3 * k)
+
+
+@dataclass(frozen=True, eq=False)
+class SineSums:
+    """A three-parameter fit as sums over its segment: X^T X, X^T y (channel
+    x basis), the coefficients (channel x (C, A, B)) with the residual
+    products R^T R at them, and the largest |y| of any channel. A later
+    solution on the same samples and angles that is linear in the same basis
+    (Geist's simultaneous solution, ``metrology.simultaneous.SegmentSums``)
+    needs nothing more, so it need not pass over the samples again."""
+
+    gram: np.ndarray
+    xty: np.ndarray
+    coef: np.ndarray
+    rtr: np.ndarray
+    y_max: float

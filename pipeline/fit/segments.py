@@ -24,7 +24,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
-from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
+from rotcal.fit.normal import NormalSums, ResidualSums, SineSums, coefficient_covariance
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.model.physics import CHANNELS
 from rotcal.parallel import cores
@@ -51,6 +51,7 @@ class SegmentFit:
     lag1: np.ndarray
     rate_fit_hz: float
     u_rate_fit_hz: float = 0.0
+    sums: SineSums | None = None  # a three-parameter fit's sums, for the simultaneous solution
 
     @property
     def dof(self) -> int:
@@ -142,11 +143,6 @@ def arc_bounds(theta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([first[0], float(r.min())]), np.array([first[1], float(r.max())])
 
 
-def stuck_channel(channels: tuple[np.ndarray, ...]) -> str | None:
-    """Why a segment's samples cannot be fitted (``stuck_from``)."""
-    return stuck_from(np.array([y.min() for y in channels]), np.array([y.max() for y in channels]))
-
-
 def stuck_from(low: np.ndarray, high: np.ndarray) -> str | None:
     """Why a segment's samples cannot be fitted, from each channel's
     smallest and largest value: a channel that holds one value throughout
@@ -184,7 +180,10 @@ def finite(fit: SegmentFit, rate_hz: float) -> SegmentFit:
 
 def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
          channels: tuple[np.ndarray, ...], config: FitConfig) -> SegmentFit:
-    reason = refusal(kind, angle_source, theta_deg, config) or stuck_channel(channels)
+    reason = refusal(kind, angle_source, theta_deg, config)
+    if reason is None:
+        low, high = np.array([y.min() for y in channels]), np.array([y.max() for y in channels])
+        reason = stuck_from(low, high)
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)
     n = theta_deg.size
@@ -197,15 +196,20 @@ def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: 
         sigma = np.sqrt(np.einsum("ij,ij->j", four.resid, four.resid) / (n - 3))
         return SegmentFit(segment, "ok", None, n, four.coef, four.cov, sigma, rms, max_abs, lag1,
                           rate_hz * four.scale, abs(rate_hz) * four.u_scale)
-    return sine3_result(segment, rate_hz, n, *sine3_fit(theta_deg, channels))
+    normal, residual, xtx_inv = sine3_sums(theta_deg, channels)
+    rtr = residual.products()
+    return sine3_result(segment, rate_hz, n, residual.coef, coefficient_covariance(rtr, xtx_inv, n), rtr,
+                        residual.max_abs, residual.lag,
+                        SineSums(normal.gram, normal.xty, residual.coef, rtr, float(np.max(np.abs(np.r_[low, high])))))
 
 
 def sine3_result(segment: int, rate_hz: float, n: int, coef: np.ndarray, cov: np.ndarray, rtr: np.ndarray,
-                 max_abs: np.ndarray, lag: np.ndarray) -> SegmentFit:
-    """The fit record of the three-parameter fit (``sine3_fit``'s outputs)."""
+                 max_abs: np.ndarray, lag: np.ndarray, sums: SineSums | None = None) -> SegmentFit:
+    """The fit record of the three-parameter fit (``sine3_fit``'s outputs, and the sums it came from)."""
     ss = np.diag(rtr).copy()
     lag1 = lag / np.where(ss > 0, ss, 1.0)
-    return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz)
+    return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz,
+                      sums=sums)
 
 
 # Starting a thread pool costs about 0.5 ms, what one core takes to fit some
@@ -356,6 +360,14 @@ def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[
     channel residual products), and each channel's largest residual
     magnitude and lag-1 residual product sum.
     """
+    normal, residual, xtx_inv = sine3_sums(theta_deg, channels)
+    rtr = residual.products()
+    return residual.coef, coefficient_covariance(rtr, xtx_inv, theta_deg.size), rtr, residual.max_abs, residual.lag
+
+
+def sine3_sums(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[NormalSums, ResidualSums, np.ndarray]:
+    """``sine3_fit``'s two passes: the normal sums, the residual sums at the
+    solved coefficients, and (X^T X)^-1."""
     n = theta_deg.size
     sines = _Sines(theta_deg)
     spans = [(a, min(a + BLOCK_SAMPLES, n)) for a in range(0, n, BLOCK_SAMPLES)]
@@ -368,7 +380,4 @@ def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[
     residual = ResidualSums(coef)
     for (a, b), (s, c) in zip(spans, bases):
         residual.add(s, c, [y[a:b] for y in channels])
-    rtr = residual.products()
-    cov = coefficient_covariance(rtr, xtx_inv, n)
-    max_abs, lag = residual.max_abs, residual.lag
-    return coef, cov, rtr, max_abs, lag
+    return normal, residual, xtx_inv

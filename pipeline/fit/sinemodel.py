@@ -17,8 +17,6 @@ the cost linear in the samples and out of multithreaded BLAS.
 
 from __future__ import annotations
 
-from functools import cache
-
 import numpy as np
 
 NOISE_FREE = 1e-9  # residuals below this fraction of the signal are rounding: the data are noise-free
@@ -57,19 +55,12 @@ def normal_equations(z: np.ndarray, resid: np.ndarray, design: np.ndarray, weigh
 
 def normal_from(gram: np.ndarray, ze: np.ndarray, design: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, rhs) from the sums Z^T Z and Z^T e over a segment's samples; the
-    basis may be the first m of the five functions (``design`` then (3, m, P))."""
-    normal = np.einsum("ab,aip,ij,bjq->pq", weight, design, gram, design,
-                       optimize=_path("ab,aip,ij,bjq->pq", weight.shape, design.shape, gram.shape, design.shape))
-    rhs = np.einsum("ab,aip,ib->p", weight, design, ze, optimize=_path("ab,aip,ib->p", weight.shape, design.shape, ze.shape))
-    return normal, rhs
-
-
-@cache
-def _path(subscripts: str, *shapes: tuple[int, ...]) -> list:
-    """``einsum``'s optimal contraction order for operands of these shapes,
-    found once: the order depends on the shapes alone, and searching it took
-    as long as the contraction (the same order, so the same sums bit for bit)."""
-    return np.einsum_path(subscripts, *(np.empty(shape) for shape in shapes), optimize=True)[0]
+    basis may be the first m of the five functions (``design`` then (3, m, P)).
+    With D the D_r stacked ((3 m) x P), N = D^T (W (x) Z^T Z) D and
+    rhs = D^T vec(W (Z^T e)^T): two small matrix products, no contraction
+    search (``einsum``'s took longer than the sums)."""
+    stacked = design.reshape(-1, design.shape[2])
+    return stacked.T @ np.kron(weight, gram) @ stacked, stacked.T @ (weight @ ze.T).ravel()
 
 
 def solve(normal: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -145,12 +145,14 @@ def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame,
             rows += _slope_rows("combined", r, omega, offset, u, cov_s0, res_0, output_unit)
         static_cov = _static_offset_cov_with_s0(fits, res_0.g_local)
         ok = fits.filter((pl.col("status") == "ok") & pl.col("kind").is_in(["static", "rotation"]))
+        # one pass to numpy, then masks: a polars filter per (axis, channel) cost more than the fits
+        axis_of, channel_of = np.array(ok["axis"].to_list()), np.array(ok["channel"].to_list())
+        segment, rate, offset, u_offset = ok["segment"].to_numpy(), ok["rate_hz"].to_numpy(), ok["C"].to_numpy(), ok["u_C"].to_numpy()
         for axis in AXES:
             for r, channel in enumerate(CHANNELS):
-                part = ok.filter((pl.col("axis") == axis) & (pl.col("channel") == channel))
-                cov_s0 = np.array([static_cov.get(seg, np.zeros(3))[r] for seg in part["segment"]])
-                rows += _slope_rows(axis, r, 2 * np.pi * part["rate_hz"].to_numpy(), part["C"].to_numpy(),
-                                    part["u_C"].to_numpy(), cov_s0, res_0, output_unit)
+                at = (axis_of == axis) & (channel_of == channel)
+                cov_s0 = np.array([static_cov.get(seg, np.zeros(3))[r] for seg in segment[at].tolist()])
+                rows += _slope_rows(axis, r, 2 * np.pi * rate[at], offset[at], u_offset[at], cov_s0, res_0, output_unit)
     if not rows:
         return schema("frequency_response").empty()
     frame = pl.DataFrame([{"dataset": dataset, "model": model, "chi2": None, "dof": None, "p_value": None, **row} for row in rows],

@@ -37,6 +37,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.labelled import STATE, segment_input, units
+from rotcal.fit.normal import SineSums
 from rotcal.fit.segments import segment_rows
 from rotcal.fit.sinemodel import basis, normal_from, precision_from, residuals, solve
 from rotcal.model.physics import CHANNELS, COS_COMPONENT, INTRINSIC, SIN_COMPONENT, axis_index
@@ -108,6 +109,12 @@ class SegmentSums:
     y_max: float
     kappa: None = None  # the commanded rate is trusted (three-parameter fits only)
 
+    @classmethod
+    def of_fit(cls, segment: int, axis: str, n: int, fit: SineSums) -> SegmentSums:
+        """The sums a segment's three-parameter fit left (``fit.segments``): an
+        in-memory run's, the same as a streamed run accumulates."""
+        return cls(segment, axis, n, fit.gram, fit.xty.T.copy(), fit.coef, fit.rtr, fit.y_max)
+
     def sums(self, coef: np.ndarray, beta: np.ndarray, kappa_index: int | None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """As ``SegmentSamples.sums``, on the basis's first three functions."""
@@ -117,30 +124,49 @@ class SegmentSums:
         return self.gram, self.zty - self.gram @ coef[:, :3].T, rtr, self.y_max
 
 
-def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool) -> list[SegmentSamples]:
-    """The ok segments of one rate with their samples, in segment order."""
-    ok = _ok(fits, rate_hz)
-    rows, out = segment_rows(samples), []
-    for row in ok.iter_rows(named=True):
-        part = samples.slice(*rows[row["segment"]])
+def segment_samples(samples: pl.DataFrame, fits: pl.DataFrame, rate_hz: float, four_parameter: bool,
+                    sums: Mapping[int, SineSums] | None = None) -> list[SegmentSamples | SegmentSums]:
+    """The ok segments of one rate, in segment order (``_segments``)."""
+    return _segments(samples, _ok_by_rate(fits).get(rate_hz, []), four_parameter, sums)
+
+
+def _segments(samples: pl.DataFrame, ok: list[dict], four_parameter: bool,
+              sums: Mapping[int, SineSums] | None) -> list[SegmentSamples | SegmentSums]:
+    """The segments of the fits rows ``ok``: from the sums of their
+    three-parameter fits where ``sums`` holds them (the same normal
+    equations, without another pass over the samples), else with their samples."""
+    sums = sums or {}
+    rows, out = None, list[SegmentSamples | SegmentSums]()
+    for row in ok:
         rotating = four_parameter and row["kind"] == "rotation"
+        if not rotating and row["segment"] in sums:
+            out.append(SegmentSums.of_fit(row["segment"], row["axis"], row["n_samples"], sums[row["segment"]]))
+            continue
+        rows = segment_rows(samples) if rows is None else rows
+        part = samples.slice(*rows[row["segment"]])
         out.append(SegmentSamples(row["segment"], row["axis"], part["angle_deg"].to_numpy(),
                                   tuple(part[c].to_numpy() for c in CHANNELS),
                                   row["rate_fit_hz"] / row["rate_hz"] if rotating else None))
     return out
 
 
-def _ok(fits: pl.DataFrame, rate_hz: float) -> pl.DataFrame:
-    """The fits of the ok segments of one rate, in segment order."""
-    return (fits.filter((pl.col("status") == "ok") & (pl.col("rate_hz") == rate_hz) & pl.col("kind").is_in(["static", "rotation"]))
-            .unique("segment", keep="first").sort("segment"))
+def _ok_by_rate(fits: pl.DataFrame) -> dict[float, list[dict]]:
+    """The ok static and rotation fits, one row a segment in segment order,
+    by rate; rates ordered by magnitude (rate 0, the static result, first)."""
+    ok = (fits.filter((pl.col("status") == "ok") & pl.col("kind").is_in(["static", "rotation"]))
+          .unique("segment", keep="first").sort("segment"))
+    by_rate: dict[float, list[dict]] = {}
+    for row in ok.iter_rows(named=True):
+        by_rate.setdefault(row["rate_hz"], []).append(row)
+    return {rate: by_rate[rate] for rate in sorted(by_rate, key=lambda r: (abs(r), r))}
 
 
 def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int | None, beta: np.ndarray, n_params: int,
-                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                    weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float]]:
     """One segment's normal equations at ``beta`` with the channel weight
-    matrix ``weight`` (``sinemodel``), and the weight its residuals give
-    (``precision``; computed here so that no segment's residuals are kept)."""
+    matrix ``weight`` (``sinemodel``), and its residual products R^T R with
+    the largest |y|, from which the weight its residuals give is computed
+    (``_precision``; returned so that no segment's residuals are kept)."""
     a = axis_index(seg.axis)
     coef, design = np.zeros((3, 5)), np.zeros((3, 5, n_params))
     for r in range(3):
@@ -150,7 +176,13 @@ def _segment_system(seg: SegmentSamples | SegmentSums, k: int, kappa_index: int 
         if kappa_index is not None:  # dR/dkappa = -(rho_a cos + rho_b sin) psi
             design[r, 4, kappa_index], design[r, 3, kappa_index] = -beta[i_sin], -beta[i_cos]
     gram, ze, rtr, y_max = seg.sums(coef, beta, kappa_index)
-    return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), precision_from(rtr, seg.n, y_max, 3))
+    return (*normal_from(gram, ze, design[:, : gram.shape[0]], weight), (rtr, y_max))
+
+
+def _precision(seg: SegmentSamples | SegmentSums, residual: tuple[np.ndarray, float]) -> np.ndarray:
+    """The channel weight of a segment's residuals (``sinemodel.precision_from``); unit for noise-free data."""
+    weight = precision_from(residual[0], seg.n, residual[1], 3)
+    return np.eye(3) if weight is None else weight
 
 
 def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
@@ -188,7 +220,7 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
                 break
         else:
             return Failure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
-        weights = [b[2] if b[2] is not None else np.eye(3) for b in blocks]
+        weights = [_precision(s, b[2]) for s, b in zip(segs, blocks)] if stage == 0 else weights
     transform = np.zeros((12, p))
     transform[:9, :9] = np.eye(9)
     var = np.diag(cov)
@@ -205,23 +237,18 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
 
 
 def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_uncertainty: float,
-                 four_parameter: bool = False) -> list[IntrinsicResult | Failure]:
-    """Every rate's simultaneous solution (rate 0, the static result, first)."""
-    return [simultaneous_rate(rate, segment_samples(samples, fits, rate, four_parameter), g_local, g_uncertainty)
-            for rate in _rates(fits)]
+                 four_parameter: bool = False, sums: Mapping[int, SineSums] | None = None) -> list[IntrinsicResult | Failure]:
+    """Every rate's simultaneous solution (rate 0, the static result, first);
+    ``sums``: the three-parameter fits' sums by segment (``_segments``)."""
+    return [simultaneous_rate(rate, _segments(samples, ok, four_parameter, sums), g_local, g_uncertainty)
+            for rate, ok in _ok_by_rate(fits).items()]
 
 
 def simultaneous_from_sums(sums: Mapping[int, SegmentSums], fits: pl.DataFrame, g_local: float,
                            g_uncertainty: float) -> list[IntrinsicResult | Failure]:
     """``simultaneous`` of three-parameter segments from their sums (a streamed run's)."""
-    return [simultaneous_rate(rate, [sums[s] for s in _ok(fits, rate)["segment"].to_list()], g_local, g_uncertainty)
-            for rate in _rates(fits)]
-
-
-def _rates(fits: pl.DataFrame) -> list[float]:
-    """The rates of the ok static and rotation fits, rate 0 (the static result) first."""
-    fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]) & (pl.col("status") == "ok"))
-    return sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
+    return [simultaneous_rate(rate, [sums[row["segment"]] for row in ok], g_local, g_uncertainty)
+            for rate, ok in _ok_by_rate(fits).items()]
 
 
 def simultaneous_frame(sim: list[IntrinsicResult], per_segment: list[IntrinsicResult], dataset: str, output_unit: str) -> pl.DataFrame:

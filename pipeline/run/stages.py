@@ -4,7 +4,8 @@ tables or results for the next."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -25,6 +26,7 @@ from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
+from rotcal.fit.normal import SineSums
 from rotcal.ingest import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.metrology import (
@@ -74,6 +76,7 @@ class Segmented:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
+    sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
 
     @property
     def labelled_fits(self) -> pl.DataFrame:
@@ -131,14 +134,14 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     if table:
         samples, segments = inferred.samples, inferred.segments
     referenced = segments.filter(pl.col("angle_source") != "none")
-    fits = fits_frame(fit_segments(samples, referenced, config.fit, config.run.workers)
-                      + (list(inferred.fits) if table else []), segments, ds.name)
+    fitted = fit_segments(samples, referenced, config.fit, config.run.workers)
+    fits = fits_frame(fitted + (list(inferred.fits) if table else []), segments, ds.name)
     findings = pl.concat([findings_frame(duplicate_findings(ds.name, ds.copies)), timebase.findings,
                           findings_frame(list(inferred.findings) if table else [])])
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + (inferred.warnings if table else ()),
-                     ds.notes + (inferred.notes if table else ()))
+                     ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None})
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
@@ -368,7 +371,7 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommen
     consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model)
     response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], chosen_fits,
                                         dataset, unit, chosen.model)
-    both = [r for r in (simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter") if seg.streamed is None
+    both = [r for r in (simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter", seg.sums) if seg.streamed is None
                         else simultaneous_from_sums(seg.streamed.sums, fits, g, u_g)) if isinstance(r, IntrinsicResult)]
     outputs: list[Table | Figure] = [
         Table("uncertainty_budget", budget_frame(results, dataset, unit)),

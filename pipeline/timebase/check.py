@@ -314,17 +314,14 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     bad: dict[str, str] = {}
     captures = samples["capture"].unique(maintain_order=True).to_list()
     keep, stamps, gaps = np.ones(samples.height, bool), None, []
-    for capture in captures:
-        mine = None if len(captures) == 1 else (samples["capture"] == capture).to_numpy()
-        part = samples.select("t_ns", *CHANNELS)
-        part = part if mine is None else part.filter(pl.Series(mine))
-        t = part["t_ns"].to_numpy()
-        tb = check_capture(t, [part[c].to_numpy() for c in CHANNELS], capture, config)
-        where = None if mine is None else np.flatnonzero(mine)
+    t_all, y_all = samples["t_ns"].to_numpy(), [samples[c].to_numpy() for c in CHANNELS]
+    for capture, where in zip(captures, capture_rows(samples["capture"], len(captures))):
+        t = t_all if where is None else t_all[where]
+        tb = check_capture(t, [y if where is None else y[where] for y in y_all], capture, config)
         keep[slice(None) if where is None else where] = tb.keep
         if not np.array_equal(tb.t_ns, kept(t, tb.keep)):
-            stamps = samples["t_ns"].to_numpy().copy() if stamps is None else stamps
-            stamps[np.flatnonzero(keep) if where is None else where[tb.keep]] = tb.t_ns
+            stamps = t_all.copy() if stamps is None else stamps
+            stamps[np.flatnonzero(keep) if where is None else np.arange(t_all.size)[where][tb.keep]] = tb.t_ns
         rows += [{"dataset": dataset, "capture": capture, **f.__dict__} for f in tb.findings]
         warnings += tb.warnings
         gaps += [tb.gaps] if tb.gaps else []
@@ -333,6 +330,17 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     repaired = samples if stamps is None else samples.with_columns(t_ns=pl.Series(stamps, dtype=pl.Int64))
     repaired = repaired if keep.all() else repaired.filter(pl.Series(keep))
     return TimebaseResult(_time_ordered(repaired, captures), findings_frame(rows), tuple(warnings), bad, tuple(gaps))
+
+
+def capture_rows(capture: pl.Series, n_captures: int) -> list[slice | np.ndarray | None]:
+    """Each capture's rows, in order of first appearance: None (the one capture), slices where each
+    is one run of rows (as ingest reads them, file after file), else row numbers."""
+    if n_captures == 1:
+        return [None]
+    code = capture.to_physical().to_numpy()
+    edges = np.r_[0, np.flatnonzero(code[1:] != code[:-1]) + 1, code.size]
+    return ([slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])] if edges.size - 1 == n_captures
+            else [np.flatnonzero(code == c) for c in capture.unique(maintain_order=True).to_physical().to_numpy()])
 
 
 def classify_gaps(result: TimebaseResult, samples: pl.DataFrame, segments: pl.DataFrame) -> TimebaseResult:

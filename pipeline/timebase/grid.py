@@ -156,12 +156,19 @@ def grid_slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, fl
         whole = np.rint(slip)
         tolerance = np.minimum(4 * np.hypot(u_offset[1:], u_offset[:-1]) + 1e-4 * period, period / 2)
         hold = np.abs(slip - whole) * period < tolerance
-        k += np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][run]
-        run = np.r_[0, np.cumsum(~hold)].astype(np.int32)[run]
-        period, offset = _grid_fit(s, k, run)
-        k = np.empty(s.size)  # np.rint((s - offset[run]) / period), a block at a time
+        joined = bool(hold.any())  # no run joins the one before: runs and slots stand as they are
+        if joined:
+            k += np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][run]
+            run = np.r_[0, np.cumsum(~hold)].astype(np.int32)[run]
+            period, offset = _grid_fit(s, k, run)
+        reread = np.empty(s.size)  # np.rint((s - offset[run]) / period), a block at a time
         for a in range(0, s.size, _BLOCK):
             block = slice(a, a + _BLOCK)
-            k[block] = np.rint((s[block] - offset[run[block]]) / period)
+            reread[block] = np.rint((s[block] - offset[run[block]]) / period)
+        # a fixed point (no run joined, no slot re-read): a further pass would repeat this one exactly
+        steady = not joined and np.array_equal(reread, k)
+        k = reread
+        if steady:
+            break
     period, offset = _grid_fit(s, k, run)
     return k, run, period, offset
