@@ -7,8 +7,8 @@ or gathers (``fields``), each value copied once:
   a chunk (``ros2_cdr.imu_layout``);
 - ``sensor_msgs/msg/JointState`` in CDR whose joint count and name lengths
   keep one layout within a chunk (``ros2_cdr.joint_layout``);
-- JSON messages, one object each, parsed together as JSON lines by polars
-  with the fields' types given.
+- JSON messages, one object each, parsed as JSON lines by polars with the
+  fields' types given, a chunk at a time on Polars' threads.
 
 Any other layout raises ``Unsupported``: the caller reads the file with the
 per-message path instead.
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import struct
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,8 +30,7 @@ from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.model.physics import AXES
 
 NUMBER_FIELDS = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
-TEXT_FIELDS = ("axis",)
-JSON_TYPES = {name: pl.Float64 for name in NUMBER_FIELDS} | {name: pl.String for name in TEXT_FIELDS}
+JSON_TYPES = {name: pl.Float64 for name in NUMBER_FIELDS} | {"axis": pl.Enum(AXES)}
 MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
 _CDR_LE = int(np.frombuffer(CDR_LE, "<u4")[0])
 
@@ -55,6 +55,7 @@ class DecodedTopic:
     frame: pl.DataFrame | None = None
     _filled: int = 0
     _parts: list = field(default_factory=list, repr=False)
+    _pool: ThreadPoolExecutor | None = field(default=None, repr=False)
 
     @property
     def count(self) -> int:
@@ -82,16 +83,22 @@ class DecodedTopic:
             column[self._filled : self._filled + k] = values
         self._filled += k
 
-    def add_json(self, log_ns: np.ndarray, lines: bytes) -> None:
-        """Keep one chunk's JSON messages (one a line), parsed together at ``finish``."""
-        self._parts.append((log_ns, lines))
+    def add_json(self, raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray) -> None:
+        """Start parsing one chunk's JSON messages (``json_chunk``) on the
+        channel's threads, as many as Polars' (its share of the cores in a batch)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(pl.thread_pool_size(), thread_name_prefix="rotcal-json")
+        self._parts.append(json_chunk(raw, data, sizes, log_ns, self._pool))
 
     def finish(self) -> None:
         if self.kind == "json":
-            parts, self._parts = self._parts, []
-            log_ns = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-            self.frame = _parse_json_lines(b"\n".join(p[1] for p in parts), log_ns.size)
-            self.columns = {"log_ns": log_ns}
+            chunks, self._parts = self._parts, []
+            try:
+                self.frame = json_frame(chunks)
+            finally:
+                if self._pool is not None:
+                    self._pool.shutdown(cancel_futures=True)
+            self.columns = {"log_ns": np.concatenate([c.log_ns for c in chunks]) if chunks else np.zeros(0, np.int64)}
             return
         self.columns = {name: column[: self._filled] for name, column in self.columns.items()} or {"t_ns": np.zeros(0, np.int64)}
 
@@ -224,12 +231,13 @@ def _decode_joint(data: Records, size: int, log_ns: np.ndarray) -> dict[str, np.
     return {"t_ns": _stamp_or_log(data, lay.stamp, log_ns), "name": names, "position": position, "velocity": velocity}
 
 
-def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
+def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> tuple[bytes, int]:
     """The messages' bytes (``sizes`` bytes at ``data`` in ``raw``, ascending),
-    one per line: the span from the first to the last compressed by a mask
-    of runs (each message and the byte after it, then the gap to the next),
-    the bytes after the messages made newlines. A third less than gathering
-    every byte by its own index (eight bytes of index per byte)."""
+    one per line, and the colons among them: the span from the first to the
+    last compressed by a mask of runs (each message and the byte after it,
+    then the gap to the next), the bytes after the messages made newlines.
+    A third less than gathering every byte by its own index (eight bytes of
+    index per byte)."""
     n = data.size
     runs = np.empty(2 * n - 1, np.int64)
     runs[0::2] = sizes + 1
@@ -244,17 +252,7 @@ def _json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
     if np.count_nonzero(out == 10):  # a message spans lines: not one object per line
         raise Unsupported("JSON message with a line break")
     out[ends] = 10
-    return out.tobytes()
-
-
-def _read_json_lines(text: bytes, n: int, types: dict) -> pl.DataFrame:
-    try:
-        frame = pl.read_ndjson(text, schema=types)
-    except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
-        raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
-    if frame.height != n:
-        raise Unsupported("JSON messages other than one object a line")
-    return frame
+    return out.tobytes(), int(np.count_nonzero(out == ord(":")))
 
 
 def _first_fields(text: bytes) -> dict:
@@ -266,30 +264,66 @@ def _first_fields(text: bytes) -> dict:
     return {name: t for name, t in JSON_TYPES.items() if name in first} if isinstance(first, dict) else JSON_TYPES
 
 
-def _parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
-    """JSON lines parsed in one pass with the fields' types given: no
-    inference over every line first, which took twice the parse. The fields
-    of the first message are read first; when the text holds as many
-    colons as values were read (a count at memory speed), no message has
-    another key, null or not, and that frame is the answer. Else every field
-    of ``JSON_TYPES`` is read, and a field is a column where some message
-    has it. ``Unsupported`` where polars refuses a line, where a field is
-    null wherever it appears (a key the types cannot tell from an absent
-    one), and where an axis label is not x, y or z (polars writes a number
-    given for text as text): the per-message path words those."""
-    if n == 0:
-        return pl.DataFrame()
-    colons = np.count_nonzero(np.frombuffer(text, np.uint8) == ord(":"))
-    frame = _read_json_lines(text, n, _first_fields(text))
-    if frame.width * n - sum(frame.null_count().row(0)) != colons:
-        frame = _read_json_lines(text, n, JSON_TYPES)
-        empty = [name for name, count in zip(frame.columns, frame.null_count().row(0)) if count == n]
-        if any(name.encode() in text for name in empty):  # a bare name: a quote in the needle slows the search tenfold
-            raise Unsupported("JSON field null in every message")
-        frame = frame.drop(empty)
-    if "axis" in frame.columns and not frame.select((pl.col("axis").is_in(AXES) | pl.col("axis").is_null()).all()).item():
-        raise Unsupported("JSON axis label other than x, y or z")
+@dataclass(frozen=True)
+class JsonChunk:
+    """One chunk's JSON messages of a channel: their log times, their text
+    (one a line), its colons, and its parse under way (``json_chunk``)."""
+
+    log_ns: np.ndarray
+    text: bytes
+    colons: int
+    parse: Future
+
+
+def json_chunk(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray, log_ns: np.ndarray, pool: ThreadPoolExecutor) -> JsonChunk:
+    """Start parsing one chunk's JSON messages (as ``_json_lines``) as JSON
+    lines on a thread of ``pool``, with the types of the first message's
+    fields given: no inference over every line first, which took twice the
+    parse. Polars releases the GIL, so the chunks of a file are parsed side
+    by side, and while later chunks are decompressed."""
+    text, colons = _json_lines(raw, data, sizes)
+    return JsonChunk(log_ns, text, colons, pool.submit(pl.read_ndjson, text, schema=_first_fields(text)))
+
+
+def _json_parsed(chunk: JsonChunk, types: dict | None = None) -> pl.DataFrame:
+    """The frame of ``chunk``'s parse (or of its text read again with ``types``)."""
+    try:
+        frame = chunk.parse.result() if types is None else pl.read_ndjson(chunk.text, schema=types)
+    except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
+        raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
+    if frame.height != chunk.log_ns.size:
+        raise Unsupported("JSON messages other than one object a line")
     return frame
+
+
+def _chunk_frame(chunk: JsonChunk) -> pl.DataFrame:
+    """One chunk's fields: its parse, if the text holds as many colons as
+    values were read (a count at memory speed: then no message has another
+    key, null or not). Else every field of ``JSON_TYPES`` is read again and
+    the fields null in every message whose names occur nowhere in the text
+    (a bare name: a quote in the needle slows the search tenfold) are left
+    out: they are absent, not null."""
+    frame = _json_parsed(chunk)
+    if frame.width * frame.height - sum(frame.null_count().row(0)) == chunk.colons:
+        return frame
+    frame = _json_parsed(chunk, types=JSON_TYPES)
+    counts = frame.null_count().row(0)
+    return frame.drop(name for name, count in zip(frame.columns, counts) if count == frame.height and name.encode() not in chunk.text)
+
+
+def json_frame(chunks: list[JsonChunk]) -> pl.DataFrame:
+    """A channel's JSON messages, one column per field some message has, in
+    ``JSON_TYPES`` order. ``Unsupported`` where Polars refuses a line, where
+    a field is null wherever it appears (a key the types cannot tell from an
+    absent one), and where an axis label is not x, y or z (the Enum refuses
+    it; Polars would write a number given for text as text): the
+    per-message path words those."""
+    if not chunks:
+        return pl.DataFrame()
+    frame = pl.concat([_chunk_frame(chunk) for chunk in chunks], how="diagonal")
+    if any(count == frame.height for count in frame.null_count().row(0)):
+        raise Unsupported("JSON field null in every message")
+    return frame.select(name for name in JSON_TYPES if name in frame.columns)
 
 
 def _message_sizes(records: Records, channel_id: int, kind: str) -> np.ndarray:
@@ -316,7 +350,7 @@ def decode_messages(topic: DecodedTopic, records: Records, channel_id: int, chun
     topic.capacity = min(topic.capacity, chunk_bytes // (int(sizes[0]) + MESSAGE_HEADER))
     log_ns = fields(records, 15, "<i8")
     if topic.kind == "json":
-        topic.add_json(log_ns.copy(), _json_lines(records.raw, records.starts + MESSAGE_HEADER, sizes))
+        topic.add_json(records.raw, records.starts + MESSAGE_HEADER, sizes, log_ns.copy())
     elif topic.kind == "imu":
         topic.add(_decode_imu(records.data(), int(sizes[0]), log_ns))
     else:
