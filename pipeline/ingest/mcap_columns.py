@@ -8,7 +8,7 @@ or gathers (``fields``), each value copied once:
 - ``sensor_msgs/msg/JointState`` in CDR whose joint count and name lengths
   keep one layout within a chunk (``ros2_cdr.joint_layout``);
 - JSON messages, one object each, parsed as JSON lines by polars with the
-  fields' types given, a chunk at a time on Polars' threads.
+  fields' types given, a chunk at a time on the channel's threads.
 
 Any other layout raises ``Unsupported``: the caller reads the file with the
 per-message path instead.
