@@ -100,40 +100,50 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
     index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
+    # each segment's kind and start (null where ``segments`` lacks it), for every kept sample
+    described = dict(zip(seg["segment"].to_list(), zip(seg["kind"].to_list(), seg["t_start_ns"].to_list())))
+    kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok.to_list()))
+    static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
+                                                              np.array(start_ns, dtype=float) / 1e9))
     motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
-    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", "temperature_c", *CHANNELS,
-                            motion_rate_hz=motion_rate)[index]
-             .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
-             .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
-                           step=pl.when(pl.col("kind") == "static")
-                           .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(-1),
-                           rate_idx=pl.col("rate_hz").replace_strict({r: i for i, r in enumerate(rates)}))
-             # rates in contiguous blocks (each segment stays contiguous): the
-             # per-rate normal equations then work on views
-             .sort("rate_idx", "t_ns"))
+    # each float column as an array (no copy without nulls; NaN for null), the kept rows taken once; the
+    # integer labels taken first (null elsewhere, they would turn to float)
+    column = {c: samples[c].to_numpy() for c in ("t_ns", "rate_hz", "angle_deg", "temperature_c", motion_rate, *CHANNELS)}
+    segment, axis = (samples.select(pl.col("segment"), pl.col("axis").cast(pl.Enum(AXES)).to_physical())[index]
+                     .get_column(c).to_numpy() for c in ("segment", "axis"))
+    t_ns, rate, angle = (column[c][index] for c in ("t_ns", "rate_hz", "angle_deg"))
+    rate_idx = np.zeros(index.size, dtype=np.int64)
+    for i, r in enumerate(rates):
+        rate_idx[rate == r] = i
+    # a static step: a run of one segment at one angle, numbered in time order (NaN equals NaN within a run)
+    same = (segment[1:] == segment[:-1]) & ((angle[1:] == angle[:-1]) | (np.isnan(angle[1:]) & np.isnan(angle[:-1])))
+    step = np.where(static, np.r_[0, np.cumsum(~same)], -1)
+    # rates in contiguous blocks (each segment stays contiguous): the per-rate normal equations then work on views
+    order = np.lexsort((t_ns, rate_idx))
+    taken = index[order]
     motion = Motion(
-        t_s=frame["t_ns"].to_numpy() / 1e9,
-        axis_idx=frame["axis"].replace_strict({a: i for i, a in enumerate(AXES)}).to_numpy(),
-        rotating=(frame["kind"] == "rotation").to_numpy(),
-        theta_cmd_deg=frame["angle_deg"].to_numpy(),
-        theta0_deg=frame["theta0"].to_numpy(),
-        t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
-        rate_hz=frame["motion_rate_hz"].to_numpy(),
-        t0_s=int(samples["t_ns"].to_numpy().min()) / 1e9,
-        temperature_c=logged_temperature(frame["temperature_c"]),
+        t_s=t_ns[order] / 1e9,
+        axis_idx=axis[order].astype(np.int64),
+        rotating=rotating[order],
+        theta_cmd_deg=angle[order],
+        theta0_deg=np.repeat(angle[np.r_[0, np.cumsum(kept)[:-1]]], kept)[order],  # each segment's first angle
+        t_start_s=start_s[order],
+        rate_hz=column[motion_rate][taken],
+        t0_s=int(column["t_ns"].min()) / 1e9,
+        temperature_c=logged_temperature(column["temperature_c"][taken].astype(float)),
     )
-    obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
-                       np.array(rates), frame["segment"].to_numpy(), g_local)
-    return obs, frame["step"].to_numpy(), int(count.sum())
+    y = np.empty((taken.size, len(CHANNELS)), order="F")  # the layout of a frame's to_numpy
+    for r, c in enumerate(CHANNELS):
+        y[:, r] = column[c][taken]
+    obs = Observations(motion, y, rate_idx[order], np.array(rates), segment[order], g_local)
+    return obs, step[order], int(count.sum())
 
 
-def logged_temperature(column: pl.Series) -> np.ndarray | None:
+def logged_temperature(temperature: np.ndarray) -> np.ndarray | None:
     """The DUT temperature of every sample, or None unless every sample has
-    one and it varies (a constant temperature carries no evidence)."""
-    if column.null_count() or column.len() == 0:
-        return None
-    temperature = column.to_numpy().astype(float)
-    return temperature if np.ptp(temperature) > 0 else None
+    one (NaN where not logged) and it varies (a constant temperature carries
+    no evidence)."""
+    return temperature if temperature.size and np.ptp(temperature) > 0 else None
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
