@@ -192,10 +192,14 @@ class StepScore(Score):
     step_t_s: float = 0.0
 
 
-def _step_score(fit: ModelFit) -> StepScore:
+def _step_score(fit: ModelFit, alpha: float) -> StepScore | None:
     """Score of an offset step at the time the residuals make most likely;
-    its false-alarm probability accounts for the scan over time."""
+    its false-alarm probability accounts for the scan over time. None where
+    that probability is not below ``alpha``: such a step is never selected,
+    and its score would cost the step column's products with the design."""
     t, _, p = step_scan(_residuals(fit, ""))
+    if p >= alpha:
+        return None
     after = (fit.obs.motion.t_s >= t).astype(float)[:, None]
     extra = [(np.array([fit.layout.index[f"step_{c}"]]), after) for c in CHANNELS]
     ev = with_columns(fit.ev, extra, fit.layout.n_rates, fit.obs)
@@ -247,8 +251,9 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
     (Wald) of any extension the others made redundant."""
     while True:
         scores: list[Score] = [score(fit, (c,)) for c in candidates if c not in fit.active]
-        if STEP not in fit.active:
-            scores.append(_step_score(fit))
+        step = _step_score(fit, alpha) if STEP not in fit.active else None
+        if step is not None:
+            scores.append(step)
         eligible = [s for s in scores if s.p_value < alpha and s.delta_bic < 0]
         if not eligible:
             break
