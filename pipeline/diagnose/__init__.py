@@ -92,17 +92,19 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     at ``phase_rate_hz`` where the samples have it (angles reconstructed
     from a fitted phase, ``reconstructed``), at ``rate_hz`` otherwise.
     """
-    ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique().sort()
-    seg = segments.filter(pl.col("segment").is_in(ok.implode()))
-    if seg.height == 0:
+    fitted = (fits["status"] == "ok").fill_null(False).to_numpy() & np.isin(fits["rate_hz"].to_numpy(), rates)
+    ok = np.unique(fits["segment"].to_numpy()[fitted]).tolist()
+    # each segment's kind and start (null where ``segments`` lacks it)
+    wanted = set(ok)
+    described = {s: (kind, start) for s, kind, start in zip(*(segments[c].to_list() for c in ("segment", "kind", "t_start_ns")))
+                 if s in wanted}
+    if not described:
         return None
     rows = segment_rows(samples)
-    first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
+    first, count = (np.array([rows[k][i] for k in ok], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
     index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
-    # each segment's kind and start (null where ``segments`` lacks it), for every kept sample
-    described = dict(zip(seg["segment"].to_list(), zip(seg["kind"].to_list(), seg["t_start_ns"].to_list())))
-    kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok.to_list()))
+    kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok))
     static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
                                                               np.array(start_ns, dtype=float) / 1e9))
     motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
