@@ -94,8 +94,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     """
     fitted = (fits["status"] == "ok").fill_null(False).to_numpy() & np.isin(fits["rate_hz"].to_numpy(), rates)
     ok = np.unique(fits["segment"].to_numpy()[fitted]).tolist()
-    # each segment's kind and start (null where ``segments`` lacks it)
-    wanted = set(ok)
+    wanted = set(ok)  # each one's kind and start (null where ``segments`` lacks it):
     described = {s: (kind, start) for s, kind, start in zip(*(segments[c].to_list() for c in ("segment", "kind", "t_start_ns")))
                  if s in wanted}
     if not described:
@@ -108,8 +107,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
                                                               np.array(start_ns, dtype=float) / 1e9))
     motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
-    # each float column as an array (no copy without nulls; NaN for null), the kept rows taken once; the
-    # integer labels taken first (null elsewhere, they would turn to float)
+    # each float column as an array (no copy without nulls; NaN for null), the kept rows taken once; the labels taken first
     column = {c: samples[c].to_numpy() for c in ("t_ns", "rate_hz", "angle_deg", "temperature_c", motion_rate, *CHANNELS)}
     segment, axis = (samples.select(pl.col("segment"), pl.col("axis").cast(pl.Enum(AXES)).to_physical())[index]
                      .get_column(c).to_numpy() for c in ("segment", "axis"))
@@ -123,6 +121,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     # rates in contiguous blocks (each segment stays contiguous): the per-rate normal equations then work on views
     order = np.lexsort((t_ns, rate_idx))
     taken = index[order]
+    temperature = column["temperature_c"][taken].astype(float)  # NaN where not logged
     motion = Motion(
         t_s=t_ns[order] / 1e9,
         axis_idx=axis[order].astype(np.int64),
@@ -132,20 +131,12 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
         t_start_s=start_s[order],
         rate_hz=column[motion_rate][taken],
         t0_s=int(column["t_ns"].min()) / 1e9,
-        temperature_c=logged_temperature(column["temperature_c"][taken].astype(float)),
+        # the DUT temperature where every sample has one and it varies (a constant one carries no evidence)
+        temperature_c=temperature if temperature.size and np.ptp(temperature) > 0 else None,
     )
-    y = np.empty((taken.size, len(CHANNELS)), order="F")  # the layout of a frame's to_numpy
-    for r, c in enumerate(CHANNELS):
-        y[:, r] = column[c][taken]
+    y = np.asfortranarray(np.column_stack([column[c][taken] for c in CHANNELS]))  # the layout of a frame's to_numpy
     obs = Observations(motion, y, rate_idx[order], np.array(rates), segment[order], g_local)
     return obs, step[order], int(count.sum())
-
-
-def logged_temperature(temperature: np.ndarray) -> np.ndarray | None:
-    """The DUT temperature of every sample, or None unless every sample has
-    one (NaN where not logged) and it varies (a constant temperature carries
-    no evidence)."""
-    return temperature if temperature.size and np.ptp(temperature) > 0 else None
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:

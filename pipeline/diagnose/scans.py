@@ -80,7 +80,7 @@ def step_scan(res: Residuals) -> tuple[float, float, float]:
     usable (clipping sets different channels aside at different times),
     there is no position to test and the p-value is 1."""
     order = np.argsort(res.t_s, kind="stable")
-    order = order[res.use.all(axis=1)[order]]  # in time order, the samples with all three channels usable
+    order = order[res.use[order].all(axis=1)]  # in time order, the samples with all three channels usable
     e = res.resid[order] / res.sigma[None, :]
     n = e.shape[0]
     if n < 22:
