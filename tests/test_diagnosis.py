@@ -304,3 +304,36 @@ def test_residual_scans_keep_their_false_alarm_rate(scan):
             found = harmonic_scan(res, 0.1)
         fired += bool(found)
     assert fired <= 6 + 2 * np.sqrt(60 * 0.1 * 0.9)
+
+
+def test_corrected_samples_reuse_the_diagnosis_bit_for_bit(tmp_path):
+    """The refined model's corrected samples (``diagnose.corrected``) take
+    the diagnosis's own observations and converged predictions where no
+    sample was thinned: the same bytes as observations built and predicted
+    afresh (forced here by claiming thinned samples), with the 4 ms delay of
+    w taken out of the rotation samples (by up to its size: 2 pi f 4 ms of
+    the 1 g swing) and nothing else touched."""
+    from dataclasses import replace
+
+    from rotcal.diagnose.corrected import without_effects
+    from rotcal.ingest import load_dataset
+    from rotcal.run import determined, diagnose_stage
+    from rotcal.run.stages import reduce, segment_and_fit
+
+    spec = SimulationSpec().with_effects("channel_delay:delay_w_s=0.004")
+    data = write_dataset(simulate(spec, 41), spec, tmp_path / "data")
+    ds = load_dataset(data, None, ONE_WORKER.limits, 1)
+    seg = segment_and_fit(ds, ONE_WORKER)
+    reductions = reduce(seg, ds)
+    results, _, _ = determined(reductions, seg, data)
+    diagnosis, _ = diagnose_stage(seg, reductions, results, ds, ONE_WORKER)
+    assert diagnosis.final.obs.n == diagnosis.samples_available and diagnosis.final.converged
+    reused = without_effects(seg.samples, seg.segments, seg.fits, diagnosis)
+    rebuilt = without_effects(seg.samples, seg.segments, seg.fits,
+                              replace(diagnosis, samples_available=diagnosis.samples_available + 1))
+    for c in ("u", "v", "w"):
+        assert reused[c].to_numpy().tobytes() == rebuilt[c].to_numpy().tobytes()
+    change = (reused.select("u", "v", "w").to_numpy() - seg.samples.select("u", "v", "w").to_numpy())
+    swing = np.abs(seg.samples["w"].to_numpy()).max()
+    assert np.abs(change[:, :2]).max() == 0.0
+    assert 0.1 * 2 * np.pi * 0.004 < np.abs(change[:, 2]).max() / swing < 2 * np.pi * max(seg.segments["rate_hz"].abs()) * 0.004 * 1.5

@@ -92,48 +92,51 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     at ``phase_rate_hz`` where the samples have it (angles reconstructed
     from a fitted phase, ``reconstructed``), at ``rate_hz`` otherwise.
     """
-    ok = fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].unique().sort()
-    seg = segments.filter(pl.col("segment").is_in(ok.implode()))
-    if seg.height == 0:
+    fitted = (fits["status"] == "ok").fill_null(False).to_numpy() & np.isin(fits["rate_hz"].to_numpy(), rates)
+    ok = np.unique(fits["segment"].to_numpy()[fitted]).tolist()
+    wanted = set(ok)  # each one's kind and start (null where ``segments`` lacks it):
+    described = {s: (kind, start) for s, kind, start in zip(*(segments[c].to_list() for c in ("segment", "kind", "t_start_ns")))
+                 if s in wanted}
+    if not described:
         return None
     rows = segment_rows(samples)
-    first, count = (np.array([rows[k][i] for k in ok.to_list()], dtype=np.int64) for i in (0, 1))
+    first, count = (np.array([rows[k][i] for k in ok], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
     index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
+    kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok))
+    static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
+                                                              np.array(start_ns, dtype=float) / 1e9))
     motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
-    frame = (samples.select("segment", "t_ns", "axis", "rate_hz", "angle_deg", "temperature_c", *CHANNELS,
-                            motion_rate_hz=motion_rate)[index]
-             .join(seg.select("segment", "kind", "t_start_ns"), on="segment", how="left", maintain_order="left")
-             .with_columns(theta0=pl.col("angle_deg").first().over("segment"),
-                           step=pl.when(pl.col("kind") == "static")
-                           .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(-1),
-                           rate_idx=pl.col("rate_hz").replace_strict({r: i for i, r in enumerate(rates)}))
-             # rates in contiguous blocks (each segment stays contiguous): the
-             # per-rate normal equations then work on views
-             .sort("rate_idx", "t_ns"))
+    # each float column as an array (no copy without nulls; NaN for null), the kept rows taken once; the labels taken first
+    column = {c: samples[c].to_numpy() for c in ("t_ns", "rate_hz", "angle_deg", "temperature_c", motion_rate, *CHANNELS)}
+    segment, axis = (samples.select(pl.col("segment"), pl.col("axis").cast(pl.Enum(AXES)).to_physical())[index]
+                     .get_column(c).to_numpy() for c in ("segment", "axis"))
+    t_ns, rate, angle = (column[c][index] for c in ("t_ns", "rate_hz", "angle_deg"))
+    rate_idx = np.zeros(index.size, dtype=np.int64)
+    for i, r in enumerate(rates):
+        rate_idx[rate == r] = i
+    # a static step: a run of one segment at one angle, numbered in time order (NaN equals NaN within a run)
+    same = (segment[1:] == segment[:-1]) & ((angle[1:] == angle[:-1]) | (np.isnan(angle[1:]) & np.isnan(angle[:-1])))
+    step = np.where(static, np.r_[0, np.cumsum(~same)], -1)
+    # rates in contiguous blocks (each segment stays contiguous): the per-rate normal equations then work on views
+    order = np.lexsort((t_ns, rate_idx))
+    taken = index[order]
+    temperature = column["temperature_c"][taken].astype(float)  # NaN where not logged
     motion = Motion(
-        t_s=frame["t_ns"].to_numpy() / 1e9,
-        axis_idx=frame["axis"].replace_strict({a: i for i, a in enumerate(AXES)}).to_numpy(),
-        rotating=(frame["kind"] == "rotation").to_numpy(),
-        theta_cmd_deg=frame["angle_deg"].to_numpy(),
-        theta0_deg=frame["theta0"].to_numpy(),
-        t_start_s=frame["t_start_ns"].to_numpy() / 1e9,
-        rate_hz=frame["motion_rate_hz"].to_numpy(),
-        t0_s=int(samples["t_ns"].to_numpy().min()) / 1e9,
-        temperature_c=logged_temperature(frame["temperature_c"]),
+        t_s=t_ns[order] / 1e9,
+        axis_idx=axis[order].astype(np.int64),
+        rotating=rotating[order],
+        theta_cmd_deg=angle[order],
+        theta0_deg=np.repeat(angle[np.r_[0, np.cumsum(kept)[:-1]]], kept)[order],  # each segment's first angle
+        t_start_s=start_s[order],
+        rate_hz=column[motion_rate][taken],
+        t0_s=int(column["t_ns"].min()) / 1e9,
+        # the DUT temperature where every sample has one and it varies (a constant one carries no evidence)
+        temperature_c=temperature if temperature.size and np.ptp(temperature) > 0 else None,
     )
-    obs = Observations(motion, frame.select(CHANNELS).to_numpy(), frame["rate_idx"].to_numpy(),
-                       np.array(rates), frame["segment"].to_numpy(), g_local)
-    return obs, frame["step"].to_numpy(), int(count.sum())
-
-
-def logged_temperature(column: pl.Series) -> np.ndarray | None:
-    """The DUT temperature of every sample, or None unless every sample has
-    one and it varies (a constant temperature carries no evidence)."""
-    if column.null_count() or column.len() == 0:
-        return None
-    temperature = column.to_numpy().astype(float)
-    return temperature if np.ptp(temperature) > 0 else None
+    y = np.asfortranarray(np.column_stack([column[c][taken] for c in CHANNELS]))  # the layout of a frame's to_numpy
+    obs = Observations(motion, y, rate_idx[order], np.array(rates), segment[order], g_local)
+    return obs, step[order], int(count.sum())
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
@@ -182,10 +185,14 @@ class StepScore(Score):
     step_t_s: float = 0.0
 
 
-def _step_score(fit: ModelFit) -> StepScore:
+def _step_score(fit: ModelFit, alpha: float) -> StepScore | None:
     """Score of an offset step at the time the residuals make most likely;
-    its false-alarm probability accounts for the scan over time."""
+    its false-alarm probability accounts for the scan over time. None where
+    that probability is not below ``alpha``: such a step is never selected,
+    and its score would cost the step column's products with the design."""
     t, _, p = step_scan(_residuals(fit, ""))
+    if p >= alpha:
+        return None
     after = (fit.obs.motion.t_s >= t).astype(float)[:, None]
     extra = [(np.array([fit.layout.index[f"step_{c}"]]), after) for c in CHANNELS]
     ev = with_columns(fit.ev, extra, fit.layout.n_rates, fit.obs)
@@ -237,8 +244,9 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
     (Wald) of any extension the others made redundant."""
     while True:
         scores: list[Score] = [score(fit, (c,)) for c in candidates if c not in fit.active]
-        if STEP not in fit.active:
-            scores.append(_step_score(fit))
+        step = _step_score(fit, alpha) if STEP not in fit.active else None
+        if step is not None:
+            scores.append(step)
         eligible = [s for s in scores if s.p_value < alpha and s.delta_bic < 0]
         if not eligible:
             break

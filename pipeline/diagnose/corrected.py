@@ -27,14 +27,19 @@ def without_effects(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
     """``samples`` less the modelled effects' contribution (every sample of
     the diagnosed segments, none thinned; the others unchanged)."""
     final = diagnosis.final
-    angled = samples  # the model's samples: with the reconstructed angles where the diagnosis had them
-    if diagnosis.phases is not None and diagnosis.phases.height:
-        angled, segments = with_reconstructed_angles(samples, segments, diagnosis.phases)
-    built = observations(angled, segments, fits, final.obs.rates.tolist(), final.obs.g_local, samples.height)
-    if built is None:
-        return samples
-    obs = built[0]
-    with_them = predict(obs, final.beta, final.layout, final.active, final.clip, final.structure)
+    if final.obs.n == diagnosis.samples_available:  # none thinned: the diagnosis's observations are these samples
+        obs = final.obs
+    else:
+        angled = samples  # the model's samples: with the reconstructed angles where the diagnosis had them
+        if diagnosis.phases is not None and diagnosis.phases.height:
+            angled, segments = with_reconstructed_angles(samples, segments, diagnosis.phases)
+        built = observations(angled, segments, fits, final.obs.rates.tolist(), final.obs.g_local, samples.height)
+        if built is None:
+            return samples
+        obs = built[0]
+    # the final fit's own predictions where they are those of its parameters on these samples
+    with_them = (final.ev.pred if obs is final.obs and final.converged
+                 else predict(obs, final.beta, final.layout, final.active, final.clip, final.structure))
     effect = with_them - predict(obs, final.beta, final.layout, (), (None, None), Structure())
     # observations orders rows by (rate, time); each segment's rows stay in time order, as in ``samples``
     rows = segment_rows(samples)

@@ -19,6 +19,8 @@ from scipy.special import chdtrc
 from rotcal.diagnose.candidates import Candidate
 from rotcal.diagnose.model import Evaluation, Layout, Observations, Structure, evaluate, rss_after, solve, weighted
 
+TOLERANCE = 1e-8  # Gauss-Newton stops when a step's chi-square reduction is below this per parameter
+
 
 @dataclass(frozen=True, eq=False)
 class ModelFit:
@@ -53,6 +55,12 @@ class ModelFit:
     @property
     def rms(self) -> float:
         return float(np.sqrt(self.ev.rss.sum() / self.n_total))
+
+    @property
+    def converged(self) -> bool:
+        """Whether Gauss-Newton stopped at its tolerance (``fit_model``): ``ev``
+        is then the evaluation at ``beta`` (its predictions those of the fit)."""
+        return solve(self.G, self.b, self.idx)[1] < TOLERANCE * max(self.idx.size, 1)
 
     def covariance(self) -> np.ndarray:
         """Covariance of the active parameters (order ``idx``)."""
@@ -110,7 +118,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
         sigma = _sigma(ev, layout, idx, obs)
         G, b = weighted(ev, sigma)
         step, decrement = solve(G, b, idx)
-        if decrement < 1e-8 * max(idx.size, 1):
+        if decrement < TOLERANCE * max(idx.size, 1):
             break
         beta[idx] += step
     return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx)

@@ -80,8 +80,8 @@ def step_scan(res: Residuals) -> tuple[float, float, float]:
     usable (clipping sets different channels aside at different times),
     there is no position to test and the p-value is 1."""
     order = np.argsort(res.t_s, kind="stable")
-    both = res.use[order].all(axis=1)
-    e = res.resid[order][both] / res.sigma[None, :]
+    order = order[res.use[order].all(axis=1)]  # in time order, the samples with all three channels usable
+    e = res.resid[order] / res.sigma[None, :]
     n = e.shape[0]
     if n < 22:
         return float(np.median(res.t_s)), 0.0, 1.0
@@ -91,7 +91,7 @@ def step_scan(res: Residuals) -> tuple[float, float, float]:
     stat = (centred**2).sum(axis=1) / (k * (n - k) / n)
     inner = slice(10, n - 11)
     j = int(np.argmax(stat[inner])) + inner.start
-    t = res.t_s[order][both]
+    t = res.t_s[order]
     return float(0.5 * (t[j] + t[j + 1])), float(stat[j]), step_scan_p(float(stat[j]), n)
 
 
