@@ -2,7 +2,7 @@
 for its model (Geist 2017 Eq. 5 with the angle, sampling and force effects
 of docs/effects.md, through ``rotcal.model.physics``), and what the model's
 evaluations keep between them: the geometries and shared column factors of
-the last motion, and one scratch array for the design's columns
+the last motion, and one scratch array for a gather of the design's columns
 (``Observations.reuse``)."""
 
 from __future__ import annotations
@@ -101,8 +101,8 @@ def motion_reuse(obs: Observations, effects: Effects) -> dict:
 
 
 def column_buffer(obs: Observations, k: int) -> np.ndarray:
-    """A (k, n) scratch array for one channel's design columns, kept with
-    the observations: a fresh array of that size costs its page faults
+    """A (k, n) scratch array for a gather of one channel's design columns
+    (``model.with_columns``), kept with the observations: a fresh array of that size costs its page faults
     (about a millisecond per megabyte on a loaded machine) at every evaluation."""
     buffer = obs.reuse.get("columns")
     if buffer is None or buffer.shape[0] < k:
