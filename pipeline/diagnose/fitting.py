@@ -104,6 +104,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     idx = active_indices(layout, active)
     inactive = np.setdiff1d(np.arange(beta.size), idx)
     beta[inactive] = 0.0
+    lin: Linearisation | None = None
     for _ in range(max_iter):
         lin = None  # the last iteration's columns go before the next ones are built (memory)
         lin = Linearisation(obs, beta, layout, active, clip, structure, use)
@@ -115,6 +116,8 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
         if decrement < 1e-8 * max(idx.size, 1):
             break
         beta[idx] += step
+    if lin is None:
+        raise ValueError("fit_model needs max_iter >= 1")
     # at the optimum every column: the scores of the extensions not in the model
     ev = lin.evaluation()
     G, b = weighted(ev, sigma)
