@@ -24,7 +24,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, motion_reuse
+from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, design_buffer, motion_reuse
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
@@ -312,11 +312,17 @@ class Linearisation:
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
-    def _column(self, r: int, i: int) -> np.ndarray:
-        if (r, i) not in self.built:
-            name = self.layout.names[i]
-            self.built[r, i] = self.factors.column(name, self.by_name[name], self.states[r])
-        return self.built[r, i]
+    def _column(self, r: int, i: int, keep: bool) -> np.ndarray:
+        """Channel r's column of parameter i; ``keep``: kept for a later
+        evaluation (the active parameters'; the others are copied into the
+        design at once, so their memory serves the next column)."""
+        if (r, i) in self.built:
+            return self.built[r, i]
+        name = self.layout.names[i]
+        column = self.factors.column(name, self.by_name[name], self.states[r])
+        if keep:
+            self.built[r, i] = column
+        return column
 
     def evaluation(self, params: np.ndarray | None = None) -> Evaluation:
         """The normal equations of the Jacobian's columns of the base
@@ -325,6 +331,7 @@ class Linearisation:
         obs, layout, use = self.obs, self.layout, self.use
         p, m = len(layout.names), layout.n_rates
         designs, grams, rhss = [], [], []
+        width = 4 + max(int((channel >= layout.n_base).sum()) for channel in layout.per_channel)
         for st in self.states:
             r = st.r
             rows = np.flatnonzero(use[:, r])
@@ -332,12 +339,12 @@ class Linearisation:
             ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
             if params is not None:
                 ext = ext[np.isin(ext, params)]
-            columns = np.empty((4 + ext.size, rows.size))
+            columns = design_buffer(obs, 4 + ext.size, rows.size, width)
             columns[0] = 1.0
             force = st.slope[:, None] * st.geo.force
             columns[1:4] = (force if every else force[rows]).T
             for k, i in enumerate(ext):
-                column = self._column(r, i)
+                column = self._column(r, i, params is not None)
                 columns[4 + k] = column if every else column[rows]
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
