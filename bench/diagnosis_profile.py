@@ -6,7 +6,7 @@ Each dataset is read, segmented, fitted and reduced once (not timed); then
 ``run.stages.diagnose_stage`` and ``recommended_fits`` (the refined model's
 segment fits) are timed with ``time.process_time`` (CPU, so a shared machine
 disturbs it little), under cProfile when ``--profile`` is given (its
-overhead inflates the totals; the per-function shares are what it is for).
+overhead inflates the totals; the per-function shares, CPU seconds as well, are what it is for).
 ``--reference DIR`` runs the same measurement with another rotcal source
 tree (DIR/pipeline, DIR/schemas, DIR/configs: e.g. ``git archive main``
 unpacked) in a subprocess of the same interpreter, alternating with this
@@ -50,7 +50,7 @@ def measure(root: Path, profile: bool) -> dict:
     from rotcal.run.stages import reduce, segment_and_fit
 
     config = RunConfig()
-    profiler = cProfile.Profile() if profile else None
+    profiler = cProfile.Profile(time.process_time) if profile else None  # CPU, as the totals
     diagnosis_cpu, refined_cpu, findings = [], [], []
     with threadpool_limits(limits=1, user_api="blas"):
         for k, path in enumerate([*sorted(root.iterdir())[:1], *sorted(root.iterdir())]):  # the first twice: warm-up

@@ -228,21 +228,25 @@ def test_jacobian_matches_finite_differences(make_dataset):
 
 def test_evaluations_reuse_nothing_stale(make_dataset):
     """Observations keep the geometries and column factors of the last
-    motion evaluated: an evaluation after one at other values of the
-    motion-shaping effects (here none on, then every one on) equals the same
-    evaluation on fresh observations, bit for bit."""
+    motion evaluated, and the buffers of designs no longer held: an
+    evaluation after one at other values of the motion-shaping effects (here
+    none on, then every one on) equals the same evaluation on fresh
+    observations, bit for bit, and leaves the designs of an evaluation
+    still held as they were."""
     from dataclasses import replace
 
     obs, layout, beta, active, structure, use = _every_effect_on(make_dataset)
     null = np.where(np.arange(beta.size) < layout.n_base, beta, 0.0)   # the same responsivities, no effect
     states = [(beta, active, structure), (null, (), Structure())]
     for (b1, a1, s1), (b2, a2, s2) in (states, states[::-1]):
-        evaluate(obs, b1, layout, a1, (None, None), s1, use)
+        evaluate(obs, b2, layout, a2, (None, None), s2, use)   # dropped: its buffers are free for the next
+        held = evaluate(obs, b1, layout, a1, (None, None), s1, use)
         shared = evaluate(obs, b2, layout, a2, (None, None), s2, use)
-        fresh = evaluate(replace(obs), b2, layout, a2, (None, None), s2, use)
-        assert shared.pred.tobytes() == fresh.pred.tobytes()
-        assert shared.gram.tobytes() == fresh.gram.tobytes()
-        assert all(d.X.tobytes() == e.X.tobytes() for d, e in zip(shared.designs, fresh.designs))
+        for ev, (b, a, s) in ((held, (b1, a1, s1)), (shared, (b2, a2, s2))):
+            fresh = evaluate(replace(obs), b, layout, a, (None, None), s, use)
+            assert ev.pred.tobytes() == fresh.pred.tobytes()
+            assert ev.gram.tobytes() == fresh.gram.tobytes()
+            assert all(d.X.tobytes() == e.X.tobytes() for d, e in zip(ev.designs, fresh.designs))
 
 
 def test_step_scan_false_alarm_rate_is_conservative():

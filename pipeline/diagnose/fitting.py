@@ -17,7 +17,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from rotcal.diagnose.candidates import Candidate
-from rotcal.diagnose.model import Evaluation, Layout, Observations, Structure, evaluate, rss_after, solve, weighted
+from rotcal.diagnose.model import Evaluation, Layout, Linearisation, Observations, Structure, rss_after, solve, weighted
 
 TOLERANCE = 1e-8  # Gauss-Newton stops when a step's chi-square reduction is below this per parameter
 
@@ -112,15 +112,23 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     idx = active_indices(layout, active)
     inactive = np.setdiff1d(np.arange(beta.size), idx)
     beta[inactive] = 0.0
+    lin: Linearisation | None = None
     for _ in range(max_iter):
-        ev = None  # the last evaluation's design matrices go before the next ones are built (memory)
-        ev = evaluate(obs, beta, layout, active, clip, structure, use)
+        lin = None  # the last iteration's columns go before the next ones are built (memory)
+        lin = Linearisation(obs, beta, layout, active, clip, structure, use)
+        # the step needs only the active parameters' columns
+        ev = lin.evaluation(idx)
         sigma = _sigma(ev, layout, idx, obs)
         G, b = weighted(ev, sigma)
         step, decrement = solve(G, b, idx)
         if decrement < TOLERANCE * max(idx.size, 1):
             break
         beta[idx] += step
+    if lin is None:
+        raise ValueError("fit_model needs max_iter >= 1")
+    # at the optimum every column: the scores of the extensions not in the model
+    ev = lin.evaluation()
+    G, b = weighted(ev, sigma)
     return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, motion_reuse
+from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, design_buffer, motion_reuse
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
@@ -70,16 +70,22 @@ class Layout:
 
 @dataclass(frozen=True, eq=False)
 class ChannelDesign:
-    """One channel's Jacobian on its used samples, stored compactly: column
-    0 is the offset and 1-3 the responsivity of the sample's own rate (their
+    """One channel's Jacobian on its used samples, stored compactly and
+    column-major (each column contiguous, as it is computed): column 0 is
+    the offset and 1-3 the responsivity of the sample's own rate (their
     parameters are ``base[rate]``), the rest are extensions (``ext``)."""
 
-    X: np.ndarray          # (n_used, 4 + k)
+    columns: np.ndarray    # (4 + k, n_used)
     rate_idx: np.ndarray   # (n_used,), non-decreasing
     rows: np.ndarray       # (n_used,) sample numbers
     resid: np.ndarray      # (n_used,)
     base: np.ndarray       # (m, 4) parameter numbers of O.f.r, R.f.r.x/y/z
     ext: np.ndarray        # (k,) parameter numbers
+
+    @property
+    def X(self) -> np.ndarray:
+        """The design (n_used, 4 + k), a view."""
+        return self.columns.T
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,22 +104,29 @@ class Evaluation:
 
 def normal_equations(d: ChannelDesign, p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """The full (p, p) J'J and J'r of one channel from its compact design
-    (rows sorted by rate, so each rate's block is a view)."""
-    G = np.zeros((p, p))
-    b = np.zeros(p)
-    ext = d.ext
+    (rows sorted by rate, so each rate's block is a view; J'J of a block is
+    one BLAS ``syrk`` on the column-major columns, no transposed copy)."""
+    k = d.ext.size
+    # the channel's own parameters (every rate's base, then the extensions),
+    # scattered into the (p, p) matrix once
+    own, own_rhs = np.zeros((4 * m + k, 4 * m + k)), np.zeros(4 * m + k)
+    ext = slice(4 * m, None)
     cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
     for f in range(m):
-        Xf = d.X[cuts[f]:cuts[f + 1]]
-        Gf = Xf.T @ Xf
-        bf = Xf.T @ d.resid[cuts[f]:cuts[f + 1]]
-        base = d.base[f]
-        G[np.ix_(base, base)] = Gf[:4, :4]
-        G[np.ix_(base, ext)] = Gf[:4, 4:]
-        G[np.ix_(ext, base)] = Gf[4:, :4]
-        G[np.ix_(ext, ext)] += Gf[4:, 4:]
-        b[base] = bf[:4]
-        b[ext] += bf[4:]
+        Cf = d.columns[:, cuts[f]:cuts[f + 1]]
+        Gf = Cf @ Cf.T
+        bf = Cf @ d.resid[cuts[f]:cuts[f + 1]]
+        base = slice(4 * f, 4 * f + 4)
+        own[base, base] = Gf[:4, :4]
+        own[base, ext] = Gf[:4, 4:]
+        own[ext, base] = Gf[4:, :4]
+        own[ext, ext] += Gf[4:, 4:]
+        own_rhs[base] = bf[:4]
+        own_rhs[ext] += bf[4:]
+    params = np.concatenate([d.base.ravel(), d.ext])
+    G, b = np.zeros((p, p)), np.zeros(p)
+    G[params[:, None], params] = own
+    b[params] = own_rhs
     return G, b
 
 
@@ -121,21 +134,19 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: 
                  obs: Observations | None = None) -> Evaluation:
     """``ev`` with further Jacobian columns: ``extra[r]`` = (parameter
     numbers, columns (n, k)) of channel r, e.g. an offset step's indicator
-    (``obs``: the observations whose scratch array can hold the products' operands)."""
+    (``obs``: the observations whose scratch array can hold a gather of the
+    design's columns)."""
     gram, rhs = ev.gram.copy(), ev.rhs.copy()
     for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
         E = columns[d.rows]
         keep = ~np.isin(d.ext, params)  # the design holds these columns as zeros
         kept = 4 + np.flatnonzero(keep)
-        # a run of columns transposed from a slice (faster than a gather) into
-        # the same contiguous (k, n) matrix, for the same BLAS product
-        run = kept.size > 0 and kept[-1] - kept[0] == kept.size - 1
-        ext_t = (d.X[:, kept[0]:kept[-1] + 1] if run else d.X[:, kept]).T
-        if obs is not None:  # into the scratch array: no fresh pages to fault in
-            target = column_buffer(obs, ext_t.shape[0]).reshape(-1)[:ext_t.size].reshape(ext_t.shape)
-            np.copyto(target, ext_t)
-            ext_t = target
-        cross_ext = np.ascontiguousarray(ext_t) @ E
+        if kept.size > 0 and kept[-1] - kept[0] == kept.size - 1:  # a run of columns: a view
+            ext_columns = d.columns[kept[0]:kept[-1] + 1]
+        else:  # into the scratch array: no fresh pages to fault in
+            ext_columns = np.take(d.columns, kept, axis=0,
+                                  mode="clip", out=None if obs is None else column_buffer(obs, kept.size)[:, :d.rows.size])
+        cross_ext = ext_columns @ E
         gram[r][np.ix_(d.ext[keep], params)] = cross_ext
         gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
         gram[r][np.ix_(params, params)] = E.T @ E
@@ -143,7 +154,7 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: 
         cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
         for f in range(m):
             at = slice(cuts[f], cuts[f + 1])
-            cross = d.X[at, :4].T @ E[at]
+            cross = d.columns[:4, at] @ E[at]
             gram[r][np.ix_(d.base[f], params)] = cross
             gram[r][np.ix_(params, d.base[f])] = cross.T
     return replace(ev, gram=gram, rhs=rhs)
@@ -186,25 +197,27 @@ class ChannelState:
 
 def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
     geometries = motion_reuse(obs, effects)["geometries"]
-    R = layout.responsivity(beta)[obs.rate_idx]
+    R_rates = layout.responsivity(beta)
+    R = R_rates[obs.rate_idx]
+    x1g = np.sqrt(np.einsum("fij,fij->fi", R_rates, R_rates))[obs.rate_idx].T  # |R_row| is the rate's
     gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
     delays = effects.delays()
     scale = scale_terms(obs.motion, effects)
+    # every channel's projections at once, per geometry (channels without a delay share one)
+    projected = {delay: [np.einsum("nrc,nc->rn", R, vectors, out=np.empty((3, obs.n)))
+                         for vectors in (geometries[delay].force, geometries[delay].deriv)] for delay in set(delays)}
     states = []
     for r in range(3):
         geo = geometries[delays[r]]
-        R_row = R[:, r]
-        y = np.einsum("ij,ij->i", R_row, geo.force)
-        x1g = np.sqrt(np.einsum("ij,ij->i", R_row, R_row))
-        u = y / x1g
+        y, y_theta = projected[delays[r]][0][r], projected[delays[r]][1][r]
+        u = y / x1g[r]
         # d/dy of y f_1(u) f_2(u) ...: the chain factor of every input, one factor at a time
         slope, product = np.ones(obs.n), np.ones(obs.n)
         for effect, k in gains:
             slope = effect.chain(k[r], slope, product, u)
             product = product * effect.gain(k[r], u)
         slope = scaled(slope, None if scale is None else scale[:, r])
-        states.append(ChannelState(r, geo, R_row, x1g, y, u, slope, slope * np.einsum("ij,ij->i", R_row, geo.deriv),
-                                   y * product))
+        states.append(ChannelState(r, geo, R[:, r], x1g[r], y, u, slope, slope * y_theta, y * product))
     return states
 
 
@@ -282,39 +295,72 @@ class _Factors:
         return effect_named(cand.effect).column(name, cand, st, self)
 
 
+class Linearisation:
+    """The model at one parameter vector: predictions and residuals, and
+    the Jacobian's columns built on demand and kept, so that a Gauss-Newton
+    iteration builds only the active parameters' columns and the converged
+    one adds the rest (``evaluation``) without building any twice."""
+
+    def __init__(self, obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
+                 clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray):
+        effects = effects_from(layout.values(beta, active), clip)
+        self.obs, self.layout, self.use = obs, layout, use
+        self.states = _channel_states(obs, beta, layout, effects)
+        self.pred = _outputs(obs, beta, layout, active, effects, self.states, structure)
+        self.factors = _Factors(obs, effects, structure)
+        self.resid = np.where(use, obs.y - self.pred, 0.0)
+        self.by_name = {n: c for c in layout.candidates for n in c.names}
+        self.built: dict[tuple[int, int], np.ndarray] = {}
+
+    def _column(self, r: int, i: int, keep: bool) -> np.ndarray:
+        """Channel r's column of parameter i; ``keep``: kept for a later
+        evaluation (the active parameters'; the others are copied into the
+        design at once, so their memory serves the next column)."""
+        if (r, i) in self.built:
+            return self.built[r, i]
+        name = self.layout.names[i]
+        column = self.factors.column(name, self.by_name[name], self.states[r])
+        if keep:
+            self.built[r, i] = column
+        return column
+
+    def evaluation(self, params: np.ndarray | None = None) -> Evaluation:
+        """The normal equations of the Jacobian's columns of the base
+        parameters and the extension parameters ``params`` (None: all);
+        the others' rows and columns are zero."""
+        obs, layout, use = self.obs, self.layout, self.use
+        p, m = len(layout.names), layout.n_rates
+        designs, grams, rhss = [], [], []
+        width = 4 + max(int((channel >= layout.n_base).sum()) for channel in layout.per_channel)
+        for st in self.states:
+            r = st.r
+            rows = np.flatnonzero(use[:, r])
+            every = rows.size == obs.n
+            ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
+            if params is not None:
+                ext = ext[np.isin(ext, params)]
+            columns = design_buffer(obs, 4 + ext.size, rows.size, width)
+            columns[0] = 1.0
+            force = st.slope[:, None] * st.geo.force
+            columns[1:4] = (force if every else force[rows]).T
+            for k, i in enumerate(ext):
+                column = self._column(r, i, params is not None)
+                columns[4 + k] = column if every else column[rows]
+            base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
+                             for f in range(m)])
+            d = ChannelDesign(columns, obs.rate_idx[rows], rows, self.resid[rows, r], base, ext)
+            G, b = normal_equations(d, p, m)
+            designs.append(d)
+            grams.append(G)
+            rhss.append(b)
+        rss = np.einsum("ij,ij->j", self.resid, self.resid)
+        return Evaluation(self.pred, self.resid, np.array(grams), np.array(rhss), rss, use.sum(axis=0), tuple(designs))
+
+
 def evaluate(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
              clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray) -> Evaluation:
     """Predictions and the Jacobian of every parameter (enabled or not)."""
-    effects = effects_from(layout.values(beta, active), clip)
-    states = _channel_states(obs, beta, layout, effects)
-    pred = _outputs(obs, beta, layout, active, effects, states, structure)
-    factors = _Factors(obs, effects, structure)
-    by_name = {n: c for c in layout.candidates for n in c.names}
-    p, m = len(layout.names), layout.n_rates
-    resid = np.where(use, obs.y - pred, 0.0)
-    designs, grams, rhss = [], [], []
-    for st in states:
-        r = st.r
-        rows = np.flatnonzero(use[:, r])
-        ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
-        # each column written contiguously, then one transposing copy into the
-        # row-major design the normal equations read (writing the columns of a
-        # row-major array directly streams the whole array once per column)
-        columns = column_buffer(obs, 4 + ext.size)
-        columns[0] = 1.0
-        columns[1:4] = (st.slope[:, None] * st.geo.force).T
-        for k, i in enumerate(ext):
-            columns[4 + k] = factors.column(layout.names[i], by_name[layout.names[i]], st)
-        base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
-                         for f in range(m)])
-        X = np.ascontiguousarray(columns.T if rows.size == obs.n else columns.T[rows])
-        d = ChannelDesign(X, obs.rate_idx[rows], rows, resid[rows, r], base, ext)
-        G, b = normal_equations(d, p, m)
-        designs.append(d)
-        grams.append(G)
-        rhss.append(b)
-    rss = np.einsum("ij,ij->j", resid, resid)
-    return Evaluation(pred, resid, np.array(grams), np.array(rhss), rss, use.sum(axis=0), tuple(designs))
+    return Linearisation(obs, beta, layout, active, clip, structure, use).evaluation()
 
 
 def weighted(ev: Evaluation, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -325,7 +371,7 @@ def weighted(ev: Evaluation, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, float]:
     """Gauss-Newton step of the parameters ``idx`` and its chi-square reduction
     (Cholesky on the scaled normal equations; least squares if singular)."""
-    sub = G[np.ix_(idx, idx)]
+    sub = G[idx[:, None], idx]
     scale = np.sqrt(np.diag(sub))
     scale[scale == 0] = 1.0
     A = sub / np.outer(scale, scale)
@@ -344,5 +390,5 @@ def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, fl
 def rss_after(ev: Evaluation, step: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Per-channel residual sum of squares after a linearised step."""
     return np.array([
-        ev.rss[r] - 2 * step @ ev.rhs[r][idx] + step @ ev.gram[r][np.ix_(idx, idx)] @ step for r in range(3)
+        ev.rss[r] - 2 * step @ ev.rhs[r][idx] + step @ ev.gram[r][idx[:, None], idx] @ step for r in range(3)
     ])
