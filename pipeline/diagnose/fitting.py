@@ -36,6 +36,7 @@ class ModelFit:
     G: np.ndarray
     b: np.ndarray
     idx: np.ndarray
+    converged: bool  # Gauss-Newton stopped at its tolerance: ``ev`` is the evaluation at ``beta``
     # the scores of extensions already asked for (``score``), and the fit's own decrement
     memo: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -55,12 +56,6 @@ class ModelFit:
     @property
     def rms(self) -> float:
         return float(np.sqrt(self.ev.rss.sum() / self.n_total))
-
-    @property
-    def converged(self) -> bool:
-        """Whether Gauss-Newton stopped at its tolerance (``fit_model``): ``ev``
-        is then the evaluation at ``beta`` (its predictions those of the fit)."""
-        return solve(self.G, self.b, self.idx)[1] < TOLERANCE * max(self.idx.size, 1)
 
     def covariance(self) -> np.ndarray:
         """Covariance of the active parameters (order ``idx``)."""
@@ -113,6 +108,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     inactive = np.setdiff1d(np.arange(beta.size), idx)
     beta[inactive] = 0.0
     lin: Linearisation | None = None
+    converged = False
     for _ in range(max_iter):
         lin = None  # the last iteration's columns go before the next ones are built (memory)
         lin = Linearisation(obs, beta, layout, active, clip, structure, use)
@@ -121,7 +117,8 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
         sigma = _sigma(ev, layout, idx, obs)
         G, b = weighted(ev, sigma)
         step, decrement = solve(G, b, idx)
-        if decrement < TOLERANCE * max(idx.size, 1):
+        converged = decrement < TOLERANCE * max(idx.size, 1)
+        if converged:
             break
         beta[idx] += step
     if lin is None:
@@ -129,7 +126,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     # at the optimum every column: the scores of the extensions not in the model
     ev = lin.evaluation()
     G, b = weighted(ev, sigma)
-    return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx)
+    return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx, converged)
 
 
 @dataclass(frozen=True)
