@@ -17,11 +17,7 @@ CPU seconds (all threads) of that run: on a machine shared with other work
 the wall figures fall, the CPU seconds much less, so the CPU ratio tells
 what the code costs against zstd alone.
 
-JSON messages have their own second line too: ``read_topics`` alone
-(chunks read and decompressed, each chunk's JSON lines parsed on the
-channel's threads, the chunks' frames joined) against the per-message path.
-
-    python bench/mcap_ingest.py [--rotation-samples 20000] [--repeats 3] [--workers 0] [--cdr-only | --json-only]
+    python bench/mcap_ingest.py [--rotation-samples 20000] [--repeats 3] [--workers 0] [--cdr-only]
 """
 
 from __future__ import annotations
@@ -115,17 +111,14 @@ def main() -> None:
     parser.add_argument("--rotation-samples", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workers", type=int, default=0, help="cores the run may use (0: all)")
-    only = parser.add_mutually_exclusive_group()
-    only.add_argument("--cdr-only", action="store_true", help="skip the JSON capture")
-    only.add_argument("--json-only", action="store_true", help="skip the CDR capture")
+    parser.add_argument("--cdr-only", action="store_true", help="skip the JSON capture")
     args = parser.parse_args()
     threads = cores(args.workers)
     spec = SimulationSpec(plan=Plan(rotation_samples=args.rotation_samples))
     sim = simulate(spec, 1)
     n = sim.samples.height
     meta = load_meta(None)
-    cases = (("cdr", reference_cdr),) if args.cdr_only else (("json", reference_json),) if args.json_only else (
-        ("cdr", reference_cdr), ("json", reference_json))
+    cases = (("cdr", reference_cdr),) if args.cdr_only else (("cdr", reference_cdr), ("json", reference_json))
     with tempfile.TemporaryDirectory() as tmp:
         for encoding, reference in cases:
             path = write_mcap(sim, Path(tmp) / f"{encoding}.mcap", encoding=encoding)
@@ -135,10 +128,6 @@ def main() -> None:
             theirs = timed(partial(reference, path), args.repeats)
             report(what, n, "messages", ours[0], "make_reader + per-message decode", theirs[0])
             print(f"  CPU s: ingest {ours[1]:.3f}, per-message path {theirs[1]:.3f}: ratio {theirs[1] / ours[1]:.1f}x")
-            if encoding == "json":
-                columns = timed(partial(read_topics, path, {"/imu", "/table/joint_states"}, Limits(), args.workers), args.repeats)
-                report("  decoding into columns alone (read_topics)", n, "messages", columns[0], "make_reader + json.loads", theirs[0])
-                print(f"  CPU s: read_topics {columns[1]:.3f}, per-message path {theirs[1]:.3f}: ratio {theirs[1] / columns[1]:.1f}x")
             if encoding == "cdr":
                 payloads = compressed_chunks(path)
                 with ThreadPoolExecutor(threads) as pool:

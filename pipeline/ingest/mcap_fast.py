@@ -36,8 +36,8 @@ from mcap.records import Schema
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest.mcap_chunks import tiles
-from rotcal.ingest.mcap_columns import DecodedTopic, Records, decode_messages
-from rotcal.ingest.mcap_records import McapFile, Unsupported, chunk_data, chunk_records, parse_channel, parse_schema, top_records
+from rotcal.ingest.mcap_columns import DecodedTopic, Records, Unsupported, decode_messages
+from rotcal.ingest.mcap_records import McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
@@ -255,13 +255,7 @@ def _reading(path: Path, where: McapFile, topics: set[str], workers: int) -> Ite
     state of the read, sized from the message index records."""
     threads = cores(workers)
     with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
-        state = _State(where, topics, *_message_counts(fh, where))
-        try:
-            yield fh, map if pool is None else pool.map, state
-        except BaseException:  # a read given up midway leaves no JSON parse threads behind
-            for topic in state.keep.values():
-                topic.close()
-            raise
+        yield fh, map if pool is None else pool.map, _State(where, topics, *_message_counts(fh, where))
 
 
 def _handovers(fh, state: _State, batch: _Batch) -> Iterator[bool]:

@@ -38,10 +38,6 @@ _CHUNK_HEAD = struct.Struct("<QQQI")  # message start and end time, uncompressed
 MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time: then the data
 
 
-class Unsupported(Exception):
-    """The file holds something the fast path does not decode: the caller reads it with the per-message path."""
-
-
 @dataclass
 class McapFile:
     """The file being read: its path (for messages), its limits and the

@@ -16,10 +16,8 @@ import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.ingest.labels import MAX_ABS_TIME_S
-from rotcal.ingest.mcap_columns import DecodedTopic
-from rotcal.ingest.mcap_json import NUMBER_FIELDS
+from rotcal.ingest.mcap_columns import NUMBER_FIELDS, TEXT_FIELDS, DecodedTopic, Unsupported
 from rotcal.ingest.mcap_messages import MessageTopic, decoder
-from rotcal.ingest.mcap_records import Unsupported
 from rotcal.model.physics import AXES, JOINT_SIGN
 from rotcal.parallel import cores
 
@@ -127,12 +125,16 @@ def json_columns(msgs: list, fields: tuple[str, ...], topic: str, path: Path) ->
 
 
 def finite_numbers(frame: pl.DataFrame) -> pl.DataFrame:
-    """``frame`` (JSON messages parsed by polars, every field of its type:
-    ``mcap_json.JSON_TYPES``) if every number is finite, checked in one
-    expression; else ``Unsupported``: the per-message path words what is wrong."""
-    numbers = [name for name, dtype in frame.schema.items() if dtype.is_float()]
-    if numbers and not frame.select(pl.all_horizontal(pl.col(numbers).is_finite().all())).item():
-        raise Unsupported("JSON number that is not finite")
+    """``frame`` (JSON messages parsed by polars) if every field is of its
+    kind and every number finite; else ``Unsupported``: the per-message path
+    words what is wrong."""
+    for name, dtype in frame.schema.items():
+        if name in NUMBER_FIELDS and not (dtype.is_numeric() or dtype == pl.Null):
+            raise Unsupported(f"JSON field {name!r} holds other than numbers")
+        if name in TEXT_FIELDS and dtype not in (pl.String, pl.Null):
+            raise Unsupported(f"JSON field {name!r} holds other than text")
+        if dtype.is_float() and not frame[name].is_finite().all():
+            raise Unsupported(f"JSON field {name!r} holds a number that is not finite")
     return frame
 
 
@@ -147,17 +149,15 @@ def json_time_ns(t_s: np.ndarray, log_ns: np.ndarray, topic: str, path: Path) ->
 
 
 def _json_track(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path) -> TableTrack:
-    """The table's JSON messages (checked fields, either path; axis labels as
-    text or already as the Enum of AXES) as a track."""
+    """The table's JSON messages (checked fields, either path) as a track."""
     def column(name: str) -> np.ndarray:
         values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
         return values.fill_null(np.nan).to_numpy()
-    labels = frame["axis"] if "axis" in frame.columns else pl.Series([None] * frame.height, dtype=pl.String)
-    axis = labels.cast(pl.Enum(AXES), strict=False)  # null: absent or another label
-    if axis.null_count():
-        label = labels[int(axis.is_null().arg_true()[0])]
+    axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
+    code = _axis_code(axis, AXES)
+    if np.any(code < 0):
+        label = axis[int(np.argmax(code < 0))]
         raise InputError(f"table topic {topic!r}: unknown axis label {label!r} (expected x, y or z)", path=path)
-    code = axis.to_physical().cast(pl.Int8).to_numpy()
     return _track(json_time_ns(column("t"), log_ns, topic, path), code, column("rate_hz"), column("angle_deg"), topic, path)
 
 
