@@ -187,16 +187,16 @@ def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: 
     if reason is not None:
         return SegmentFit.failed(segment, theta_deg.size, reason, rate_hz)
     n = theta_deg.size
+    normal, residual, xtx_inv = sine3_sums(theta_deg, channels)  # the four-parameter fit starts from its coefficients
     if kind == "rotation" and config.sine_fit == "four_parameter":
         y = np.column_stack(channels)
-        four = four_parameter_fit(theta_deg, y, sine3_fit(theta_deg, channels)[0])
+        four = four_parameter_fit(theta_deg, y, residual.coef)
         if four is None:
             return SegmentFit.failed(segment, n, "four-parameter sine fit did not converge to a rate within 5 % of the commanded one", rate_hz)
         rms, max_abs, lag1 = residual_stats(four.resid)
         sigma = np.sqrt(np.einsum("ij,ij->j", four.resid, four.resid) / (n - 3))
         return SegmentFit(segment, "ok", None, n, four.coef, four.cov, sigma, rms, max_abs, lag1,
                           rate_hz * four.scale, abs(rate_hz) * four.u_scale)
-    normal, residual, xtx_inv = sine3_sums(theta_deg, channels)
     rtr = residual.products()
     return sine3_result(segment, rate_hz, n, residual.coef, coefficient_covariance(rtr, xtx_inv, n), rtr,
                         residual.max_abs, residual.lag,
