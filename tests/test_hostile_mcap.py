@@ -28,7 +28,7 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_columns, mcap_fast, mcap_source, ros2_cdr, ros2_msgdefs
+from rotcal.ingest import mcap_fast, mcap_records, mcap_source, ros2_cdr, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap
 
@@ -357,7 +357,7 @@ def test_a_message_running_into_the_next_chunk_is_refused(capture, tmp_path):
     """Both chunks are decompressed side by side into one buffer: a record
     may not span them (mcap_fast declines; the per-message path words it)."""
     path = rewrite(capture, tmp_path / "spanning.mcap", _message_into_next_chunk)
-    with pytest.raises(mcap_columns.Unsupported):
+    with pytest.raises(mcap_records.Unsupported):
         mcap_fast.read_topics(path, {"/imu"}, Limits())
     refused(path, "corrupt MCAP: a record at byte", "of the chunk at byte 70 declares", "bytes where")
 
@@ -381,5 +381,5 @@ def _middle_message(field: str):
 @pytest.mark.parametrize("field", ["channel", "opcode"])
 def test_every_record_of_an_even_run_is_checked(capture, tmp_path, field):
     path = rewrite(capture, tmp_path / f"{field}.mcap", _middle_message(field))
-    with pytest.raises(mcap_columns.Unsupported):
+    with pytest.raises(mcap_records.Unsupported):
         mcap_fast.read_topics(path, {"/imu"}, Limits())

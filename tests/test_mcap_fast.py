@@ -12,7 +12,7 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
-from rotcal.ingest import mcap_columns, mcap_fast, mcap_source, ros2_msgdefs
+from rotcal.ingest import mcap_fast, mcap_records, mcap_source, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.model.physics import JOINT_SIGN
 from rotcal.simulate import Plan, SimulationSpec, simulate, table_messages
@@ -26,7 +26,7 @@ SMALL = SimulationSpec(plan=Plan(rotation_samples=300, step_samples=5))  # 3,960
 def _per_message(monkeypatch, path: Path, meta=None):
     """The per-message path alone (the fast one made to decline)."""
     def decline(*args, **kwargs):
-        raise mcap_columns.Unsupported("forced")
+        raise mcap_records.Unsupported("forced")
 
     with monkeypatch.context() as m:
         m.setattr(mcap_fast, "read_topics", decline)
@@ -37,7 +37,7 @@ def _both(monkeypatch, path: Path, meta=None, fast_expected: bool = True):
     if fast_expected:
         mcap_fast.read_topics(path, {"/imu", "/table/joint_states"}, Limits())  # decodes, does not decline
     else:
-        with pytest.raises(mcap_columns.Unsupported):
+        with pytest.raises(mcap_records.Unsupported):
             mcap_fast.read_topics(path, {"/imu", "/table/joint_states"}, Limits())
     fast = mcap_source.read_mcap_capture(path, meta or load_meta(None), None, Limits())
     slow = _per_message(monkeypatch, path, meta)

@@ -28,6 +28,10 @@ from zlib_ng import zlib_ng
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
 
+
+class Unsupported(Exception):
+    """The file holds something the fast path does not decode: the caller reads it with the per-message path."""
+
 MAGIC = b"\x89MCAP0\r\n"
 # Schema and channel records (and other non-message records) the chunks of
 # one file may hold: each costs a Python call, and a chunk of a few kilobytes

@@ -18,8 +18,9 @@ from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import mcap_fast
 from rotcal.ingest.labels import label_columns, time_ordered
-from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
+from rotcal.ingest.mcap_columns import DecodedTopic
 from rotcal.ingest.mcap_messages import MessageTopic, decoder, read_records, require
+from rotcal.ingest.mcap_records import Unsupported
 from rotcal.ingest.mcap_table import fast_table_track, finite_numbers, json_columns, json_time_ns, table_labels, table_track
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA

@@ -16,8 +16,10 @@ import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.ingest.labels import MAX_ABS_TIME_S
-from rotcal.ingest.mcap_columns import NUMBER_FIELDS, TEXT_FIELDS, DecodedTopic, Unsupported
+from rotcal.ingest.mcap_columns import DecodedTopic
+from rotcal.ingest.mcap_json import NUMBER_FIELDS, TEXT_FIELDS
 from rotcal.ingest.mcap_messages import MessageTopic, decoder
+from rotcal.ingest.mcap_records import Unsupported
 from rotcal.model.physics import AXES, JOINT_SIGN
 from rotcal.parallel import cores
 

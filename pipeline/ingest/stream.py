@@ -43,9 +43,9 @@ from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import mcap_fast
 from rotcal.ingest.labels import MAX_ABS_VALUE, label_columns, time_ordered
-from rotcal.ingest.mcap_columns import DecodedTopic, Unsupported
+from rotcal.ingest.mcap_columns import DecodedTopic
 from rotcal.ingest.mcap_messages import require
-from rotcal.ingest.mcap_records import McapFile
+from rotcal.ingest.mcap_records import McapFile, Unsupported
 from rotcal.ingest.mcap_source import chosen_topics
 from rotcal.ingest.mcap_table import TableTrack, fast_table_track, table_labels
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta

@@ -22,8 +22,7 @@ from rotcal.config import RunConfig
 from rotcal.errors import InputError
 from rotcal.fit.segments import SegmentFit
 from rotcal.ingest import Dataset, capture_files, dataset_name, load_dataset, mcap_fast
-from rotcal.ingest.mcap_columns import Unsupported
-from rotcal.ingest.mcap_records import McapFile
+from rotcal.ingest.mcap_records import McapFile, Unsupported
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
 from rotcal.model.physics import CHANNELS
