@@ -263,36 +263,39 @@ class _Factors:
             self.cache[key] = value
         return self.cache[key]
 
-    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
+    def gain_column(self, effect: GainEffect, st: Channel, out: np.ndarray | None = None) -> np.ndarray:
         """d output / d k of a gain effect: y times d f / d k and the other
-        gain factors, in the forward model's order."""
-        out = st.y
+        gain factors, in the forward model's order (into ``out`` if given)."""
+        column = st.y
         for other in catalogue():
             if other is effect:
-                out = out * effect.gain_derivative(st.u)
+                column = np.multiply(column, effect.gain_derivative(st.u), out=out)
             elif isinstance(other, GainEffect) and other.name in self.effects.states:
-                out = out * other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u)
-        return self._scaled(out, st.r)
+                column = np.multiply(column, other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u), out=out)
+        return self._scaled(column, st.r, out=out)
 
-    def _scaled(self, column: np.ndarray, r: int, leave: ScaleEffect | None = None) -> np.ndarray:
+    def _scaled(self, column: np.ndarray, r: int, leave: ScaleEffect | None = None,
+                out: np.ndarray | None = None) -> np.ndarray:
         """``column`` times channel r's scale effects' factors (but ``leave``'s)."""
         for other, state in self.effects.active(ScaleEffect):
             if other is not leave:
-                column = column * other.scale(state, self.motion)[:, r]
+                column = np.multiply(column, other.scale(state, self.motion)[:, r], out=out)
         return column
 
-    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray) -> np.ndarray:
+    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray,
+                     out: np.ndarray | None = None) -> np.ndarray:
         """d output / d p of a scale effect's parameter p: the gained output
         times d (its factor) / d p and the other scale effects' factors."""
-        return self._scaled(st.gained * derivative, st.r, leave=effect)
+        return self._scaled(np.multiply(st.gained, derivative, out=out), st.r, leave=effect, out=out)
 
-    def column(self, name: str, cand: Candidate, st: ChannelState) -> np.ndarray:
-        """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
+    def column(self, name: str, cand: Candidate, st: ChannelState, out: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian column of one extension parameter in channel
+        ``st.r``'s equation (``out``: an array it may be written into)."""
         if cand == STEP:
             m = self.motion
             t = self.structure.step_t_s
             return self.cached(("step", t), lambda: (m.t_s >= t).astype(float) if t is not None else np.zeros(self.obs.n))
-        return effect_named(cand.effect).column(name, cand, st, self)
+        return effect_named(cand.effect).column(name, cand, st, self, out)
 
 
 class Linearisation:
@@ -312,17 +315,24 @@ class Linearisation:
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
-    def _column(self, r: int, i: int, keep: bool) -> np.ndarray:
-        """Channel r's column of parameter i; ``keep``: kept for a later
-        evaluation (the active parameters'; the others are copied into the
-        design at once, so their memory serves the next column)."""
-        if (r, i) in self.built:
-            return self.built[r, i]
-        name = self.layout.names[i]
-        column = self.factors.column(name, self.by_name[name], self.states[r])
-        if keep:
-            self.built[r, i] = column
-        return column
+    def _column(self, r: int, i: int, rows: np.ndarray | None, keep: bool, row: np.ndarray) -> None:
+        """Channel r's column of parameter i on the used ``rows`` (None:
+        every sample) into ``row``, the design's. ``keep``: kept for a later
+        evaluation (the active parameters'); the others are computed into
+        the design's row itself when every sample is used (no copy)."""
+        column = self.built.get((r, i))
+        if column is None:
+            name = self.layout.names[i]
+            column = self.factors.column(name, self.by_name[name], self.states[r],
+                                         None if keep or rows is not None else row)
+            if keep:
+                self.built[r, i] = column
+        if column is row:
+            return
+        if rows is None:
+            np.copyto(row, column)
+        else:
+            np.take(column, rows, out=row)
 
     def evaluation(self, params: np.ndarray | None = None) -> Evaluation:
         """The normal equations of the Jacobian's columns of the base
@@ -341,11 +351,12 @@ class Linearisation:
                 ext = ext[np.isin(ext, params)]
             columns = design_buffer(obs, 4 + ext.size, rows.size, width)
             columns[0] = 1.0
-            force = st.slope[:, None] * st.geo.force
-            columns[1:4] = (force if every else force[rows]).T
+            if every:   # the products straight into the design, transposed as they are written
+                np.multiply(st.slope, st.geo.force.T, out=columns[1:4])
+            else:
+                columns[1:4] = (st.slope[:, None] * st.geo.force)[rows].T
             for k, i in enumerate(ext):
-                column = self._column(r, i, params is not None)
-                columns[4 + k] = column if every else column[rows]
+                self._column(r, i, None if every else rows, params is not None, columns[4 + k])
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             d = ChannelDesign(columns, obs.rate_idx[rows], rows, self.resid[rows, r], base, ext)

@@ -113,9 +113,10 @@ class ColumnContext(Protocol):
 
     def cached(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray: ...
 
-    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray: ...
+    def gain_column(self, effect: GainEffect, st: Channel, out: np.ndarray | None = None) -> np.ndarray: ...
 
-    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray) -> np.ndarray: ...
+    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray,
+                     out: np.ndarray | None = None) -> np.ndarray: ...
 
 
 def scope_rank(scope: str) -> int:
@@ -201,8 +202,11 @@ class Effect:
         """The state from internal parameter values (None: not modelled)."""
         return None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
-        """d output / d (internal parameter ``name``) in channel ``st.r``."""
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
+        """d output / d (internal parameter ``name``) in channel ``st.r``;
+        ``out`` (n,), when given, may hold the result (the design's row:
+        the diagnosis then copies nothing), which is returned either way."""
         raise NotImplementedError
 
     def report(self, cand: Candidate, value: np.ndarray, cov: np.ndarray, output_unit: str) -> list[ReportedParameter]:
@@ -268,8 +272,9 @@ class GainEffect(Effect):
         """d f / d k."""
         raise NotImplementedError
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
-        return ctx.gain_column(self, st)
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
+        return ctx.gain_column(self, st, out)
 
 
 class PerChannelEffect(Effect):
