@@ -110,7 +110,9 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     lin: Linearisation | None = None
     converged = False
     for _ in range(max_iter):
-        lin = None  # the last iteration's columns go before the next ones are built (memory)
+        # the last iteration's columns and designs go before the next ones are built: its design
+        # buffers, still in the cache, serve the next evaluation (``geometry.design_buffer``)
+        lin = ev = None
         lin = Linearisation(obs, beta, layout, active, clip, structure, use)
         # the step needs only the active parameters' columns
         ev = lin.evaluation(idx)
@@ -124,6 +126,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     if lin is None:
         raise ValueError("fit_model needs max_iter >= 1")
     # at the optimum every column: the scores of the extensions not in the model
+    ev = None
     ev = lin.evaluation()
     G, b = weighted(ev, sigma)
     return ModelFit(obs, layout, beta, active, clip, structure, use, ev, sigma, G, b, idx, converged)

@@ -53,9 +53,9 @@ class Geometry:
     true angle, d(force)/d(theta) per degree, and the uniform angle of the
     rotating samples. Channels without a delay share one."""
 
-    force: np.ndarray
+    force: np.ndarray     # (3, n), per component
     theta: np.ndarray
-    deriv: np.ndarray
+    deriv: np.ndarray     # (3, n), per component
     base: np.ndarray
     stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
 
@@ -77,8 +77,10 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
             slope = angle_effect.angle_slope(state, m, base)
             if slope is not None:
                 stretch[rot] += slope
-        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
-                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
+        # per component, (3, n): a rate's projections are then three contiguous products (``states.project``)
+        force = np.ascontiguousarray((specific_force(m, effects, g, delay) / g).T)
+        deriv = np.ascontiguousarray((gravity_direction_derivative(m.axis_idx, theta) * scale[:, None]).T)
+        out[delay] = Geometry(force, theta, deriv, base, stretch)
     return out
 
 
@@ -99,6 +101,18 @@ def motion_reuse(obs: Observations, effects: Effects) -> dict:
                 array.flags.writeable = False
         obs.reuse.update(key=key, geometries=geometries, factors={})
     return obs.reuse
+
+
+def rate_blocks(obs: Observations) -> list[slice]:
+    """The samples of each rate, a slice each: ``observations`` sorts them
+    by rate (the model's designs and projections rely on it)."""
+    blocks = obs.reuse.get("rate_blocks")
+    if blocks is None:
+        if np.any(np.diff(obs.rate_idx) < 0):
+            raise ValueError("the diagnosis's samples must be sorted by rate")
+        cuts = np.searchsorted(obs.rate_idx, np.arange(obs.rates.size + 1))
+        blocks = obs.reuse["rate_blocks"] = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    return blocks
 
 
 def column_buffer(obs: Observations, k: int) -> np.ndarray:

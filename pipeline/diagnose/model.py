@@ -24,7 +24,8 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, design_buffer, motion_reuse
+from rotcal.diagnose.geometry import Observations, column_buffer, design_buffer, motion_reuse
+from rotcal.diagnose.states import ChannelState, channel_states
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
@@ -167,71 +168,18 @@ class Structure:
     step_t_s: float | None = None
 
 
-@dataclass(frozen=True, eq=False)
-class ChannelState:
-    """One channel's model quantities at the current estimate (per sample);
-    the ``rotcal.model.effects.base.Channel`` the effects' columns read."""
-
-    r: int
-    geo: Geometry
-    R_row: np.ndarray      # this channel's responsivity row per sample, (n, 3)
-    x1g: np.ndarray        # |R_row|: the output swing for 1 g
-    y: np.ndarray          # offset-free linear output
-    u: np.ndarray          # y / x1g
-    slope: np.ndarray      # d output / d y (the gain effects' chain factor, times the scale effects')
-    d_theta: np.ndarray    # d output / d theta, per degree
-    gained: np.ndarray     # y times the gain effects' factors (before the scale effects)
-
-    @property
-    def theta(self) -> np.ndarray:
-        return self.geo.theta
-
-    @property
-    def base(self) -> np.ndarray:
-        return self.geo.base
-
-    @property
-    def stretch(self) -> np.ndarray:
-        return self.geo.stretch
-
-
-def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
-    geometries = motion_reuse(obs, effects)["geometries"]
-    R_rates = layout.responsivity(beta)
-    R = R_rates[obs.rate_idx]
-    x1g = np.sqrt(np.einsum("fij,fij->fi", R_rates, R_rates))[obs.rate_idx].T  # |R_row| is the rate's
-    gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
-    delays = effects.delays()
-    scale = scale_terms(obs.motion, effects)
-    # every channel's projections at once, per geometry (channels without a delay share one)
-    projected = {delay: [np.einsum("nrc,nc->rn", R, vectors, out=np.empty((3, obs.n)))
-                         for vectors in (geometries[delay].force, geometries[delay].deriv)] for delay in set(delays)}
-    states = []
-    for r in range(3):
-        geo = geometries[delays[r]]
-        y, y_theta = projected[delays[r]][0][r], projected[delays[r]][1][r]
-        u = y / x1g[r]
-        # d/dy of y f_1(u) f_2(u) ...: the chain factor of every input, one factor at a time
-        slope, product = np.ones(obs.n), np.ones(obs.n)
-        for effect, k in gains:
-            slope = effect.chain(k[r], slope, product, u)
-            product = product * effect.gain(k[r], u)
-        slope = scaled(slope, None if scale is None else scale[:, r])
-        states.append(ChannelState(r, geo, R[:, r], x1g[r], y, u, slope, slope * y_theta, y * product))
-    return states
-
-
 def predict(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
             clip: tuple[float | None, float | None], structure: Structure) -> np.ndarray:
     """The model's outputs (n, 3): the simulation of every sample."""
     effects = effects_from(layout.values(beta, active), clip)
-    return _outputs(obs, beta, layout, active, effects, _channel_states(obs, beta, layout, effects), structure)
+    return _outputs(obs, beta, layout, active, effects, channel_states(obs, layout.responsivity(beta), effects), structure)
 
 
 def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarray:
     y = np.column_stack([st.y for st in states])
-    x1g = np.column_stack([st.x1g for st in states])
-    gained = scaled(nonlinearity(y, x1g, effects), scale_terms(obs.motion, effects))
+    if effects.active(GainEffect):   # (without, the gain effects' product is y itself)
+        y = nonlinearity(y, np.column_stack([st.x1g for st in states]), effects)
+    gained = scaled(y, scale_terms(obs.motion, effects))
     out = layout.offsets(beta)[obs.rate_idx] + offset_terms(obs.motion, effects) + gained
     if structure.step_t_s is not None and STEP in active:
         after = (obs.motion.t_s >= structure.step_t_s)[:, None]
@@ -308,7 +256,7 @@ class Linearisation:
                  clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray):
         effects = effects_from(layout.values(beta, active), clip)
         self.obs, self.layout, self.use = obs, layout, use
-        self.states = _channel_states(obs, beta, layout, effects)
+        self.states = channel_states(obs, layout.responsivity(beta), effects)
         self.pred = _outputs(obs, beta, layout, active, effects, self.states, structure)
         self.factors = _Factors(obs, effects, structure)
         self.resid = np.where(use, obs.y - self.pred, 0.0)
@@ -351,10 +299,12 @@ class Linearisation:
                 ext = ext[np.isin(ext, params)]
             columns = design_buffer(obs, 4 + ext.size, rows.size, width)
             columns[0] = 1.0
-            if every:   # the products straight into the design, transposed as they are written
-                np.multiply(st.slope, st.geo.force.T, out=columns[1:4])
+            if every and st.unit_slope:
+                columns[1:4] = st.geo.force
+            elif every:
+                np.multiply(st.slope, st.geo.force, out=columns[1:4])
             else:
-                columns[1:4] = (st.slope[:, None] * st.geo.force)[rows].T
+                columns[1:4] = (st.slope * st.geo.force)[:, rows]
             for k, i in enumerate(ext):
                 self._column(r, i, None if every else rows, params is not None, columns[4 + k])
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
