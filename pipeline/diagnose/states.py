@@ -54,7 +54,14 @@ class ChannelState:
     @cached_property
     def R_row(self) -> np.ndarray:
         """This channel's responsivity row per sample, (n, 3)."""
-        return self._R_rates[:, self.r][self._obs.rate_idx]
+        out = np.empty((self._obs.n, 3))
+        for row, at in zip(self._R_rates[:, self.r], rate_blocks(self._obs)):
+            out[at] = row
+        return out
+
+    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """R_row . vectors per sample, ``vectors`` (3, n) per component."""
+        return project(self._R_rates[:, self.r], vectors, rate_blocks(self._obs), out)
 
     @cached_property
     def d_theta(self) -> np.ndarray:

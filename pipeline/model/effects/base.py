@@ -101,6 +101,9 @@ class Channel(Protocol):
     @property
     def gained(self) -> np.ndarray: ...    # y times every gain effect's factor: what the scale effects multiply
 
+    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
+    # R_row . vectors per sample, vectors (3, n) per component (into ``out`` if given)
+
 
 class ColumnContext(Protocol):
     """What a Jacobian column may use besides its channel: the motion, the
