@@ -227,8 +227,9 @@ def test_jacobian_matches_finite_differences(make_dataset):
 
 
 def test_evaluations_reuse_nothing_stale(make_dataset):
-    """Observations keep the geometries and column factors of the last
-    motion evaluated, and the buffers of designs no longer held: an
+    """Observations keep the geometries and column factors of the null
+    model's motion and of the last other one evaluated, and the buffers of
+    designs no longer held: an
     evaluation after one at other values of the motion-shaping effects (here
     none on, then every one on) equals the same evaluation on fresh
     observations, bit for bit, and leaves the designs of an evaluation

@@ -2,7 +2,7 @@
 for its model (Geist 2017 Eq. 5 with the angle, sampling and force effects
 of docs/effects.md, through ``rotcal.model.physics``), and what the model's
 evaluations keep between them: the geometries and shared column factors of
-the last motion, one scratch array for a gather of the design's columns and
+the null model's motion and of the last other one, one scratch array for a gather of the design's columns and
 the designs' buffers (``Observations.reuse``)."""
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from rotcal.model.physics import Effects, Motion, gravity_direction_derivative, 
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).
 NUMERICAL_FLOOR = 1e-9
+# ``motion_reuse``'s key of the null model's motion (no angle, sampling or force effect on)
+_NO_MOTION_EFFECT = pickle.dumps([])
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,7 +34,7 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
-    # the geometries and column factors of the last motion evaluated (``geometry.motion_reuse``), a scratch array
+    # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), scratch and design arrays
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
@@ -87,20 +89,25 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
 def motion_reuse(obs: Observations, effects: Effects) -> dict:
     """What depends only on the samples' motion and on the effects that shape
     it (angle, sampling and force effects): the geometries and the factors
-    the extension columns share (``model._Factors.cached``). One slot per
-    ``Observations``, kept while those effects' values are unchanged bit for
-    bit: the iterations of a fit without such effects (the null model, gain,
-    scale or offset effects) then compute them once, not once per evaluation.
-    The arrays are read-only, so no caller can change what later ones reuse."""
+    the extension columns share (``model._Factors.cached``). Kept per
+    ``Observations`` for the last values of those effects, bit for bit, and
+    for none of them on (the null model's motion, which the fits without
+    such effects, the refits without a found one and the corrected samples
+    come back to): the iterations of such a fit compute them once, not once
+    per evaluation. The arrays are read-only, so no caller can change what
+    later ones reuse."""
     key = pickle.dumps([(e.name, state) for stage in (AngleEffect, SamplingEffect, ForceEffect)
                         for e, state in effects.active(stage)])
-    if obs.reuse.get("key") != key:
+    slots = obs.reuse.setdefault("motions", {})
+    if key not in slots:
         geometries = _geometries(obs, effects)
         for geo in geometries.values():
             for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
                 array.flags.writeable = False
-        obs.reuse.update(key=key, geometries=geometries, factors={})
-    return obs.reuse
+        for old in [k for k in slots if k != _NO_MOTION_EFFECT]:
+            del slots[old]
+        slots[key] = {"geometries": geometries, "factors": {}}
+    return slots[key]
 
 
 def rate_blocks(obs: Observations) -> list[slice]:
