@@ -227,8 +227,9 @@ def test_jacobian_matches_finite_differences(make_dataset):
 
 
 def test_evaluations_reuse_nothing_stale(make_dataset):
-    """Observations keep the geometries and column factors of the last
-    motion evaluated, and the buffers of designs no longer held: an
+    """Observations keep the geometries and column factors of the null
+    model's motion and of the last other one evaluated, and the buffers of
+    designs no longer held: an
     evaluation after one at other values of the motion-shaping effects (here
     none on, then every one on) equals the same evaluation on fresh
     observations, bit for bit, and leaves the designs of an evaluation
@@ -341,3 +342,24 @@ def test_corrected_samples_reuse_the_diagnosis_bit_for_bit(tmp_path):
     swing = np.abs(seg.samples["w"].to_numpy()).max()
     assert np.abs(change[:, :2]).max() == 0.0
     assert 0.1 * 2 * np.pi * 0.004 < np.abs(change[:, 2]).max() / swing < 2 * np.pi * max(seg.segments["rate_hz"].abs()) * 0.004 * 1.5
+
+
+@pytest.mark.parametrize("effects", [("axis_tilt", "rate_ripple"), ("centripetal", "offset_drift")])
+def test_the_guessed_last_iteration_changes_no_result(make_dataset, monkeypatch, effects):
+    """``fit_model`` builds every column at once where it guesses that an
+    iteration is the optimum; a wrong guess (here at every iteration) takes
+    the step from the active columns alone, so the fit is bit for bit the
+    one that never guesses."""
+    from rotcal.diagnose import fitting
+
+    obs, layout, beta, _, _, use = _every_effect_on(make_dataset)
+    active = tuple(c for c in layout.candidates if c.effect in effects and c.scope in ("", "x", "u"))
+    fits = []
+    for likely_last in (0.0, np.inf):
+        monkeypatch.setattr(fitting, "LIKELY_LAST", likely_last)
+        fits.append(fitting.fit_model(obs, layout, beta, active, (None, None), Structure(), use))
+    never, always = fits
+    assert never.converged and always.converged
+    for a, b in ((never.beta, always.beta), (never.G, always.G), (never.b, always.b), (never.sigma, always.sigma),
+                 (never.ev.pred, always.ev.pred)):
+        assert a.tobytes() == b.tobytes()

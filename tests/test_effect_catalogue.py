@@ -60,7 +60,7 @@ class OffsetWobble(OffsetEffect):
         keys = [f"wobble_{c}" for c in CHANNELS]
         return np.array([float(values.get(k, 0.0)) for k in keys]) if any(k in values for k in keys) else None
 
-    def column(self, name, cand, st, ctx):
+    def column(self, name, cand, st, ctx, out=None):
         return ctx.cached(self.name, lambda: self._wave(ctx.motion))
 
 

@@ -2,7 +2,7 @@
 for its model (Geist 2017 Eq. 5 with the angle, sampling and force effects
 of docs/effects.md, through ``rotcal.model.physics``), and what the model's
 evaluations keep between them: the geometries and shared column factors of
-the last motion, one scratch array for a gather of the design's columns and
+the null model's motion and of the last other one, one scratch array for a gather of the design's columns and
 the designs' buffers (``Observations.reuse``)."""
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from rotcal.model.physics import Effects, Motion, gravity_direction_derivative, 
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).
 NUMERICAL_FLOOR = 1e-9
+# ``motion_reuse``'s key of the null model's motion (no angle, sampling or force effect on)
+_NO_MOTION_EFFECT = pickle.dumps([])
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,7 +34,7 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
-    # the geometries and column factors of the last motion evaluated (``geometry.motion_reuse``), a scratch array
+    # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), scratch and design arrays
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
@@ -53,9 +55,9 @@ class Geometry:
     true angle, d(force)/d(theta) per degree, and the uniform angle of the
     rotating samples. Channels without a delay share one."""
 
-    force: np.ndarray
+    force: np.ndarray     # (3, n), per component
     theta: np.ndarray
-    deriv: np.ndarray
+    deriv: np.ndarray     # (3, n), per component
     base: np.ndarray
     stretch: np.ndarray   # d theta / d base: 1 + ripple's slope, per sample (1 when static)
 
@@ -77,28 +79,47 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
             slope = angle_effect.angle_slope(state, m, base)
             if slope is not None:
                 stretch[rot] += slope
-        out[delay] = Geometry(specific_force(m, effects, g, delay) / g, theta,
-                              gravity_direction_derivative(m.axis_idx, theta) * scale[:, None], base, stretch)
+        # per component, (3, n): a rate's projections are then three contiguous products (``states.project``)
+        force = np.ascontiguousarray((specific_force(m, effects, g, delay) / g).T)
+        deriv = np.ascontiguousarray((gravity_direction_derivative(m.axis_idx, theta) * scale[:, None]).T)
+        out[delay] = Geometry(force, theta, deriv, base, stretch)
     return out
 
 
 def motion_reuse(obs: Observations, effects: Effects) -> dict:
     """What depends only on the samples' motion and on the effects that shape
     it (angle, sampling and force effects): the geometries and the factors
-    the extension columns share (``model._Factors.cached``). One slot per
-    ``Observations``, kept while those effects' values are unchanged bit for
-    bit: the iterations of a fit without such effects (the null model, gain,
-    scale or offset effects) then compute them once, not once per evaluation.
-    The arrays are read-only, so no caller can change what later ones reuse."""
+    the extension columns share (``model._Factors.cached``). Kept per
+    ``Observations`` for the last values of those effects, bit for bit, and
+    for none of them on (the null model's motion, which the fits without
+    such effects, the refits without a found one and the corrected samples
+    come back to): the iterations of such a fit compute them once, not once
+    per evaluation. The arrays are read-only, so no caller can change what
+    later ones reuse."""
     key = pickle.dumps([(e.name, state) for stage in (AngleEffect, SamplingEffect, ForceEffect)
                         for e, state in effects.active(stage)])
-    if obs.reuse.get("key") != key:
+    slots = obs.reuse.setdefault("motions", {})
+    if key not in slots:
         geometries = _geometries(obs, effects)
         for geo in geometries.values():
             for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
                 array.flags.writeable = False
-        obs.reuse.update(key=key, geometries=geometries, factors={})
-    return obs.reuse
+        for old in [k for k in slots if k != _NO_MOTION_EFFECT]:
+            del slots[old]
+        slots[key] = {"geometries": geometries, "factors": {}}
+    return slots[key]
+
+
+def rate_blocks(obs: Observations) -> list[slice]:
+    """The samples of each rate, a slice each: ``observations`` sorts them
+    by rate (the model's designs and projections rely on it)."""
+    blocks = obs.reuse.get("rate_blocks")
+    if blocks is None:
+        if np.any(np.diff(obs.rate_idx) < 0):
+            raise ValueError("the diagnosis's samples must be sorted by rate")
+        cuts = np.searchsorted(obs.rate_idx, np.arange(obs.rates.size + 1))
+        blocks = obs.reuse["rate_blocks"] = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    return blocks
 
 
 def column_buffer(obs: Observations, k: int) -> np.ndarray:

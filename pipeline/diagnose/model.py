@@ -24,7 +24,8 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.diagnose.geometry import Geometry, Observations, column_buffer, design_buffer, motion_reuse
+from rotcal.diagnose.geometry import Observations, column_buffer, design_buffer, motion_reuse
+from rotcal.diagnose.states import ChannelState, channel_states
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import Candidate, Channel
 from rotcal.model.physics import (
@@ -167,71 +168,18 @@ class Structure:
     step_t_s: float | None = None
 
 
-@dataclass(frozen=True, eq=False)
-class ChannelState:
-    """One channel's model quantities at the current estimate (per sample);
-    the ``rotcal.model.effects.base.Channel`` the effects' columns read."""
-
-    r: int
-    geo: Geometry
-    R_row: np.ndarray      # this channel's responsivity row per sample, (n, 3)
-    x1g: np.ndarray        # |R_row|: the output swing for 1 g
-    y: np.ndarray          # offset-free linear output
-    u: np.ndarray          # y / x1g
-    slope: np.ndarray      # d output / d y (the gain effects' chain factor, times the scale effects')
-    d_theta: np.ndarray    # d output / d theta, per degree
-    gained: np.ndarray     # y times the gain effects' factors (before the scale effects)
-
-    @property
-    def theta(self) -> np.ndarray:
-        return self.geo.theta
-
-    @property
-    def base(self) -> np.ndarray:
-        return self.geo.base
-
-    @property
-    def stretch(self) -> np.ndarray:
-        return self.geo.stretch
-
-
-def _channel_states(obs: Observations, beta: np.ndarray, layout: Layout, effects: Effects) -> list[ChannelState]:
-    geometries = motion_reuse(obs, effects)["geometries"]
-    R_rates = layout.responsivity(beta)
-    R = R_rates[obs.rate_idx]
-    x1g = np.sqrt(np.einsum("fij,fij->fi", R_rates, R_rates))[obs.rate_idx].T  # |R_row| is the rate's
-    gains = [(e, np.asarray(k)) for e, k in effects.active(GainEffect)]
-    delays = effects.delays()
-    scale = scale_terms(obs.motion, effects)
-    # every channel's projections at once, per geometry (channels without a delay share one)
-    projected = {delay: [np.einsum("nrc,nc->rn", R, vectors, out=np.empty((3, obs.n)))
-                         for vectors in (geometries[delay].force, geometries[delay].deriv)] for delay in set(delays)}
-    states = []
-    for r in range(3):
-        geo = geometries[delays[r]]
-        y, y_theta = projected[delays[r]][0][r], projected[delays[r]][1][r]
-        u = y / x1g[r]
-        # d/dy of y f_1(u) f_2(u) ...: the chain factor of every input, one factor at a time
-        slope, product = np.ones(obs.n), np.ones(obs.n)
-        for effect, k in gains:
-            slope = effect.chain(k[r], slope, product, u)
-            product = product * effect.gain(k[r], u)
-        slope = scaled(slope, None if scale is None else scale[:, r])
-        states.append(ChannelState(r, geo, R[:, r], x1g[r], y, u, slope, slope * y_theta, y * product))
-    return states
-
-
 def predict(obs: Observations, beta: np.ndarray, layout: Layout, active: tuple[Candidate, ...],
             clip: tuple[float | None, float | None], structure: Structure) -> np.ndarray:
     """The model's outputs (n, 3): the simulation of every sample."""
     effects = effects_from(layout.values(beta, active), clip)
-    return _outputs(obs, beta, layout, active, effects, _channel_states(obs, beta, layout, effects), structure)
+    return _outputs(obs, beta, layout, active, effects, channel_states(obs, layout.responsivity(beta), effects), structure)
 
 
 def _outputs(obs, beta, layout, active, effects, states, structure) -> np.ndarray:
     y = np.column_stack([st.y for st in states])
-    x1g = np.column_stack([st.x1g for st in states])
-    gained = scaled(nonlinearity(y, x1g, effects), scale_terms(obs.motion, effects))
+    if effects.active(GainEffect):   # (without, the gain effects' product is y itself)
+        y = nonlinearity(y, np.column_stack([st.x1g for st in states]), effects)
+    gained = scaled(y, scale_terms(obs.motion, effects))
     out = layout.offsets(beta)[obs.rate_idx] + offset_terms(obs.motion, effects) + gained
     if structure.step_t_s is not None and STEP in active:
         after = (obs.motion.t_s >= structure.step_t_s)[:, None]
@@ -263,36 +211,39 @@ class _Factors:
             self.cache[key] = value
         return self.cache[key]
 
-    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray:
+    def gain_column(self, effect: GainEffect, st: Channel, out: np.ndarray | None = None) -> np.ndarray:
         """d output / d k of a gain effect: y times d f / d k and the other
-        gain factors, in the forward model's order."""
-        out = st.y
+        gain factors, in the forward model's order (into ``out`` if given)."""
+        column = st.y
         for other in catalogue():
             if other is effect:
-                out = out * effect.gain_derivative(st.u)
+                column = np.multiply(column, effect.gain_derivative(st.u), out=out)
             elif isinstance(other, GainEffect) and other.name in self.effects.states:
-                out = out * other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u)
-        return self._scaled(out, st.r)
+                column = np.multiply(column, other.gain(np.asarray(self.effects.states[other.name])[st.r], st.u), out=out)
+        return self._scaled(column, st.r, out=out)
 
-    def _scaled(self, column: np.ndarray, r: int, leave: ScaleEffect | None = None) -> np.ndarray:
+    def _scaled(self, column: np.ndarray, r: int, leave: ScaleEffect | None = None,
+                out: np.ndarray | None = None) -> np.ndarray:
         """``column`` times channel r's scale effects' factors (but ``leave``'s)."""
         for other, state in self.effects.active(ScaleEffect):
             if other is not leave:
-                column = column * other.scale(state, self.motion)[:, r]
+                column = np.multiply(column, other.scale(state, self.motion)[:, r], out=out)
         return column
 
-    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray) -> np.ndarray:
+    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray,
+                     out: np.ndarray | None = None) -> np.ndarray:
         """d output / d p of a scale effect's parameter p: the gained output
         times d (its factor) / d p and the other scale effects' factors."""
-        return self._scaled(st.gained * derivative, st.r, leave=effect)
+        return self._scaled(np.multiply(st.gained, derivative, out=out), st.r, leave=effect, out=out)
 
-    def column(self, name: str, cand: Candidate, st: ChannelState) -> np.ndarray:
-        """The Jacobian column of one extension parameter in channel ``st.r``'s equation."""
+    def column(self, name: str, cand: Candidate, st: ChannelState, out: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian column of one extension parameter in channel
+        ``st.r``'s equation (``out``: an array it may be written into)."""
         if cand == STEP:
             m = self.motion
             t = self.structure.step_t_s
             return self.cached(("step", t), lambda: (m.t_s >= t).astype(float) if t is not None else np.zeros(self.obs.n))
-        return effect_named(cand.effect).column(name, cand, st, self)
+        return effect_named(cand.effect).column(name, cand, st, self, out)
 
 
 class Linearisation:
@@ -305,24 +256,31 @@ class Linearisation:
                  clip: tuple[float | None, float | None], structure: Structure, use: np.ndarray):
         effects = effects_from(layout.values(beta, active), clip)
         self.obs, self.layout, self.use = obs, layout, use
-        self.states = _channel_states(obs, beta, layout, effects)
+        self.states = channel_states(obs, layout.responsivity(beta), effects)
         self.pred = _outputs(obs, beta, layout, active, effects, self.states, structure)
         self.factors = _Factors(obs, effects, structure)
         self.resid = np.where(use, obs.y - self.pred, 0.0)
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
-    def _column(self, r: int, i: int, keep: bool) -> np.ndarray:
-        """Channel r's column of parameter i; ``keep``: kept for a later
-        evaluation (the active parameters'; the others are copied into the
-        design at once, so their memory serves the next column)."""
-        if (r, i) in self.built:
-            return self.built[r, i]
-        name = self.layout.names[i]
-        column = self.factors.column(name, self.by_name[name], self.states[r])
-        if keep:
-            self.built[r, i] = column
-        return column
+    def _column(self, r: int, i: int, rows: np.ndarray | None, keep: bool, row: np.ndarray) -> None:
+        """Channel r's column of parameter i on the used ``rows`` (None:
+        every sample) into ``row``, the design's. ``keep``: kept for a later
+        evaluation (the active parameters'); the others are computed into
+        the design's row itself when every sample is used (no copy)."""
+        column = self.built.get((r, i))
+        if column is None:
+            name = self.layout.names[i]
+            column = self.factors.column(name, self.by_name[name], self.states[r],
+                                         None if keep or rows is not None else row)
+            if keep:
+                self.built[r, i] = column
+        if column is row:
+            return
+        if rows is None:
+            np.copyto(row, column)
+        else:
+            np.take(column, rows, out=row)
 
     def evaluation(self, params: np.ndarray | None = None) -> Evaluation:
         """The normal equations of the Jacobian's columns of the base
@@ -341,11 +299,14 @@ class Linearisation:
                 ext = ext[np.isin(ext, params)]
             columns = design_buffer(obs, 4 + ext.size, rows.size, width)
             columns[0] = 1.0
-            force = st.slope[:, None] * st.geo.force
-            columns[1:4] = (force if every else force[rows]).T
+            if every and st.unit_slope:
+                columns[1:4] = st.geo.force
+            elif every:
+                np.multiply(st.slope, st.geo.force, out=columns[1:4])
+            else:
+                columns[1:4] = (st.slope * st.geo.force)[:, rows]
             for k, i in enumerate(ext):
-                column = self._column(r, i, params is not None)
-                columns[4 + k] = column if every else column[rows]
+                self._column(r, i, None if every else rows, params is not None, columns[4 + k])
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             d = ChannelDesign(columns, obs.rate_idx[rows], rows, self.resid[rows, r], base, ext)

@@ -51,18 +51,19 @@ class AxisTilt(GravityEffect):
         state = {axis_index(s): np.asarray((float(values[f"tilt.{s}_deg"]),), float) for s in AXES if f"tilt.{s}_deg" in values}
         return state or None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         """d a / d tilt = -sin(tilt) g_dir + cos(tilt) s_hat (per degree), through r."""
         a, delay = AXES.index(cand.scope), ctx.effects.delays()[st.r]
 
-        def make() -> np.ndarray:
+        def make() -> np.ndarray:   # per component, (3, n)
             tilt = np.deg2rad((ctx.effects.states.get(self.name) or {}).get(a, (0.0,))[0])
-            d_a = np.zeros((ctx.motion.t_s.size, 3))
+            d_a = np.zeros((3, ctx.motion.t_s.size))
             on = ctx.on_axis[a]
-            d_a[on] = -np.sin(tilt) * gravity_direction(ctx.motion.axis_idx[on], st.theta[on]) * (np.pi / 180.0)
-            d_a[on, a] += np.cos(tilt) * (np.pi / 180.0)
+            d_a[:, on] = (-np.sin(tilt) * gravity_direction(ctx.motion.axis_idx[on], st.theta[on]) * (np.pi / 180.0)).T
+            d_a[a, on] += np.cos(tilt) * (np.pi / 180.0)
             return d_a
-        return st.slope * np.einsum("ij,ij->i", st.R_row, ctx.cached((name, delay), make))
+        return np.multiply(st.slope, st.responsivity_dot(ctx.cached((name, delay), make), out=out), out=out)
 
     def report(self, cand, value, cov, output_unit):
         # the model holds the tilt through its sine and cosine, so the fit may settle a whole turn away

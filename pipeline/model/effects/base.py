@@ -101,6 +101,9 @@ class Channel(Protocol):
     @property
     def gained(self) -> np.ndarray: ...    # y times every gain effect's factor: what the scale effects multiply
 
+    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
+    # R_row . vectors per sample, vectors (3, n) per component (into ``out`` if given)
+
 
 class ColumnContext(Protocol):
     """What a Jacobian column may use besides its channel: the motion, the
@@ -113,9 +116,10 @@ class ColumnContext(Protocol):
 
     def cached(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray: ...
 
-    def gain_column(self, effect: GainEffect, st: Channel) -> np.ndarray: ...
+    def gain_column(self, effect: GainEffect, st: Channel, out: np.ndarray | None = None) -> np.ndarray: ...
 
-    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray) -> np.ndarray: ...
+    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray,
+                     out: np.ndarray | None = None) -> np.ndarray: ...
 
 
 def scope_rank(scope: str) -> int:
@@ -201,8 +205,11 @@ class Effect:
         """The state from internal parameter values (None: not modelled)."""
         return None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
-        """d output / d (internal parameter ``name``) in channel ``st.r``."""
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
+        """d output / d (internal parameter ``name``) in channel ``st.r``;
+        ``out`` (n,), when given, may hold the result (the design's row:
+        the diagnosis then copies nothing), which is returned either way."""
         raise NotImplementedError
 
     def report(self, cand: Candidate, value: np.ndarray, cov: np.ndarray, output_unit: str) -> list[ReportedParameter]:
@@ -268,8 +275,9 @@ class GainEffect(Effect):
         """d f / d k."""
         raise NotImplementedError
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
-        return ctx.gain_column(self, st)
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
+        return ctx.gain_column(self, st, out)
 
 
 class PerChannelEffect(Effect):

@@ -70,14 +70,15 @@ class Centripetal(ForceEffect):
                 state[axis_index(s)] = d
         return state or None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         """d output / d d_j = -w^2 R_j / g on the axis's rotation samples."""
         a = AXES.index(cand.scope)
         j = AXES.index(name.split(".")[-1][2])  # centripetal.x.d_y_m -> component y
         m = ctx.motion
         factor = ctx.cached(("centripetal", a), lambda: np.where(
             m.rotating & ctx.on_axis[a], -(2 * np.pi * m.rate_hz * ctx.effects.rate_factor()) ** 2 / ctx.g_local, 0.0))
-        return st.slope * st.R_row[:, j] * factor
+        return np.multiply(np.multiply(st.slope, st.R_row[:, j], out=out), factor, out=out)
 
     def report(self, cand, value, cov, output_unit):
         radius = float(np.hypot(*value))

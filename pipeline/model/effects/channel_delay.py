@@ -42,11 +42,12 @@ class ChannelDelay(SamplingEffect):
             return None
         return (0.0, float(values.get("delay_v_s", 0.0)), float(values.get("delay_w_s", 0.0)))
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         """d theta / d delay = the true rate, 360 rate (1 + e) degree per s."""
         m = ctx.motion
-        return st.d_theta * st.stretch * ctx.cached("delay", lambda: np.where(
-            m.rotating, 360.0 * m.rate_hz * ctx.effects.rate_factor(), 0.0))
+        rate = ctx.cached("delay", lambda: np.where(m.rotating, 360.0 * m.rate_hz * ctx.effects.rate_factor(), 0.0))
+        return np.multiply(np.multiply(st.d_theta, st.stretch, out=out), rate, out=out)
 
 
 EFFECT = ChannelDelay()

@@ -28,7 +28,8 @@ class OffsetDrift(PerChannelEffect, OffsetEffect):
     def offset(self, state, motion):
         return np.asarray(state)[None, :] * (motion.t_s - motion.t0_s)[:, None]
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         return ctx.cached("drift", lambda: ctx.motion.t_s - ctx.motion.t0_s)
 
 

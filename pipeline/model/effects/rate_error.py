@@ -36,11 +36,12 @@ class RateError(AngleEffect):
     def state_from(self, values):
         return float(values["rate_error"]) if "rate_error" in values else None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         """d theta / d e = 360 rate (t + delay - t_start), through the ripple's stretch."""
         m, delay = ctx.motion, ctx.effects.delays()[st.r]
-        return st.d_theta * st.stretch * ctx.cached(("rate", delay), lambda: np.where(
-            m.rotating, 360.0 * m.rate_hz * (m.t_s + delay - m.t_start_s), 0.0))
+        rate = ctx.cached(("rate", delay), lambda: np.where(m.rotating, 360.0 * m.rate_hz * (m.t_s + delay - m.t_start_s), 0.0))
+        return np.multiply(np.multiply(st.d_theta, st.stretch, out=out), rate, out=out)
 
 
 EFFECT = RateError()

@@ -64,7 +64,8 @@ class RateRipple(AngleEffect):
                 state[axis_index(s)] = np.asarray((float(np.hypot(alpha, beta)), float(np.degrees(np.arctan2(beta, alpha)))), float)
         return state or None
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         """d theta / d(a cos p) = sin(base), d theta / d(a sin p) = cos(base)."""
         a, delay = AXES.index(cand.scope), ctx.effects.delays()[st.r]
         wave = np.sin if name.endswith(".a_deg") else np.cos
@@ -75,7 +76,7 @@ class RateRipple(AngleEffect):
             sel = ctx.on_axis[a][idx]
             out[idx[sel]] = wave(np.deg2rad(st.base[sel]))
             return out
-        return st.d_theta * ctx.cached((name, delay), make)
+        return np.multiply(st.d_theta, ctx.cached((name, delay), make), out=out)
 
     def report(self, cand, value, cov, output_unit):
         alpha, beta = value

@@ -116,11 +116,12 @@ class Thermal(ScaleEffect, OffsetEffect):
             return None
         return np.array([[float(values.get(f"{kind}_{c}", 0.0)) for c in CHANNELS] for kind in ("tco", "tcs")])
 
-    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext) -> np.ndarray:
+    def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
+               out: np.ndarray | None = None) -> np.ndarray:
         dT = ctx.cached("thermal", lambda: excursion(ctx.motion))
         if name.startswith("tco_"):
             return dT
-        return ctx.scale_column(self, st, dT)
+        return ctx.scale_column(self, st, dT, out)
 
 
 EFFECT = Thermal()
