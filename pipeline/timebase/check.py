@@ -43,7 +43,7 @@ from rotcal.errors import InputError
 from rotcal.ingest.labels import time_ordered
 from rotcal.model.physics import CHANNELS
 from rotcal.tables import conform, schema
-from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, place_collisions, white_jitter
+from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, place_collisions
 
 
 @dataclass(frozen=True)
@@ -225,9 +225,8 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
                          hint="give [format] sample_rate_hz and no time column")
     first_period = float(np.median(d[d > 0], overwrite_input=True))
     del d
-    k, run, period, offset = grid_slots(s, first_period)
-    repeated = np.r_[False, intervals(s) == 0]
-    jitter = white_jitter(s, k, run, period, offset)
+    k, run, period, offset, jitter = grid_slots(s, first_period)
+    repeated = np.concatenate(([False], intervals(s) == 0))
     resid = grid_residuals(s, k, run, period, offset)
     within = run[1:] == run[:-1]
     lag1 = lag1_within(resid, within)
@@ -247,7 +246,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     if regular:
         placed = place_collisions(slot, run)
         unplaceable = placed < 0
-        repeated |= np.r_[False, (slot[1:] == slot[:-1]) & within]
+        repeated[1:] |= (slot[1:] == slot[:-1]) & within
     else:
         placed, unplaceable = slot, repeated
 
@@ -338,7 +337,7 @@ def capture_rows(capture: pl.Series, n_captures: int) -> list[slice | np.ndarray
     if n_captures == 1:
         return [None]
     code = capture.to_physical().to_numpy()
-    edges = np.r_[0, np.flatnonzero(code[1:] != code[:-1]) + 1, code.size]
+    edges = np.concatenate(([0], np.flatnonzero(code[1:] != code[:-1]) + 1, [code.size]))
     return ([slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])] if edges.size - 1 == n_captures
             else [np.flatnonzero(code == c) for c in capture.unique(maintain_order=True).to_physical().to_numpy()])
 
