@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -78,9 +78,9 @@ class Segmented:
     streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
     sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
 
-    @property
+    @cached_property
     def labelled_fits(self) -> pl.DataFrame:
-        """The fits of the segments whose phase is the table angle."""
+        """The fits of the segments whose phase is the table angle (one frame, read by several stages)."""
         return self.fits.filter(~pl.col("segment").is_in(list(self.own_phase)))
 
 
