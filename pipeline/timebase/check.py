@@ -385,8 +385,11 @@ def _time_ordered(samples: pl.DataFrame, captures: list[str]) -> pl.DataFrame:
     order of ``captures``; a table already in that order is only marked so."""
     if len(captures) < 2:
         return time_ordered(samples)
+    t = samples["t_ns"].to_numpy()
+    if np.all(t[1:] > t[:-1]):  # no equal stamps: the captures' ranks need not be known
+        return samples.with_columns(pl.col("t_ns").set_sorted())
     rank = pl.col("capture").replace_strict(captures, range(len(captures)), return_dtype=pl.UInt32)
-    t, r = samples["t_ns"].to_numpy(), samples.select(rank)["capture"].to_numpy()
+    r = samples.select(rank)["capture"].to_numpy()
     if np.all((t[1:] > t[:-1]) | ((t[1:] == t[:-1]) & (r[1:] >= r[:-1]))):
         return samples.with_columns(pl.col("t_ns").set_sorted())
     return samples.with_columns(_rank=rank).sort("t_ns", "_rank", maintain_order=True).drop("_rank")
