@@ -43,7 +43,7 @@ from rotcal.errors import InputError
 from rotcal.ingest.labels import time_ordered
 from rotcal.model.physics import CHANNELS
 from rotcal.tables import conform, schema
-from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, place_collisions
+from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, median, place_collisions
 
 
 @dataclass(frozen=True)
@@ -217,13 +217,14 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         return CaptureTimebase(np.ones(n, bool), t_ns.copy(), float("nan"), ())
     tie = np.flatnonzero(t_ns[1:] == t_ns[:-1])  # a record can repeat only where its stamp does
     keep = np.ones(n, bool)
-    keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
+    if tie.size:
+        keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
     s = kept(t_ns, keep)
     d = intervals(s)
     if s.size < 2 or np.count_nonzero(d > 0) < d.size / 2:
         raise InputError(f"capture {capture}: the time stamps do not advance (most consecutive stamps are equal)",
                          hint="give [format] sample_rate_hz and no time column")
-    first_period = float(np.median(d[d > 0], overwrite_input=True))
+    first_period = median(d[d > 0])
     del d
     k, run, period, offset, jitter = grid_slots(s, first_period)
     repeated = np.concatenate(([False], intervals(s) == 0))
