@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import polars as pl
@@ -79,6 +80,10 @@ def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
 _BY_FRAME: dict[int, tuple[weakref.ref, list[tuple[float, list[SegmentCoefficients]]]]] = {}
 
 
+def _forget(key: int, _: weakref.ref) -> None:
+    _BY_FRAME.pop(key, None)
+
+
 def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:
     """The ok static and rotation segments of every rate, rates ordered by
     magnitude (rate 0, the static result, first). Read-only: shared by every
@@ -92,7 +97,7 @@ def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficie
     rate_of = dict(fitted.select("segment", "rate_hz").iter_rows())
     segments = segment_coefficients(fitted)  # once for all rates: a polars pass per rate cost 15 ms a dataset
     by_rate = [(rate, [s for s in segments if rate_of[s.segment] == rate]) for rate in rates]
-    _BY_FRAME[key] = (weakref.ref(fits, lambda _, key=key: _BY_FRAME.pop(key, None)), by_rate)
+    _BY_FRAME[key] = (weakref.ref(fits, partial(_forget, key)), by_rate)
     return by_rate
 
 
