@@ -88,26 +88,3 @@ def test_fits_table_round_trip_gives_each_segments_vector_and_covariance(make_da
         np.testing.assert_array_equal(seg.coef, fit.coef.ravel())
         np.testing.assert_array_equal(seg.cov, fit.cov)
         assert seg.dof == fit.dof
-
-
-def test_rate_segments_are_held_per_frame_and_follow_its_content(make_dataset):
-    """One fits frame's segments are rebuilt once and shared; another frame
-    (here every coefficient doubled) gets its own, and a frame's entry goes
-    with the frame."""
-    import gc
-
-    from rotcal.combine import labelled
-    from rotcal.metrology.coverage import reduce_dataset
-
-    fits = reduce_dataset(make_dataset(7)).fits
-    first = labelled.rate_segments(fits)
-    assert labelled.rate_segments(fits) is first
-    doubled = fits.with_columns(pl.col("C", "A", "B") * 2)
-    for (rate, segs), (rate2, segs2) in zip(first, labelled.rate_segments(doubled)):
-        assert rate == rate2
-        for s, s2 in zip(segs, segs2):
-            np.testing.assert_array_equal(s2.coef, 2 * s.coef)
-    held = len(labelled._BY_FRAME)
-    del doubled
-    gc.collect()
-    assert len(labelled._BY_FRAME) == held - 1

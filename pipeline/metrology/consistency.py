@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import estimates_for, rate_segments
+from rotcal.combine.labelled import RateSegments, estimates_for, rate_segments
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.tables import conform, schema
 
@@ -38,11 +38,12 @@ def chi2_sf(chi2: float, dof: int) -> float:
     return float(chdtrc(dof, chi2))
 
 
-def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str, model: str) -> pl.DataFrame:
+def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str, model: str,
+                      by_rate: RateSegments | None = None) -> pl.DataFrame:
     """The ``consistency`` table of the segment ``fits`` under ``model``:
-    one row per (rate, component or offset)."""
+    one row per (rate, component or offset); ``by_rate``: ``rate_segments(fits)`` when the caller has it."""
     checks: list[tuple[float, int, list[str], np.ndarray, np.ndarray]] = []  # rate, target, axes, estimates, uncertainties
-    for rate, segs in rate_segments(fits):
+    for rate, segs in rate_segments(fits) if by_rate is None else by_rate:
         if not segs:
             continue
         coef = np.concatenate([s.coef for s in segs])

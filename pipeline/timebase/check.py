@@ -231,8 +231,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     resid = grid_residuals(s, k, run, period, offset)
     within = run[1:] == run[:-1]
     lag1 = lag1_within(resid, within)
-    spread = float(np.std(resid))
-    largest = float(max(resid.max(), -resid.min()))
+    spread, largest = float(np.std(resid)), float(max(resid.max(), -resid.min()))
     np.square(resid, out=resid)
     ss_resid = np.sum(resid)
     del resid
@@ -309,9 +308,7 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     table is copied only as far as something changes: rows dropped only if
     some are, stamps replaced only if some moved, rows sorted only if out of
     order."""
-    rows: list[dict] = []
-    warnings: list[str] = []
-    bad: dict[str, str] = {}
+    rows, warnings, bad = list[dict](), list[str](), dict[str, str]()  # findings, warnings, captures that cannot carry a fit
     captures = samples["capture"].unique(maintain_order=True).to_list()
     keep, stamps, gaps = np.ones(samples.height, bool), None, []
     t_all, y_all = samples["t_ns"].to_numpy(), [samples[c].to_numpy() for c in CHANNELS]
