@@ -45,3 +45,20 @@ def test_centripetal_offsets_disagree_and_components_do_not(make_dataset):
     assert frame.filter(pl.col("rate_hz") == 0)["consistent"].all()  # static steps have no centripetal term
     note = consistency_note(frame)
     assert note is not None and "consistency.parquet" in note
+
+
+def test_statistics_of_checks_of_several_sizes_by_hand():
+    """Two estimates 1 and 3 (u = 1): mean 2, u 1/sqrt(2), chi^2 2, z -sqrt(2);
+    three 0, 3, 6 with u 1, 1, 2: weights 1, 1, 1/4, mean 4.5/2.25 = 2,
+    chi^2 4 + 1 + 16/4 = 9; one noise-free pair: its plain mean, no statistic."""
+    from rotcal.metrology.consistency import _statistics
+
+    x = [np.array([1.0, 3.0]), np.array([0.0, 3.0, 6.0]), np.array([4.0, 5.0])]
+    u = [np.array([1.0, 1.0]), np.array([1.0, 1.0, 2.0]), np.array([0.0, 0.0])]
+    mean, u_mean, chi2, z = _statistics(x, u)
+    np.testing.assert_allclose(mean, [2.0, 2.0, 4.5], rtol=1e-15)
+    np.testing.assert_allclose(u_mean, [np.sqrt(0.5), np.sqrt(1 / 2.25), 0.0], rtol=1e-15)
+    np.testing.assert_allclose(chi2[:2], [2.0, 9.0], rtol=1e-15)
+    assert np.isnan(chi2[2])
+    np.testing.assert_allclose(z[0], -np.sqrt(2.0), rtol=1e-15)
+    assert np.isnan(z[1]) and np.isnan(z[2])

@@ -94,3 +94,22 @@ def test_nonlinear_gives_the_estimate_covariance_and_dof_of_a_known_problem():
     scatter = np.cov(np.array([f.x for f in fits]).T)
     np.testing.assert_allclose(np.sqrt(np.diag(scatter)), np.sqrt(np.diag(one.cov)), rtol=0.15)
     assert np.mean([f.chi2 for f in fits]) == pytest.approx(38, rel=0.05)
+
+
+def test_a_shared_solution_gives_the_same_fit_bit_for_bit_and_the_exact_line():
+    """``ols`` with the design's ``least_squares_solution`` passed in is the
+    fit it computes itself; on y = 2 + 3 t exactly the coefficients are (2, 3)."""
+    from rotcal.fit.lsq import least_squares_solution
+
+    t = np.arange(6.0)
+    x = np.column_stack([np.ones(6), t])
+    solution = least_squares_solution(x)
+    np.testing.assert_allclose(solution.coef(2 + 3 * t)[:, 0], [2.0, 3.0], rtol=1e-14)
+    rng = np.random.default_rng(3)
+    y = 2 + 3 * t + rng.normal(0, 0.1, 6)
+    noise = np.full((6, 1, 1), 0.01)
+    alone, shared = ols(x, y, noise), ols(x, y, noise, solution)
+    for field in ("coef", "cov", "residuals", "excess_cov"):
+        np.testing.assert_array_equal(getattr(shared, field), getattr(alone, field))
+    with pytest.raises(UndeterminedError):
+        least_squares_solution(np.column_stack([np.ones(6), np.ones(6)]))

@@ -214,3 +214,15 @@ def test_jitter_never_stamps_a_sample_before_the_logger_starts(cli, tmp_path):
     assert stamps.min() == 0
     code, _, err = cli("simulate", tmp_path / "d", "--format", "mcap-json", "--timebase", "jitter_s=0.1")
     assert code == 0, err
+
+
+def test_median_is_numpys_for_odd_and_even_counts_and_ties():
+    """``grid.median`` gives np.median's value bit for bit (the mean of the
+    two middle values for an even count), and 2.5 for 1, 2, 3, 4 by hand."""
+    from rotcal.timebase.grid import median
+
+    assert median(np.array([4.0, 1.0, 3.0, 2.0])) == 2.5
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 3600, 3601):
+        x = rng.normal(size=n).round(1)  # ties
+        assert median(x.copy()) == np.median(x)

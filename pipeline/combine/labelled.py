@@ -72,9 +72,13 @@ def segment_coefficients(fits: pl.DataFrame) -> list[SegmentCoefficients]:
     return [SegmentCoefficients(int(segment[j]), str(axis[i]), coef[i], cov[i], int(dof[i])) for i, j in enumerate(first)]
 
 
-def rate_segments(fits: pl.DataFrame) -> list[tuple[float, list[SegmentCoefficients]]]:
+RateSegments = list[tuple[float, list["SegmentCoefficients"]]]  # rate_segments' answer: (rate, its segments)
+
+
+def rate_segments(fits: pl.DataFrame) -> RateSegments:
     """The ok static and rotation segments of every rate, rates ordered by
-    magnitude (rate 0, the static result, first)."""
+    magnitude (rate 0, the static result, first). The stages that read one
+    fits table several times are handed its answer (``by_rate``) by the run."""
     fitted = fits.filter(pl.col("kind").is_in(["static", "rotation"]))
     rates = sorted(set(fitted["rate_hz"].to_list()), key=lambda r: (abs(r), r))
     rate_of = dict(fitted.select("segment", "rate_hz").iter_rows())
@@ -163,18 +167,22 @@ def combine_rate(rate_hz: float, segments: list[SegmentCoefficients], g_local: f
     return IntrinsicResult.from_state(rate_hz, stage.state, stage.state_cov, g_local, g_uncertainty, parts)
 
 
-def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float) -> list[IntrinsicResult | Failure]:
-    """Every rate's intrinsic parameters (rate 0 is the static result)."""
-    return [combine_rate(rate, segs, g_local, g_uncertainty) for rate, segs in rate_segments(fits)]
+def combine(fits: pl.DataFrame, g_local: float, g_uncertainty: float,
+            by_rate: RateSegments | None = None) -> list[IntrinsicResult | Failure]:
+    """Every rate's intrinsic parameters (rate 0 is the static result);
+    ``by_rate``: ``rate_segments(fits)`` when the caller has it."""
+    return [combine_rate(rate, segs, g_local, g_uncertainty) for rate, segs in by_rate or rate_segments(fits)]
 
 
-def reduce_labelled(fits: pl.DataFrame, g_local: float, g_uncertainty: float, dataset: str) -> Reduction:
+def reduce_labelled(fits: pl.DataFrame, g_local: float, g_uncertainty: float, dataset: str,
+                    by_rate: RateSegments | None = None) -> Reduction:
     """The reduction of the segments whose phase is the table angle: every
     rate's result in the table frame, with the ``components`` table."""
-    combined = combine(fits, g_local, g_uncertainty)
+    by_rate = rate_segments(fits) if by_rate is None else by_rate
+    combined = combine(fits, g_local, g_uncertainty, by_rate)
     results = tuple(r for r in combined if isinstance(r, IntrinsicResult))
     return Reduction("table", results, tuple(f for f in combined if isinstance(f, Failure)),
-                     (Table("components", components_frame(fits, list(results), dataset)),), ())
+                     (Table("components", components_frame(fits, list(results), dataset, by_rate)),), ())
 
 
 def units(output_unit: str) -> tuple[str, ...]:
@@ -194,10 +202,11 @@ def intrinsic_frame(results: list[IntrinsicResult], dataset: str, model: str, ou
     return conform(pl.DataFrame(rows, schema=schema("intrinsic").polars_schema), "intrinsic") if rows else schema("intrinsic").empty()
 
 
-def components_frame(fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str) -> pl.DataFrame:
+def components_frame(fits: pl.DataFrame, results: list[IntrinsicResult], dataset: str,
+                     rates: RateSegments | None = None) -> pl.DataFrame:
     """Each responsivity component's per-segment estimates and combination."""
     rows = []
-    by_rate = dict(rate_segments(fits))
+    by_rate = dict(rate_segments(fits) if rates is None else rates)
     for res in results:
         segs = by_rate[res.rate_hz]
         coef = np.concatenate([s.coef for s in segs])

@@ -129,21 +129,17 @@ def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFr
     rows = segment_rows(samples)
     # the static segments' rows only: a few thousand of a capture's millions
     samples = pl.concat([samples.slice(*rows[s]) for s in static.to_list() if s in rows] or [samples.clear()])
-    marked = samples.select(
-        step=pl.when(pl.col("segment").is_in(static.implode()))
-        .then(pl.struct("segment", "angle_deg").rle_id()).otherwise(None),
-    )["step"]
-    step = marked.to_numpy().astype(float) if marked.len() else np.zeros(0)
-    has = np.isfinite(step)
-    group = np.full(step.size, -1, np.int64)
-    group[has] = np.unique(step[has], return_inverse=True)[1]
-    n = int(group.max(initial=-1)) + 1
-    steps = samples.filter(pl.Series(has)).with_columns(_g=pl.Series(group[has])) \
-        .group_by("_g", maintain_order=True).agg(pl.col("axis").first(), pl.col("angle_deg").first()).sort("_g")
-    reference = gravity_direction(np.array([axis_index(a) for a in steps["axis"]], dtype=np.int64),
-                                  steps["angle_deg"].to_numpy()) if n else np.zeros((0, 3))
-    labels = [f"{a} {theta:g} deg" for a, theta in steps.select("axis", "angle_deg").iter_rows()]
-    return _pose_frame(samples, group, n, "table step", labels, reference)
+    # a step is a run of rows of one segment at one commanded angle (two missing angles alike)
+    segment, angle = samples["segment"].to_numpy(), samples["angle_deg"].fill_null(np.nan).to_numpy()
+    new_step = np.ones(samples.height, bool)
+    new_step[1:] = (segment[1:] != segment[:-1]) | ~((angle[1:] == angle[:-1]) | (np.isnan(angle[1:]) & np.isnan(angle[:-1])))
+    group = np.cumsum(new_step) - 1
+    first = np.flatnonzero(new_step)
+    axes = samples["axis"].gather(first).to_list()
+    reference = gravity_direction(np.array([axis_index(a) for a in axes], dtype=np.int64), angle[first]) \
+        if first.size else np.zeros((0, 3))
+    labels = [f"{a} {theta:g} deg" for a, theta in zip(axes, angle[first].tolist())]
+    return _pose_frame(samples, group, first.size, "table step", labels, reference)
 
 
 def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:

@@ -133,17 +133,23 @@ def _chi2(resid: np.ndarray, noise: np.ndarray) -> float:
     return float(np.einsum("ki,kij,kj->", resid[ok], np.linalg.inv(noise[ok]), resid[ok]))
 
 
-def ols(x: np.ndarray, y: np.ndarray, noise_cov: np.ndarray | None = None) -> LinearFit:
-    """Least squares of every column of ``y`` (n, m) on the design ``x`` (n, p).
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """What least squares on one design ``x`` (n, p) shares across right-hand
+    sides: Q of the column-scaled design's QR and ``a`` = (X^T X)^-1 X^T (p, n)."""
 
-    ``noise_cov`` (n, m, m) is the covariance of each observation's m values;
-    None means unknown, and then an exact fit (no residual degrees of
-    freedom) has undetermined (NaN) covariance. Raises ``UndeterminedError``
-    when the design does not determine the coefficients.
-    """
-    y2 = y.reshape(y.shape[0], -1)
+    q: np.ndarray
+    a: np.ndarray
+
+    def coef(self, y: np.ndarray) -> np.ndarray:
+        """The coefficients (p, m) of every column of ``y`` (n, m), as ``ols`` gives them."""
+        return self.a @ y.reshape(y.shape[0], -1)
+
+
+def least_squares_solution(x: np.ndarray) -> Solution:
+    """The QR solution of the design ``x`` (n, p), on unit-RMS columns.
+    Raises ``UndeterminedError`` when the design does not determine the coefficients."""
     n, p = x.shape
-    m = y2.shape[1]
     if n < p:
         raise UndeterminedError(f"{n} positions cannot determine {p} coefficients")
     scale = np.sqrt(np.mean(x * x, axis=0))
@@ -154,7 +160,23 @@ def ols(x: np.ndarray, y: np.ndarray, noise_cov: np.ndarray | None = None) -> Li
         raise UndeterminedError(
             f"the {n} positions do not determine the {p} coefficients (design condition number "
             f"{sv[0] / max(sv[-1], 1e-300):.2g}): they are too few or too alike")
-    a = np.linalg.solve(r, q.T) / scale[:, None]  # (p, n) = (X^T X)^-1 X^T
+    return Solution(q, np.linalg.solve(r, q.T) / scale[:, None])
+
+
+def ols(x: np.ndarray, y: np.ndarray, noise_cov: np.ndarray | None = None, solution: Solution | None = None) -> LinearFit:
+    """Least squares of every column of ``y`` (n, m) on the design ``x`` (n, p).
+
+    ``noise_cov`` (n, m, m) is the covariance of each observation's m values;
+    None means unknown, and then an exact fit (no residual degrees of
+    freedom) has undetermined (NaN) covariance. ``solution``: the design's
+    ``least_squares_solution`` when the caller has it. Raises
+    ``UndeterminedError`` when the design does not determine the coefficients.
+    """
+    y2 = y.reshape(y.shape[0], -1)
+    n, p = x.shape
+    m = y2.shape[1]
+    solved = least_squares_solution(x) if solution is None else solution
+    q, a = solved.q, solved.a  # a (p, n) = (X^T X)^-1 X^T
     coef = a @ y2
     resid = y2 - x @ coef
     dof = n - p

@@ -49,7 +49,7 @@ import polars as pl
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.combine.poses import references
 from rotcal.errors import UndeterminedError
-from rotcal.fit.lsq import ols
+from rotcal.fit.lsq import least_squares_solution, ols
 from rotcal.model.physics import AXES
 from rotcal.tables import conform, schema
 
@@ -102,14 +102,15 @@ def fit_channel(raw: np.ndarray, reference: np.ndarray, channel: int, parameters
     cols = model_columns(parameters, channel)
     full = np.column_stack([raw, np.ones(len(raw)), raw[:, channel] ** 3])
     design = full[:, cols]
+    solution = least_squares_solution(design)  # one factorisation for both fits: their designs are the same
     coef = np.zeros(5)
-    coef[cols] = ols(design, reference).coef[:, 0]
+    coef[cols] = solution.coef(reference)[:, 0]
     noise = None
     if raw_cov is not None:
         grad = np.tile(coef[:3], (len(raw), 1))
         grad[:, channel] += 3.0 * coef[4] * raw[:, channel] ** 2
         noise = np.einsum("ki,kij,kj->k", grad, raw_cov, grad)[:, None, None]
-    fit = ols(design, reference, noise)
+    fit = ols(design, reference, noise, solution)
     cov = np.zeros((5, 5))
     cov[np.ix_(cols, cols)] = fit.cov
     excess = float(np.sqrt(fit.excess_cov[0, 0])) if np.isfinite(fit.excess_cov[0, 0]) else float("nan")
@@ -130,6 +131,10 @@ def undetermined(reference: np.ndarray, parameters: int) -> str | None:
         design = np.column_stack([reference, np.ones(n), reference[:, r] ** 3])[:, cols]
         norm = np.linalg.norm(design, axis=0)
         unit = design / np.where(norm > 0, norm, 1.0)
+        # a column's distance from the others' span is at least the smallest singular value: well
+        # above COLLINEAR, no column is spanned and the per-column projections need not be formed
+        if np.linalg.svd(unit, compute_uv=False)[-1] >= 2 * COLLINEAR:
+            continue
         for j, col in reversed(list(enumerate(cols))):  # the model's extensions first: gamma, then the cross terms
             others = np.delete(unit, j, axis=1)
             rest = unit[:, j] - others @ np.linalg.lstsq(others, unit[:, j], rcond=None)[0]

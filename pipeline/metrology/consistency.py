@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import estimates_for, rate_segments
+from rotcal.combine.labelled import RateSegments, estimates_for, rate_segments
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.tables import conform, schema
 
@@ -38,11 +38,12 @@ def chi2_sf(chi2: float, dof: int) -> float:
     return float(chdtrc(dof, chi2))
 
 
-def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str, model: str) -> pl.DataFrame:
+def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_unit: str, model: str,
+                      by_rate: RateSegments | None = None) -> pl.DataFrame:
     """The ``consistency`` table of the segment ``fits`` under ``model``:
-    one row per (rate, component or offset)."""
-    rows = []
-    for rate, segs in rate_segments(fits):
+    one row per (rate, component or offset); ``by_rate``: ``rate_segments(fits)`` when the caller has it."""
+    checks: list[tuple[float, int, list[str], np.ndarray, np.ndarray]] = []  # rate, target, axes, estimates, uncertainties
+    for rate, segs in rate_segments(fits) if by_rate is None else by_rate:
         if not segs:
             continue
         coef = np.concatenate([s.coef for s in segs])
@@ -52,15 +53,33 @@ def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_u
             groups.setdefault(e.target, []).append(e)
         for target in sorted(groups):
             est = groups[target]
-            offset = target >= 9
-            scale = 1.0 if offset else 1.0 / g_local
+            scale = 1.0 if target >= 9 else 1.0 / g_local
             x = np.array([e.sign * coef[e.index] for e in est]) * scale
             u = np.sqrt(np.array([var[e.index] for e in est])) * scale
-            rows.append(_row(dataset, rate, target, [e.axis for e in est], x, u, output_unit))
-    if not rows:
+            checks.append((rate, target, [e.axis for e in est], x, u))
+    if not checks:
         return schema("consistency").empty()
-    frame = pl.DataFrame(rows, schema_overrides=schema("consistency").polars_schema, strict=False)
-    alpha = FAMILY_ALPHA / max(frame.filter(pl.col("dof") > 0).height, 1)
+    mean, u_mean, chi2, z = _statistics([c[3] for c in checks], [c[4] for c in checks])
+    dof = np.array([c[3].size - 1 for c in checks])
+    tested = (dof > 0) & np.isfinite(chi2)
+    p_value = np.full(dof.size, np.nan)
+    if tested.any():
+        from scipy.special import chdtrc  # as chi2_sf, for every check at once
+
+        p_value[tested] = chdtrc(dof[tested], chi2[tested])
+    offset = [target >= 9 for _, target, *_ in checks]
+    channel = [CHANNELS[t - 9] if o else CHANNELS[t // 3] for (_, t, *_), o in zip(checks, offset)]
+    component = ["" if o else AXES[t % 3] for (_, t, *_), o in zip(checks, offset)]
+    frame = pl.DataFrame({
+        "dataset": [dataset] * len(checks), "rate_hz": [c[0] for c in checks],
+        "quantity": [f"O_{ch}" if o else f"{ch}_{co}" for ch, co, o in zip(channel, component, offset)],
+        "channel": channel, "component": component, "source_axes": [",".join(c[2]) for c in checks],
+        "estimates": [c[3].tolist() for c in checks], "std_uncertainties": [c[4].tolist() for c in checks],
+        "weighted_mean": mean, "std_uncertainty": u_mean, "z": z, "chi2": chi2, "dof": dof,
+        "chi2_per_dof": np.divide(chi2, dof, out=np.full(dof.size, np.nan), where=dof > 0), "p_value": p_value,
+        "unit": [output_unit if o else f"{output_unit}/(m/s^2)" for o in offset],
+    }, schema_overrides=schema("consistency").polars_schema, strict=False)
+    alpha = FAMILY_ALPHA / max(int(np.count_nonzero(dof > 0)), 1)
     frame = frame.with_columns(
         model=pl.lit(model), alpha=pl.lit(alpha),
         consistent=pl.when(pl.col("dof") > 0).then(pl.col("p_value") >= alpha).otherwise(None),
@@ -68,30 +87,29 @@ def consistency_frame(fits: pl.DataFrame, g_local: float, dataset: str, output_u
     return conform(frame, "consistency")
 
 
-def _row(dataset: str, rate_hz: float, target: int, axes: list[str], x: np.ndarray, u: np.ndarray, output_unit: str) -> dict:
-    offset = target >= 9
-    channel = CHANNELS[target - 9] if offset else CHANNELS[target // 3]
-    component = "" if offset else AXES[target % 3]
-    known = u > 0
-    w = np.where(known, 1.0 / np.where(known, u, 1.0) ** 2, 0.0)
-    if w.sum() > 0:
-        mean, u_mean = float(np.sum(w * x) / w.sum()), float(np.sqrt(1.0 / w.sum()))
-        chi2 = float(np.sum(w * (x - mean) ** 2))
-    else:  # noise-free estimates: their plain mean, and no statistic
-        mean, u_mean, chi2 = float(np.mean(x)), 0.0, np.nan
-    dof = x.size - 1
-    z = float((x[0] - x[1]) / np.hypot(u[0], u[1])) if x.size == 2 and np.hypot(u[0], u[1]) > 0 else np.nan
-    p_value = chi2_sf(chi2, dof) if dof > 0 and np.isfinite(chi2) else np.nan
-    return {
-        "dataset": dataset, "rate_hz": rate_hz,
-        "quantity": f"O_{channel}" if offset else f"{channel}_{component}",
-        "channel": channel, "component": component, "source_axes": ",".join(axes),
-        "estimates": x.tolist(), "std_uncertainties": u.tolist(),
-        "weighted_mean": mean, "std_uncertainty": u_mean, "z": z, "chi2": chi2, "dof": dof,
-        "chi2_per_dof": chi2 / dof if dof > 0 else np.nan, "p_value": p_value,
-        "alpha": np.nan, "consistent": None,
-        "unit": output_unit if offset else f"{output_unit}/(m/s^2)",
-    }
+def _statistics(x: list[np.ndarray], u: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per check (estimates ``x`` with uncertainties ``u``): the inverse-variance
+    weighted mean, its uncertainty, chi^2 about it, and for two estimates
+    z = (x_1 - x_2) / sqrt(u_1^2 + u_2^2). Noise-free estimates (no known
+    uncertainty): their plain mean, and no statistic. Checks of one size
+    are computed together, each row summed as its own array would be."""
+    mean, u_mean, chi2, z = (np.full(len(x), np.nan) for _ in range(4))
+    sizes = np.array([e.size for e in x])
+    for k in np.unique(sizes).tolist():
+        at = np.flatnonzero(sizes == k)
+        xs, us = np.array([x[i] for i in at]).reshape(at.size, k), np.array([u[i] for i in at]).reshape(at.size, k)
+        known = us > 0
+        w = np.where(known, 1.0 / np.where(known, us, 1.0) ** 2, 0.0)
+        total = w.sum(axis=1)
+        weighted = total > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            m = np.where(weighted, np.sum(w * xs, axis=1) / total, np.mean(xs, axis=1))
+            mean[at], u_mean[at] = m, np.where(weighted, np.sqrt(1.0 / total), 0.0)
+            chi2[at] = np.where(weighted, np.sum(w * (xs - m[:, None]) ** 2, axis=1), np.nan)
+            if k == 2:
+                spread = np.hypot(us[:, 0], us[:, 1])
+                z[at] = np.where(spread > 0, (xs[:, 0] - xs[:, 1]) / spread, np.nan)
+    return mean, u_mean, chi2, z
 
 
 def consistency_note(frame: pl.DataFrame) -> str | None:

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import LinearStage, linear_stage, rate_segments, units
+from rotcal.combine.labelled import LinearStage, RateSegments, linear_stage, rate_segments, units
 from rotcal.model.physics import AXES, INTRINSIC
 from rotcal.model.results import Failure, intrinsic_jacobian
 from rotcal.tables import conform, schema
@@ -96,14 +96,15 @@ def gaitan_rate(stage: LinearStage, g_local: float) -> GaitanResult | None:
     return GaitanResult(stage.rate_hz, value, jac, jac_g, printed)
 
 
-def gaitan_frame(fits: pl.DataFrame, g_local: float, g_uncertainty: float, dataset: str, output_unit: str) -> pl.DataFrame:
+def gaitan_frame(fits: pl.DataFrame, g_local: float, g_uncertainty: float, dataset: str, output_unit: str,
+                 by_rate: RateSegments | None = None) -> pl.DataFrame:
     """The ``gaitan_estimators`` table: Gaitan's estimates, their honest
     uncertainties and the printed ones, beside the full-vector estimates of
     ``intrinsic.parquet``, with the difference and its uncertainty (both
     come from the same coefficients, so the difference's covariance is
     propagated through the difference of the two Jacobians)."""
     rows = []
-    for rate, segs in rate_segments(fits):
+    for rate, segs in rate_segments(fits) if by_rate is None else by_rate:  # the caller's, when it has them
         stage = linear_stage(rate, segs)
         if isinstance(stage, Failure):
             continue

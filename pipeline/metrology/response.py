@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.combine.labelled import linear_stage, rate_segments
+from rotcal.combine.labelled import RateSegments, linear_stage, rate_segments
 from rotcal.metrology.consistency import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure, IntrinsicResult, intrinsic_jacobian
@@ -113,10 +113,10 @@ def _slope_rows(axis: str, r: int, omega: np.ndarray, offset: np.ndarray, u: np.
     ]
 
 
-def _static_offset_cov_with_s0(fits: pl.DataFrame, g_local: float) -> dict[int, np.ndarray]:
+def _static_offset_cov_with_s0(fits: pl.DataFrame, g_local: float, rates: RateSegments | None) -> dict[int, np.ndarray]:
     """Cov(C_kr, s_r(0)) for every static segment k and channel r: the
     static offsets and the DC sensitivities come from the same fits."""
-    dc = dict(rate_segments(fits)).get(0.0)
+    dc = dict(rate_segments(fits) if rates is None else rates).get(0.0)
     stage = linear_stage(0.0, dc) if dc else None
     if stage is None or isinstance(stage, Failure):
         return {}
@@ -126,9 +126,10 @@ def _static_offset_cov_with_s0(fits: pl.DataFrame, g_local: float) -> dict[int, 
 
 
 def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame, dataset: str, output_unit: str,
-                             model: str) -> pl.DataFrame:
+                             model: str, segments_by_rate: RateSegments | None = None) -> pl.DataFrame:
     """The ``frequency_response`` table of ``model``'s ``results`` (empty
-    without a DC result); the per-axis offset slopes from the segment ``fits``."""
+    without a DC result); the per-axis offset slopes from the segment ``fits``
+    (``segments_by_rate``: their ``rate_segments`` when the caller has them)."""
     by_rate = {res.rate_hz: res for res in results}
     res_0 = by_rate.get(0.0)
     rows: list[dict] = []
@@ -143,7 +144,7 @@ def frequency_response_frame(results: list[IntrinsicResult], fits: pl.DataFrame,
             u = np.array([res.std_uncertainty[6 + r] for res in ordered])
             cov_s0 = np.where(omega == 0, res_0.cov[6 + r, r], 0.0)
             rows += _slope_rows("combined", r, omega, offset, u, cov_s0, res_0, output_unit)
-        static_cov = _static_offset_cov_with_s0(fits, res_0.g_local)
+        static_cov = _static_offset_cov_with_s0(fits, res_0.g_local, segments_by_rate)
         ok = fits.filter((pl.col("status") == "ok") & pl.col("kind").is_in(["static", "rotation"]))
         # one pass to numpy, then masks: a polars filter per (axis, channel) cost more than the fits
         axis_of, channel_of = np.array(ok["axis"].to_list()), np.array(ok["channel"].to_list())

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,6 +22,7 @@ from rotcal.combine import (
     summary_poses,
     table_step_poses,
 )
+from rotcal.combine.labelled import RateSegments, rate_segments
 from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
@@ -78,10 +79,15 @@ class Segmented:
     streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
     sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
 
-    @property
+    @cached_property
     def labelled_fits(self) -> pl.DataFrame:
-        """The fits of the segments whose phase is the table angle."""
+        """The fits of the segments whose phase is the table angle (one frame, read by several stages)."""
         return self.fits.filter(~pl.col("segment").is_in(list(self.own_phase)))
+
+    @cached_property
+    def labelled_rates(self) -> RateSegments:
+        """``combine.rate_segments`` of ``labelled_fits``, for the reduction and the metrology that read them."""
+        return rate_segments(self.labelled_fits)
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +177,7 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
         summaries = None if ds.summaries is None else summary_poses(ds.summaries)
         static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries)
         return static if isinstance(static, Failure) else Reductions(None, (), static)
-    labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name)
+    labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name, seg.labelled_rates)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
     dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u)
     return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
@@ -202,8 +208,7 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
 
 
 def _clock_factor(seg: Segmented) -> float:
-    """What the fitted rates were multiplied by to be on the table's clock
-    (1 unless a clock drift was detected and corrected)."""
+    """What the fitted rates were multiplied by to be on the table's clock (1 unless a clock drift was corrected)."""
     timebase = next(t.data for t in seg.tables if t.name == "timebase")
     drift = timebase.filter((pl.col("check") == "clock_drift") & pl.col("detected"))
     return 1.0 + float(drift["value"][0]) * 1e-6 if drift.height else 1.0
@@ -322,8 +327,7 @@ def recommend_stage(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...
 
 
 def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:
-    """AN4399's correction tables from the static positions (a table
-    recording's steps, or the static reduction's poses), with their warnings."""
+    """AN4399's correction tables from the static positions (a table recording's steps, or the static poses), with their warnings."""
     positions = table_step_poses(seg.samples, seg.segments) if static is None else static.positions
     corrections, warnings = corrections_from_poses(positions)
     if not corrections:
@@ -368,16 +372,17 @@ def metrology_stage(seg: Segmented, labelled: Reduction | None, chosen: Recommen
         return [], ()
     samples, fits, results = seg.samples, seg.labelled_fits, list(labelled.results)
     dataset, unit, g, u_g = ds.name, ds.meta.output_unit, ds.meta.g_local, ds.meta.g_local_uncertainty
-    consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model)
+    chosen_rates = seg.labelled_rates if chosen_fits is seg.labelled_fits else rate_segments(chosen_fits)
+    consistency = consistency_frame(chosen_fits, g, dataset, unit, chosen.model, chosen_rates)
     response = frequency_response_frame([r for r in chosen.results if r.rate_hz in labelled.rates], chosen_fits,
-                                        dataset, unit, chosen.model)
+                                        dataset, unit, chosen.model, chosen_rates)
     both = [r for r in (simultaneous(samples, fits, g, u_g, config.fit.sine_fit == "four_parameter", seg.sums) if seg.streamed is None
                         else simultaneous_from_sums(seg.streamed.sums, fits, g, u_g)) if isinstance(r, IntrinsicResult)]
     outputs: list[Table | Figure] = [
         Table("uncertainty_budget", budget_frame(results, dataset, unit)),
         Table("simultaneous", simultaneous_frame(both, results, dataset, unit)),
         Table("consistency", consistency),
-        Table("gaitan_estimators", gaitan_frame(fits, g, u_g, dataset, unit)),
+        Table("gaitan_estimators", gaitan_frame(fits, g, u_g, dataset, unit, seg.labelled_rates)),
         Table("frequency_response", response),
     ]
     if config.report.figures:

@@ -8,9 +8,22 @@ all steps of an axis at once); its steps are its distinct angles.
 
 from __future__ import annotations
 
+import numpy as np
 import polars as pl
 
 from rotcal.tables import conform
+
+
+def _same_as_previous(column: pl.Series) -> np.ndarray:
+    """Whether each row (from the second) holds the previous row's value,
+    two missing values alike (``rle_id``'s runs); categories by their codes."""
+    if column.dtype in (pl.Enum, pl.Categorical):
+        column = column.to_physical()
+    x = column.to_numpy()  # missing values are NaN
+    same = x[1:] == x[:-1]
+    if column.null_count() or x.dtype.kind == "f":
+        same |= np.isnan(x[1:]) & np.isnan(x[:-1])
+    return same
 
 
 def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "commanded") -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -20,43 +33,55 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
     same axis and rate (or, without them, the same pose label or jig
     reference). Unlabelled samples get a null segment.
     """
-    labelled = pl.col("axis").is_not_null() & pl.col("rate_hz").is_not_null()
-    posed = ~labelled & (pl.col("pose").is_not_null() | pl.col("gx").is_not_null())
-    # 0 static, 1 rotation, 2 pose, null outside segments; one byte a sample
-    rotating = (labelled & (pl.col("rate_hz") != 0)).cast(pl.Int8)
-    kind = pl.when(labelled | posed).then(rotating + 2 * posed.cast(pl.Int8))
-    # Runs and segments by cumulative counts, not by sorting or grouping the
-    # whole table (large captures: bounded memory). Absent labels and a
-    # single capture's name start no run; leaving them out spares
-    # materialising them (null_count, and n_unique of a constant, are free).
-    keys = [c for c in ("axis", "rate_hz", "pose", "gx", "gy", "gz") if samples[c].null_count() < samples.height]
+    n = samples.height
+    present = {c: samples[c].null_count() < n for c in ("axis", "rate_hz", "pose", "gx", "gy", "gz")}
+    labelled = samples["axis"].is_not_null().to_numpy() & samples["rate_hz"].is_not_null().to_numpy()
+    posed = ~labelled & (samples["pose"].is_not_null().to_numpy() | samples["gx"].is_not_null().to_numpy())
+    # 0 static, 1 rotation, 2 pose, -1 outside segments; one byte a sample
+    kind = np.where(labelled, (labelled & (samples["rate_hz"].fill_null(0.0).to_numpy() != 0)).astype(np.int8),
+                    np.where(posed, np.int8(2), np.int8(-1))).astype(np.int8)
+    # Runs by comparing each key column with itself shifted, one column at a
+    # time (large captures: one column's temporaries at a time). Absent
+    # labels and a single capture's name start no run.
+    keys = [c for c, there in present.items() if there]
     keys += ["capture"] if samples.select(pl.col("capture").n_unique()).item() > 1 else []
-    frame = samples.with_columns(_kind=kind, _start=pl.lit(False))
-    for c in keys:  # one column at a time: one column's temporaries at a time (row 0 starts a run)
-        run = pl.col(c).rle_id()
-        frame = frame.with_columns(_start=pl.col("_start") | run.ne_missing(run.shift(1)))
-    first_of_segment = pl.col("_kind").is_not_null() & pl.col("_start")
-    frame = frame.with_columns(
-        segment=pl.when(pl.col("_kind").is_not_null()).then(first_of_segment.cum_sum() - 1).cast(pl.Int32)
-    ).drop("_start")
-    runs = frame.select(pl.col("segment").rle()).unnest("segment").with_columns(first=pl.col("len").cum_sum() - pl.col("len"))
-    runs = runs.filter(pl.col("value").is_not_null())
-    first, last = runs["first"], runs["first"] + runs["len"] - 1
-    angle_null = frame.select(null_before=pl.col("angle_deg").is_null().cum_sum(), step=pl.col("angle_deg").rle_id())
-    at_first, at_last = frame.select("capture", "_kind", "axis", "rate_hz", "t_ns", "label_source", "angle_deg")[first], frame["t_ns"][last]
-    n_nulls = angle_null["null_before"][last].to_numpy() - angle_null["null_before"][first].to_numpy() + at_first["angle_deg"].is_null().to_numpy()
-    return frame.drop("_kind"), segments_frame({
-        "segment": runs["value"],
+    start = np.ones(n, bool)  # row 0 starts a run
+    if n:
+        continuing = np.ones(n - 1, bool)
+        for c in keys:
+            continuing &= _same_as_previous(samples[c])
+        start[1:] = ~continuing
+    inside = kind >= 0
+    segment = np.cumsum(inside & start, dtype=np.int64) - 1
+    first = np.flatnonzero(inside & start)
+    # a segment ends where the next starts or its rows end (labels absent)
+    boundary = np.flatnonzero(np.diff(np.where(inside, segment, -1)) != 0)
+    last = boundary[np.where(inside, segment, -1)[boundary] >= 0]
+    last = np.append(last, n - 1) if n and inside[-1] else last
+    column = pl.Series("segment", segment.astype(np.int32))
+    if not inside.all():
+        column = column.scatter(np.flatnonzero(~inside), None)
+    frame = samples.with_columns(column)
+    angle_missing = samples["angle_deg"].is_null().to_numpy()
+    missing_before = np.cumsum(angle_missing)
+    step = np.zeros(n, np.int64)  # the angle's runs (rle_id)
+    if n:
+        np.cumsum(~_same_as_previous(samples["angle_deg"]), out=step[1:])
+    at_first = samples.select("capture", "axis", "rate_hz", "t_ns", "label_source")[first]
+    t_ns = samples["t_ns"].to_numpy()
+    n_missing = missing_before[last] - missing_before[first] + angle_missing[first]
+    return frame, segments_frame({
+        "segment": pl.Series(np.arange(first.size, dtype=np.int32)),
         "capture": at_first["capture"],
-        "kind": at_first["_kind"].replace_strict({0: "static", 1: "rotation", 2: "pose"}, return_dtype=pl.String),
+        "kind": pl.Series([("static", "rotation", "pose")[k] for k in kind[first].tolist()], dtype=pl.String),
         "axis": at_first["axis"],
         "rate_hz": at_first["rate_hz"].fill_null(0.0),
         "t_start_ns": at_first["t_ns"],
-        "t_end_ns": at_last,
-        "n_samples": runs["len"].cast(pl.Int64),
-        "n_steps": pl.Series(angle_null["step"][last].to_numpy() - angle_null["step"][first].to_numpy() + 1),
+        "t_end_ns": t_ns[last],
+        "n_samples": (last - first + 1).astype(np.int64),
+        "n_steps": pl.Series(step[last] - step[first] + 1),
         "label_source": at_first["label_source"].fill_null("file"),
-        "has_angle": n_nulls == 0,
+        "has_angle": n_missing == 0,
     }, dataset, angle_source)
 
 

@@ -212,9 +212,11 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     lookup = np.full(int(order.max(initial=-1)) + 2, -1, np.int32)  # the last entry serves -1: no segment
     lookup[order] = np.arange(order.size)
     renumber = {int(old): int(new) for new, old in enumerate(order)}
-    every = every.with_columns(segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32)).sort("segment")
-    seg_col = lookup[seg_col]
-    samples = samples.with_columns(segment=pl.Series(np.ma.masked_array(seg_col, seg_col < 0), dtype=pl.Int32))
+    if not np.array_equal(order, np.arange(order.size)):  # else numbered in time order already
+        every = every.with_columns(segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32)).sort("segment")
+    if free.any() or not np.array_equal(order, np.arange(order.size)):  # else every sample keeps its segment
+        seg_col = lookup[seg_col]
+        samples = samples.with_columns(segment=pl.Series(np.ma.masked_array(seg_col, seg_col < 0), dtype=pl.Int32))
     numbered = tuple(replace(f, segment=int(lookup[f.segment])) for f in fits)
     dwells = schema("dwells").empty() if not found.dwells else conform(
         pl.concat(found.dwells).sort("t_start_ns").with_columns(

@@ -43,7 +43,7 @@ from rotcal.errors import InputError
 from rotcal.ingest.labels import time_ordered
 from rotcal.model.physics import CHANNELS
 from rotcal.tables import conform, schema
-from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, place_collisions, white_jitter
+from rotcal.timebase.grid import grid_residuals, grid_slots, intervals, kept, lag1_within, median, place_collisions
 
 
 @dataclass(frozen=True)
@@ -217,22 +217,21 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
         return CaptureTimebase(np.ones(n, bool), t_ns.copy(), float("nan"), ())
     tie = np.flatnonzero(t_ns[1:] == t_ns[:-1])  # a record can repeat only where its stamp does
     keep = np.ones(n, bool)
-    keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
+    if tie.size:
+        keep[tie + 1] = ~np.all([(c[tie + 1] - c[tie]) == 0 for c in channels], axis=0)
     s = kept(t_ns, keep)
     d = intervals(s)
     if s.size < 2 or np.count_nonzero(d > 0) < d.size / 2:
         raise InputError(f"capture {capture}: the time stamps do not advance (most consecutive stamps are equal)",
                          hint="give [format] sample_rate_hz and no time column")
-    first_period = float(np.median(d[d > 0], overwrite_input=True))
+    first_period = median(d[d > 0])
     del d
-    k, run, period, offset = grid_slots(s, first_period)
-    repeated = np.r_[False, intervals(s) == 0]
-    jitter = white_jitter(s, k, run, period, offset)
+    k, run, period, offset, jitter = grid_slots(s, first_period)
+    repeated = np.concatenate(([False], intervals(s) == 0))
     resid = grid_residuals(s, k, run, period, offset)
     within = run[1:] == run[:-1]
     lag1 = lag1_within(resid, within)
-    spread = float(np.std(resid))
-    largest = float(max(resid.max(), -resid.min()))
+    spread, largest = float(np.std(resid)), float(max(resid.max(), -resid.min()))
     np.square(resid, out=resid)
     ss_resid = np.sum(resid)
     del resid
@@ -247,7 +246,7 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     if regular:
         placed = place_collisions(slot, run)
         unplaceable = placed < 0
-        repeated |= np.r_[False, (slot[1:] == slot[:-1]) & within]
+        repeated[1:] |= (slot[1:] == slot[:-1]) & within
     else:
         placed, unplaceable = slot, repeated
 
@@ -309,9 +308,7 @@ def repair_timebase(samples: pl.DataFrame, dataset: str, config: TimebaseConfig 
     table is copied only as far as something changes: rows dropped only if
     some are, stamps replaced only if some moved, rows sorted only if out of
     order."""
-    rows: list[dict] = []
-    warnings: list[str] = []
-    bad: dict[str, str] = {}
+    rows, warnings, bad = list[dict](), list[str](), dict[str, str]()  # findings, warnings, captures that cannot carry a fit
     captures = samples["capture"].unique(maintain_order=True).to_list()
     keep, stamps, gaps = np.ones(samples.height, bool), None, []
     t_all, y_all = samples["t_ns"].to_numpy(), [samples[c].to_numpy() for c in CHANNELS]
@@ -338,7 +335,7 @@ def capture_rows(capture: pl.Series, n_captures: int) -> list[slice | np.ndarray
     if n_captures == 1:
         return [None]
     code = capture.to_physical().to_numpy()
-    edges = np.r_[0, np.flatnonzero(code[1:] != code[:-1]) + 1, code.size]
+    edges = np.concatenate(([0], np.flatnonzero(code[1:] != code[:-1]) + 1, [code.size]))
     return ([slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])] if edges.size - 1 == n_captures
             else [np.flatnonzero(code == c) for c in capture.unique(maintain_order=True).to_physical().to_numpy()])
 
@@ -386,8 +383,11 @@ def _time_ordered(samples: pl.DataFrame, captures: list[str]) -> pl.DataFrame:
     order of ``captures``; a table already in that order is only marked so."""
     if len(captures) < 2:
         return time_ordered(samples)
+    t = samples["t_ns"].to_numpy()
+    if np.all(t[1:] > t[:-1]):  # no equal stamps: the captures' ranks need not be known
+        return samples.with_columns(pl.col("t_ns").set_sorted())
     rank = pl.col("capture").replace_strict(captures, range(len(captures)), return_dtype=pl.UInt32)
-    t, r = samples["t_ns"].to_numpy(), samples.select(rank)["capture"].to_numpy()
+    r = samples.select(rank)["capture"].to_numpy()
     if np.all((t[1:] > t[:-1]) | ((t[1:] == t[:-1]) & (r[1:] >= r[:-1]))):
         return samples.with_columns(pl.col("t_ns").set_sorted())
     return samples.with_columns(_rank=rank).sort("t_ns", "_rank", maintain_order=True).drop("_rank")

@@ -52,14 +52,26 @@ def grid_residuals(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float,
     return resid
 
 
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a finite array, the same value without its general
+    machinery (a few dozen microseconds a call, several calls a capture);
+    ``x`` is scratch (partitioned in place)."""
+    half = x.size // 2
+    if x.size % 2:
+        x.partition(half)
+        return float(x[half])
+    x.partition((half - 1, half))
+    return float((x[half - 1] + x[half]) / 2)
+
+
 def _robust_sd(x: np.ndarray) -> float:
     """1.4826 times the median absolute deviation; ``x`` is scratch (reordered, overwritten)."""
     if not x.size:
         return 0.0
-    centre = np.median(x, overwrite_input=True)
+    centre = median(x)
     np.subtract(x, centre, out=x)
     np.abs(x, out=x)
-    return float(1.4826 * np.median(x, overwrite_input=True))
+    return float(1.4826 * median(x))
 
 
 def white_jitter(s: np.ndarray, k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> float:
@@ -129,14 +141,14 @@ def place_collisions(slot: np.ndarray, run: np.ndarray) -> np.ndarray:
     return placed
 
 
-def grid_slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def grid_slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
     """Every stamp's slot on the grid and its logging run: slots counted
     from the intervals, runs split at every gap and joined again where the
     next run's line continues this one's (lost packets: the phase holds);
     then every slot re-read from the fitted lines. Returns the slots, the
-    runs, the period and each run's offset."""
+    runs, the period, each run's offset and the white jitter about them."""
     d = intervals(s)
-    distinct = np.r_[True, d > 0]
+    distinct = np.concatenate(([True], d > 0))
     # equal stamps share a slot (a repeated stamp); any advance is at least one slot
     steps = d / period
     del d
@@ -158,17 +170,17 @@ def grid_slots(s: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray, fl
         hold = np.abs(slip - whole) * period < tolerance
         joined = bool(hold.any())  # no run joins the one before: runs and slots stand as they are
         if joined:
-            k += np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][run]
-            run = np.r_[0, np.cumsum(~hold)].astype(np.int32)[run]
+            k += np.concatenate(([0.0], np.cumsum(np.where(hold, whole, 0.0))))[run]
+            run = np.concatenate(([0], np.cumsum(~hold))).astype(np.int32)[run]
             period, offset = _grid_fit(s, k, run)
         reread = np.empty(s.size)  # np.rint((s - offset[run]) / period), a block at a time
         for a in range(0, s.size, _BLOCK):
             block = slice(a, a + _BLOCK)
             reread[block] = np.rint((s[block] - offset[run[block]]) / period)
-        # a fixed point (no run joined, no slot re-read): a further pass would repeat this one exactly
-        steady = not joined and np.array_equal(reread, k)
+        # a fixed point (no run joined, no slot re-read): a further pass would repeat this one exactly,
+        # so its fit and jitter are those of the slots returned
+        if not joined and np.array_equal(reread, k):
+            return k, run, period, offset, jitter
         k = reread
-        if steady:
-            break
     period, offset = _grid_fit(s, k, run)
-    return k, run, period, offset
+    return k, run, period, offset, white_jitter(s, k, run, period, offset)
