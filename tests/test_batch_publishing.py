@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 from rotcal.batch.jobs import _write_part, open_executor
 from rotcal.combine.labelled import rate_segments, segment_coefficients
 from rotcal.config import BatchConfig
-from rotcal.tables import write_table
+from rotcal.tables import PARQUET_OPTIONS, write_table
 
 
 def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
@@ -26,7 +26,7 @@ def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
     read = pq.ParquetFile(published).read()
     read = read.add_column(0, pa.field("dataset_path", pa.string()), pa.array(["lot/dut1"] * 2, pa.string()))
     pq.write_table(read.replace_schema_metadata({**read.schema.metadata, b"rotcal.combined": b"batch_combined 1.0"}),
-                   tmp_path / "expected.parquet", compression="zstd")
+                   tmp_path / "expected.parquet", **PARQUET_OPTIONS)
     _write_part(table, tmp_path / "parts" / "fits.parquet", "lot/dut1")
     assert (tmp_path / "parts" / "fits.parquet").read_bytes() == (tmp_path / "expected.parquet").read_bytes()
 
