@@ -163,8 +163,9 @@ def _refusal(exc: Exception, found: Found) -> str:
                           path=decoded(str(found.source))))
 
 
-def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest) -> Plan:
-    """Hash the dataset's inputs (``manifest.digest``), or say why it is refused."""
+def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest, config_text: str) -> Plan:
+    """Hash the dataset's inputs (``manifest.digest``), or say why it is
+    refused; ``config_text`` is ``config_json(config)``, made once a run."""
     try:
         if found.dataset_path != found.source.relative_to(root).as_posix():
             raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
@@ -177,7 +178,7 @@ def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest
             inputs = [["listing", _listing(found.source)]]
         except OSError:
             inputs = [["listing", None]]
-    identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_json(config), "rotcal": __version__}
+    identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_text, "rotcal": __version__}
     fingerprint = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
     return Plan(found, dataset_id(found.dataset_path), fingerprint, json.dumps(inputs), refusal)
 
