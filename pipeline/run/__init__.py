@@ -21,7 +21,15 @@ from rotcal.errors import UndeterminedError
 from rotcal.model import Failure, IntrinsicResult, Table
 from rotcal.model.calibration import Recommended, mark_recommended
 from rotcal.report.publish import OutputDir
-from rotcal.run.outputs import INPUT_TABLES, calibration_output, certificate_output, diagnosis_outputs, publish, result_tables
+from rotcal.run.outputs import (
+    INPUT_TABLES,
+    calibration_document,
+    calibration_output,
+    certificate_output,
+    diagnosis_outputs,
+    publish,
+    result_tables,
+)
 from rotcal.run.stages import (
     Reductions,
     Segmented,
@@ -90,9 +98,10 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) 
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
+    calibration = calibration_document(chosen, ds, config)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(chosen, ds, config), certificate_output(config)]
+               calibration_output(calibration), certificate_output(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)
