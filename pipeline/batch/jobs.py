@@ -42,6 +42,7 @@ class Job:
     source: str
     work: str
     config: RunConfig
+    known: dict[tuple[int, ...], str]  # the inputs' SHA-256s the batch process computed (``Plan.known``)
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,7 @@ def run_job(job: Job) -> JobResult:
         dataset_inputs(Path(job.source), job.config.limits)  # again: the worker reads the files now
         parts = work / "parts"
         outcome = run_dataset(Path(job.source), OutputDir(work / "tables", on_table=lambda name, table: _write_part(
-            table, parts / f"{name}.parquet", job.dataset_path)), None, job.config)
+            table, parts / f"{name}.parquet", job.dataset_path)), None, job.config, known=job.known)
         tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
         return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
     except RotcalError as exc:  # one line, but for control characters in its path, escaped when printed

@@ -231,7 +231,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             # each run's threads get its share of the batch's cores; results do not depend on it
             job_config = replace(config, run=RunSection(workers=share(config.batch.workers, workers) if local else 1))
             jobs = [(plan, Job(plan.found.dataset_path, str(plan.found.source),
-                               str(layout.work / f"{plan.dataset_id}.{run_id}"), job_config)) for plan in todo]
+                               str(layout.work / f"{plan.dataset_id}.{run_id}"), job_config, plan.known)) for plan in todo]
             for plan, result in execute(executor, workers, jobs):
                 settle(plan, result, layout.work / f"{plan.dataset_id}.{run_id}")
     records = manifest.records()

@@ -59,10 +59,12 @@ def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> 
                                                                ds.meta.g_local_uncertainty))]
 
 
-def calibration_document(chosen: Recommended, ds: Dataset, config: RunConfig) -> Calibration:
+def calibration_document(chosen: Recommended, ds: Dataset, config: RunConfig,
+                         known: Mapping[tuple[int, ...], str] | None = None) -> Calibration:
     """The run's ``calibration.json``: the recommended result per rate,
-    g_local and its source, the inputs' hashes and every configuration key."""
-    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
+    g_local and its source, the inputs' hashes (those ``known`` not read
+    again: ``content_hashes``) and every configuration key."""
+    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config))
 
 
 def calibration_output(calibration: Calibration) -> Figure:
