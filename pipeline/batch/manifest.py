@@ -260,9 +260,12 @@ class Layout:
         if not (self.store / name).is_dir():
             build = self.work / name
             build.mkdir()
+            tables: set[str] = set()  # each table's folder made once
             for did, stored in sorted(published.items()):
                 for part in sorted((self.store / stored / "parts").glob("*.parquet")):
-                    (build / part.stem).mkdir(exist_ok=True)
+                    if part.stem not in tables:
+                        (build / part.stem).mkdir()
+                        tables.add(part.stem)
                     try:
                         os.link(part, build / part.stem / f"{did}.parquet")
                     except OSError:  # a file system without hard links
