@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 from rotcal.batch.jobs import _write_part, open_executor
 from rotcal.combine.labelled import rate_segments, segment_coefficients
 from rotcal.config import BatchConfig
-from rotcal.tables import write_table
+from rotcal.tables import PARQUET_OPTIONS, write_table
 
 
 def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
@@ -26,7 +26,7 @@ def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
     read = pq.ParquetFile(published).read()
     read = read.add_column(0, pa.field("dataset_path", pa.string()), pa.array(["lot/dut1"] * 2, pa.string()))
     pq.write_table(read.replace_schema_metadata({**read.schema.metadata, b"rotcal.combined": b"batch_combined 1.0"}),
-                   tmp_path / "expected.parquet", compression="zstd")
+                   tmp_path / "expected.parquet", **PARQUET_OPTIONS)
     _write_part(table, tmp_path / "parts" / "fits.parquet", "lot/dut1")
     assert (tmp_path / "parts" / "fits.parquet").read_bytes() == (tmp_path / "expected.parquet").read_bytes()
 
@@ -69,3 +69,41 @@ def test_rate_segments_are_those_of_the_table_asked_for():
         assert all(np.array_equal(s.coef, e.coef) and np.array_equal(s.cov, e.cov) for s, e in zip(flat, expected))
     again = rate_segments(first)  # the same table asked for again: the same answer, in a list of its own
     assert again is not rate_segments(first) and [r for r, _ in again] == [0.0, 0.5]
+
+
+def test_a_job_takes_the_hashes_its_dataset_was_planned_with_unless_a_file_changed(tmp_path, monkeypatch):
+    import hashlib
+    import json
+
+    from rotcal.batch.manifest import Manifest
+    from rotcal.batch.plan import config_json, discover, plan_dataset
+    from rotcal.batch.runner import run_batch
+    from rotcal.ingest.duplicates import content_hashes
+
+    from batch_support import SERIAL, make_root
+
+    root = tmp_path / "root"
+    make_root(root, [1])
+    found = discover(root, tmp_path / "out")[0]
+    files = sorted(p for p in found.source.iterdir() if p.name != "truth.json")  # the inputs: dataset.toml and captures
+    truth = {f: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+    manifest = Manifest(tmp_path / "manifest.sqlite")
+    # files changed less than RACY_NS before they were hashed: their identity vouches for nothing
+    assert plan_dataset(found, root, SERIAL, manifest, config_json(SERIAL)).known == {}
+    monkeypatch.setattr("rotcal.batch.manifest.RACY_NS", 0)
+    plan = plan_dataset(found, root, SERIAL, manifest, config_json(SERIAL))
+    manifest.close()
+    assert sorted(plan.known.values()) == sorted(truth.values())
+    # a known digest is taken as it is (these are not the files' hashes: nothing was read) ...
+    fake = {identity: "f" * 64 for identity in plan.known}
+    assert {e["sha256"] for e in content_hashes(tuple(files), found.source, fake)} == {"f" * 64}
+    # ... unless the file has changed since: then it is hashed again
+    with files[-1].open("a") as fh:
+        fh.write("\n")
+    entries = content_hashes(tuple(files), found.source, fake)
+    assert [e["sha256"] for e in entries] == ["f" * 64] * (len(files) - 1) + [hashlib.sha256(files[-1].read_bytes()).hexdigest()]
+    # a batch's calibration.json names the inputs' true hashes, taken from its plan
+    run_batch(root, tmp_path / "out", SERIAL)
+    document = json.loads(next((tmp_path / "out" / "datasets").glob("*/calibration.json")).read_text())
+    assert {e["path"]: e["sha256"] for e in document["inputs"]} == {
+        f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}

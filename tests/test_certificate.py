@@ -259,7 +259,8 @@ def test_bad_run_directories_are_one_line_errors(runs, tmp_path, cli):
 
 def test_the_run_publishes_it_last_when_calibration_json_is_there(runs, tmp_path):
     assert PUBLISH_ORDER[-1] == "certificate"
-    item = certificate_output(replace(RunConfig(), report=replace(RunConfig().report, figures=False)))
+    calibration = Calibration.read(runs["static"] / "calibration.json")
+    item = certificate_output(replace(RunConfig(), report=replace(RunConfig().report, figures=False)), calibration)
     assert item.draw(tmp_path, {}) is None  # no calibration.json: nothing to certify
     shutil.copy(runs["static"] / "calibration.json", tmp_path)
     path = item.draw(tmp_path, {})  # the tables this publish wrote: none

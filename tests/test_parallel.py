@@ -81,7 +81,7 @@ def test_fit_stage_threads_on_the_cores_given(monkeypatch, four_cores, workers, 
 def test_batch_gives_each_run_its_share(tmp_path, monkeypatch, four_cores, batch_workers, datasets, run_cores):
     seen = []
 
-    def record(path, out, meta, config):
+    def record(path, out, meta, config, known=None):
         seen.append(config.run.workers)
         raise RuntimeError("recorded")
 

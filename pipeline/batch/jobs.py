@@ -6,6 +6,7 @@ local process pool, or on a Dask cluster.
 from __future__ import annotations
 
 import ctypes
+import importlib
 import multiprocessing
 import os
 import shutil
@@ -16,7 +17,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -41,6 +42,7 @@ class Job:
     source: str
     work: str
     config: RunConfig
+    known: dict[tuple[int, ...], str]  # the inputs' SHA-256s the batch process computed (``Plan.known``)
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,7 @@ def run_job(job: Job) -> JobResult:
         dataset_inputs(Path(job.source), job.config.limits)  # again: the worker reads the files now
         parts = work / "parts"
         outcome = run_dataset(Path(job.source), OutputDir(work / "tables", on_table=lambda name, table: _write_part(
-            table, parts / f"{name}.parquet", job.dataset_path)), None, job.config)
+            table, parts / f"{name}.parquet", job.dataset_path)), None, job.config, known=job.known)
         tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
         return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
     except RotcalError as exc:  # one line, but for control characters in its path, escaped when printed
@@ -105,6 +107,26 @@ def _die_with_parent(parent_pid: int) -> None:
         ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent_pid:
         os._exit(1)
+
+
+# what every job loads, imported when a pool worker starts: the pool is
+# opened at the first dataset to process and its workers import these
+# (about a second of CPU each) while the batch process plans the others
+JOB_MODULES = ("rotcal.run", "rotcal.diagnose", "rotcal.report.diagnosis", "rotcal.report.certificate", "pyarrow.parquet")
+
+
+def _start_worker(parent_pid: int) -> None:
+    """A pool worker's start: ``_die_with_parent``, then ``JOB_MODULES``. An
+    import that fails is left to the job that needs it, which reports it as
+    its dataset's error (a failed initializer would break the pool instead)."""
+    _die_with_parent(parent_pid)
+    for name in JOB_MODULES:
+        with suppress(Exception):
+            importlib.import_module(name)
+
+
+def _started() -> None:
+    """The task that starts a worker (its process starts at a submission)."""
 
 
 class _InProcess(Executor):
@@ -128,8 +150,13 @@ class _LocalPool(Executor):
         self.pool = self._new()
 
     def _new(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_die_with_parent, initargs=(os.getpid(),))
+        """A pool with its workers started now (one task each: a worker
+        process starts at a submission), not at the first jobs."""
+        pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_start_worker, initargs=(os.getpid(),))
+        for _ in range(self.workers):
+            pool.submit(_started)
+        return pool
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
         try:

@@ -36,6 +36,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from rotcal.errors import ExitCode, RotcalError
+from rotcal.ingest.duplicates import file_identity
 from rotcal.ingest.files import open_capture
 from rotcal.tables import schema_text
 
@@ -159,26 +160,26 @@ class Manifest:
             self.db.execute("UPDATE batch_runs SET finished_at = ?, summary = ?, status = 'finished' WHERE run_id = ?",
                             (finished_at, summary_json, run_id))
 
-    def digest(self, path: Path) -> str:
+    def digest(self, path: Path) -> tuple[str, tuple[int, ...] | None]:
         """SHA-256 of ``path``'s content, read in blocks (bounded memory) unless
-        the cache holds it for the same device, inode, size, mtime and ctime."""
+        the cache holds it for the same device, inode, size, mtime and ctime
+        (``file_identity``); and that identity when it vouches for the
+        content (the file last changed more than ``RACY_NS`` before it was
+        hashed), else None."""
         st = path.stat()
         key = str(path)
+        identity = file_identity(st)
         row = self.db.execute(
             "SELECT device, inode, size, mtime_ns, ctime_ns, sha256, hashed_at_ns FROM batch_file_hashes WHERE path = ?", (key,)
         ).fetchone()
-        if row is not None and row[:5] == (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns) \
-                and st.st_ctime_ns < row[6] - RACY_NS:
-            return row[5]
+        if row is not None and row[:5] == identity and st.st_ctime_ns < row[6] - RACY_NS:
+            return row[5], identity
         hashed_at = time.time_ns()
         # open_capture: a FIFO would block the run for ever, holding the lock
         with open_capture(path) as fh:
             sha = hashlib.file_digest(fh, "sha256").hexdigest()
-        self.db.execute(
-            "INSERT OR REPLACE INTO batch_file_hashes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            (key, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns, sha, hashed_at),
-        )
-        return sha
+        self.db.execute("INSERT OR REPLACE INTO batch_file_hashes VALUES (?, ?, ?, ?, ?, ?, ?, ?)", (key, *identity, sha, hashed_at))
+        return sha, identity if st.st_ctime_ns < hashed_at - RACY_NS else None
 
 
 @contextmanager
@@ -259,9 +260,12 @@ class Layout:
         if not (self.store / name).is_dir():
             build = self.work / name
             build.mkdir()
+            tables: set[str] = set()  # each table's folder made once
             for did, stored in sorted(published.items()):
                 for part in sorted((self.store / stored / "parts").glob("*.parquet")):
-                    (build / part.stem).mkdir(exist_ok=True)
+                    if part.stem not in tables:
+                        (build / part.stem).mkdir()
+                        tables.add(part.stem)
                     try:
                         os.link(part, build / part.stem / f"{did}.parquet")
                     except OSError:  # a file system without hard links

@@ -142,13 +142,16 @@ def config_json(config: RunConfig) -> str:
 
 @dataclass(frozen=True)
 class Plan:
-    """A dataset's identity this run: inputs and fingerprint, or why it is refused."""
+    """A dataset's identity this run: inputs and fingerprint, or why it is
+    refused; ``known``: the inputs' SHA-256s by ``file_identity`` (those
+    it vouches for), so that the job does not read them again to hash them."""
 
     found: Found
     dataset_id: str
     fingerprint: str
     inputs: str
     refusal: str | None
+    known: dict[tuple[int, ...], str]
 
 
 def _refusal(exc: Exception, found: Found) -> str:
@@ -163,21 +166,24 @@ def _refusal(exc: Exception, found: Found) -> str:
                           path=decoded(str(found.source))))
 
 
-def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest) -> Plan:
-    """Hash the dataset's inputs (``manifest.digest``), or say why it is refused."""
+def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest, config_text: str) -> Plan:
+    """Hash the dataset's inputs (``manifest.digest``), or say why it is
+    refused; ``config_text`` is ``config_json(config)``, made once a run."""
     try:
         if found.dataset_path != found.source.relative_to(root).as_posix():
             raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
         files = dataset_inputs(found.source, config.limits)
-        inputs = [[decoded(f.relative_to(root).as_posix()), manifest.digest(f)] for f in files]
+        digests = [(f, *manifest.digest(f)) for f in files]
+        inputs = [[decoded(f.relative_to(root).as_posix()), sha] for f, sha, _ in digests]
+        known = {identity: sha for _, sha, identity in digests if identity is not None}
         refusal = None
     except Exception as exc:  # the one guard around a dataset's planning: nothing in it stops the others
-        refusal = _refusal(exc, found)
+        refusal, known = _refusal(exc, found), {}
         try:
             inputs = [["listing", _listing(found.source)]]
         except OSError:
             inputs = [["listing", None]]
-    identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_json(config), "rotcal": __version__}
+    identity = {"dataset": found.dataset_path, "inputs": inputs, "config": config_text, "rotcal": __version__}
     fingerprint = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
-    return Plan(found, dataset_id(found.dataset_path), fingerprint, json.dumps(inputs), refusal)
+    return Plan(found, dataset_id(found.dataset_path), fingerprint, json.dumps(inputs), refusal, known)
 

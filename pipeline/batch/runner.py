@@ -15,6 +15,9 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Callable
+from concurrent.futures import Executor
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -159,57 +162,76 @@ def run_batch(root: Path, out: Path, config: RunConfig = RunConfig(), reporter: 
             manifest.close()
 
 
+def _plan(root: Path, out: Path, config: RunConfig, config_text: str, manifest: Manifest, layout: Layout,
+          previous: dict[str, DatasetRecord], start: Callable[[int], None]) -> tuple[list[Plan], ...]:
+    """Every dataset under ``root`` planned (``plan_dataset``), as (all,
+    to process, refused, unchanged); ``start(n)`` called at the first one to
+    process, with at most ``n`` to come, so that the executor's workers start
+    (their imports) while the others are planned."""
+    plans: list[Plan] = []
+    todo: list[Plan] = []
+    refused: list[Plan] = []
+    unchanged: list[Plan] = []
+    with manifest.transaction():
+        found = discover(root, out)
+        for k, dataset in enumerate(found):
+            plan = plan_dataset(dataset, root, config, manifest, config_text)
+            prev = previous.get(plan.found.dataset_path)
+            current = prev is not None and prev.fingerprint == plan.fingerprint and (
+                prev.status == "quarantined" or (prev.status == "ok" and layout.published(plan.dataset_id) == prev.output))
+            (unchanged if current else refused if plan.refusal else todo).append(plan)
+            plans.append(plan)
+            if todo == [plan]:
+                start(len(found) - k)
+    return plans, todo, refused, unchanged
+
+
 def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter: Reporter, clock: float,
          notes: tuple[str, ...]) -> BatchSummary:
     layout = Layout(out)
     layout.sweep()
     run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S.%fZ}-{os.getpid()}"
     previous = manifest.records()
-    with manifest.transaction():
-        plans = [plan_dataset(found, root, config, manifest) for found in discover(root, out)]
-    todo: list[Plan] = []
-    refused: list[Plan] = []
-    unchanged: list[Plan] = []
-    for plan in plans:
-        prev = previous.get(plan.found.dataset_path)
-        current = prev is not None and prev.fingerprint == plan.fingerprint and (
-            prev.status == "quarantined" or (prev.status == "ok" and layout.published(plan.dataset_id) == prev.output))
-        (unchanged if current else refused if plan.refusal else todo).append(plan)
-    local, workers = config.batch.executor == "local", 0
-    dead = manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
-    if dead:
-        were = "runs were" if len(dead) > 1 else "run was"
-        notes += (f"{len(dead)} earlier {were} interrupted ({', '.join(dead[:5])}{', ...' if len(dead) > 5 else ''})",)
-        reporter.note(notes[-1])
-    reporter.start(len(plans), len(unchanged), len(todo) + len(refused))
-    outcomes: list[tuple[Plan, JobResult]] = []
+    config_text = config_json(config)  # the configuration results depend on, once a run
+    with ExitStack() as stack:
+        opened: list[tuple[Executor, int]] = []
+        plans, todo, refused, unchanged = _plan(root, out, config, config_text, manifest, layout, previous, lambda most: opened.append(
+            stack.enter_context(open_executor(config.batch, most))))
+        local, workers = config.batch.executor == "local", 0
+        dead = manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
+        if dead:
+            were = "runs were" if len(dead) > 1 else "run was"
+            notes += (f"{len(dead)} earlier {were} interrupted ({', '.join(dead[:5])}{', ...' if len(dead) > 5 else ''})",)
+            reporter.note(notes[-1])
+        reporter.start(len(plans), len(unchanged), len(todo) + len(refused))
+        outcomes: list[tuple[Plan, JobResult]] = []
 
-    def settle(plan: Plan, result: JobResult, work: Path | None) -> None:
-        if result.status == "ok" and result.rotcal_version != __version__:
-            result = replace(result, status="error", reason=f"the worker runs rotcal {result.rotcal_version}, this run {__version__}")
-        output = None
-        if result.status == "ok":
-            output = layout.publish(plan.dataset_id, plan.fingerprint, work)
-        else:
-            layout.withdraw(plan.dataset_id)
-            if work is not None:
-                shutil.rmtree(work, ignore_errors=True)
-        if result.reason is not None:
-            result = replace(result, reason=printable(result.reason))
-        manifest.put(DatasetRecord(
-            plan.found.dataset_path, plan.dataset_id, result.status, plan.fingerprint, plan.inputs, config_json(config),
-            __version__, result.reason, output, json.dumps(result.tables), run_id, result.started_at, now(), result.duration_s))
-        outcomes.append((plan, result))
-        reporter.dataset(plan.found.dataset_path, result)
+        def settle(plan: Plan, result: JobResult, work: Path | None) -> None:
+            if result.status == "ok" and result.rotcal_version != __version__:
+                result = replace(result, status="error", reason=f"the worker runs rotcal {result.rotcal_version}, this run {__version__}")
+            output = None
+            if result.status == "ok":
+                output = layout.publish(plan.dataset_id, plan.fingerprint, work)
+            else:
+                layout.withdraw(plan.dataset_id)
+                if work is not None:
+                    shutil.rmtree(work, ignore_errors=True)
+            if result.reason is not None:
+                result = replace(result, reason=printable(result.reason))
+            manifest.put(DatasetRecord(
+                plan.found.dataset_path, plan.dataset_id, result.status, plan.fingerprint, plan.inputs, config_text,
+                __version__, result.reason, output, json.dumps(result.tables), run_id, result.started_at, now(), result.duration_s))
+            outcomes.append((plan, result))
+            reporter.dataset(plan.found.dataset_path, result)
 
-    for plan in refused:
-        settle(plan, JobResult("quarantined", plan.refusal, (), now(), 0.0), None)
-    if todo:
-        with open_executor(config.batch, len(todo)) as (executor, workers):
+        for plan in refused:
+            settle(plan, JobResult("quarantined", plan.refusal, (), now(), 0.0), None)
+        if todo:
+            executor, workers = opened[0]
             # each run's threads get its share of the batch's cores; results do not depend on it
             job_config = replace(config, run=RunSection(workers=share(config.batch.workers, workers) if local else 1))
             jobs = [(plan, Job(plan.found.dataset_path, str(plan.found.source),
-                               str(layout.work / f"{plan.dataset_id}.{run_id}"), job_config)) for plan in todo]
+                               str(layout.work / f"{plan.dataset_id}.{run_id}"), job_config, plan.known)) for plan in todo]
             for plan, result in execute(executor, workers, jobs):
                 settle(plan, result, layout.work / f"{plan.dataset_id}.{run_id}")
     records = manifest.records()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import os
 from collections import defaultdict
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TypeVar
 
@@ -21,15 +22,28 @@ def sha256_hex(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
-def content_hashes(files: tuple[Path, ...], root: Path) -> tuple[dict, ...]:
+def file_identity(st: os.stat_result) -> tuple[int, int, int, int, int]:
+    """A file's device, inode, size, mtime and ctime (ns): unchanged, so is
+    its content (when it was last changed well before it was hashed: the
+    batch's rule, ``batch.manifest.RACY_NS``)."""
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
+
+
+def content_hashes(files: tuple[Path, ...], root: Path, known: Mapping[tuple[int, ...], str] | None = None) -> tuple[dict, ...]:
     """Each file's path (relative to ``root``; absolute when outside it, as
     a ``--meta`` file may be), size in bytes and SHA-256: what identifies a
-    run's inputs (calibration.json's ``inputs``)."""
+    run's inputs (calibration.json's ``inputs``). ``known``: SHA-256s the
+    caller has, by ``file_identity``, taken for a file that still has it
+    instead of reading it again (the batch hashed every input to plan)."""
     def name(f: Path) -> str:
         resolved = f.resolve()
         return (resolved.relative_to(root.resolve()) if resolved.is_relative_to(root.resolve()) else resolved).as_posix()
 
-    return tuple({"path": name(f), "bytes": f.stat().st_size, "sha256": sha256_hex(f)} for f in files)
+    def entry(f: Path) -> dict:
+        st = f.stat()
+        return {"path": name(f), "bytes": st.st_size, "sha256": (known or {}).get(file_identity(st)) or sha256_hex(f)}
+
+    return tuple(entry(f) for f in files)
 
 
 def distinct_captures(files: list[tuple[Path, Spec]], root: Path) -> tuple[list[tuple[Path, Spec]], tuple[tuple[str, str], ...]]:

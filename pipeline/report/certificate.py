@@ -271,17 +271,16 @@ def _page() -> Template:
     return Template(files("rotcal.report").joinpath(CERTIFICATE).read_text(encoding="utf-8"))
 
 
-def render(run_dir: Path, figures: bool = True, written: bool = False,
+def render(run_dir: Path, figures: bool = True, calibration: Calibration | None = None,
            published: Mapping[str, pa.Table] | None = None) -> str:
     """The certificate page of the run in ``run_dir``; raises ``InputError``
     when it holds no readable ``calibration.json`` or an unreadable table.
-    ``written``: the run itself has just written (and validated) that
-    ``calibration.json``, so it is read without validating it again.
-    ``published``: the tables that run wrote into ``run_dir``, as it wrote
-    them (by name), taken instead of reading the files back."""
+    ``calibration``: the document the run itself has just written there
+    (and validated), taken instead of reading it back. ``published``: the
+    tables that run wrote into ``run_dir``, as it wrote them (by name),
+    taken instead of reading the files back."""
     run_dir = Path(run_dir)
-    path = run_dir / "calibration.json"
-    cal = Calibration.from_dict(json.loads(path.read_text(encoding="utf-8"))) if written else Calibration.read(path)
+    cal = Calibration.read(run_dir / "calibration.json") if calibration is None else calibration
     tables = read_tables(run_dir) if published is None else {
         name: pl.DataFrame(published[name]) for name in TABLES if name in published}
     kind = run_kind(tables)
@@ -294,10 +293,10 @@ def render(run_dir: Path, figures: bool = True, written: bool = False,
                            created=escape(cal.created_utc), sections="\n".join(sections))
 
 
-def write_certificate(run_dir: Path, figures: bool = True, written: bool = False,
+def write_certificate(run_dir: Path, figures: bool = True, calibration: Calibration | None = None,
                       published: Mapping[str, pa.Table] | None = None) -> Path:
     """Write ``certificate.html`` into ``run_dir`` (atomically) from its
-    published files (``written``, ``published``: as ``render``)."""
+    published files (``calibration``, ``published``: as ``render``)."""
     path = Path(run_dir) / CERTIFICATE
-    text = render(Path(run_dir), figures, written, published)
+    text = render(Path(run_dir), figures, calibration, published)
     return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))

@@ -9,6 +9,7 @@ logic."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,7 +22,15 @@ from rotcal.errors import UndeterminedError
 from rotcal.model import Failure, IntrinsicResult, Table
 from rotcal.model.calibration import Recommended, mark_recommended
 from rotcal.report.publish import OutputDir
-from rotcal.run.outputs import INPUT_TABLES, calibration_output, certificate_output, diagnosis_outputs, publish, result_tables
+from rotcal.run.outputs import (
+    INPUT_TABLES,
+    calibration_document,
+    calibration_output,
+    certificate_output,
+    diagnosis_outputs,
+    publish,
+    result_tables,
+)
 from rotcal.run.stages import (
     Reductions,
     Segmented,
@@ -58,16 +67,19 @@ class RunOutcome:
     static: StaticReduction | None = None
 
 
-def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None, config: RunConfig = RunConfig()) -> RunOutcome:
+def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None, config: RunConfig = RunConfig(),
+                known: Mapping[tuple[int, ...], str] | None = None) -> RunOutcome:
     """Run the pipeline on one dataset (see ``_run``) with BLAS on one thread:
     rotcal's parallelism is across segments and datasets, and a threaded BLAS
     on small matrices competing with it costs more than it gives. A bare
-    path ``out`` replaces only what a rotcal listing there names."""
+    path ``out`` replaces only what a rotcal listing there names. ``known``:
+    the inputs' SHA-256s the caller has computed (``ingest.duplicates.content_hashes``)."""
     with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config)
+        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known)
 
 
-def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) -> RunOutcome:
+def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
+         known: Mapping[tuple[int, ...], str] | None) -> RunOutcome:
     """Run the pipeline on one dataset and publish its tables as ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
@@ -90,9 +102,10 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig) 
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
+    calibration = calibration_document(chosen, ds, config, known)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(chosen, ds, config), certificate_output(config)]
+               calibration_output(calibration), certificate_output(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)

@@ -19,7 +19,7 @@ from rotcal.metrology import (
     cross_sensitivity_frame,
 )
 from rotcal.model import IntrinsicResult, Table
-from rotcal.model.calibration import Recommended, recommended_calibration
+from rotcal.model.calibration import Calibration, Recommended, recommended_calibration
 from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.tables import contract_table, write_table
 
@@ -59,10 +59,16 @@ def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> 
                                                                ds.meta.g_local_uncertainty))]
 
 
-def calibration_output(chosen: Recommended, ds: Dataset, config: RunConfig) -> Figure:
-    """``calibration.json``: the recommended result per rate, g_local and
-    its source, the inputs' hashes and every configuration key."""
-    calibration = recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root), asdict(config))
+def calibration_document(chosen: Recommended, ds: Dataset, config: RunConfig,
+                         known: Mapping[tuple[int, ...], str] | None = None) -> Calibration:
+    """The run's ``calibration.json``: the recommended result per rate,
+    g_local and its source, the inputs' hashes (those ``known`` not read
+    again: ``content_hashes``) and every configuration key."""
+    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config))
+
+
+def calibration_output(calibration: Calibration) -> Figure:
+    """``calibration.json`` written (and validated: ``Calibration.write``)."""
     return Figure("calibration", lambda out: calibration.write(out / "calibration.json"))
 
 
@@ -97,7 +103,7 @@ class View:
     draw: Callable[[Path, Mapping[str, pa.Table]], Path | None]
 
 
-def certificate_output(config: RunConfig) -> View:
+def certificate_output(config: RunConfig, calibration: Calibration) -> View:
     """The certificate (``report.certificate``), published last: a view of
     the files published before it, drawn when they include calibration.json."""
     def draw(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
@@ -105,9 +111,9 @@ def certificate_output(config: RunConfig) -> View:
             return None
         from rotcal.report.certificate import write_certificate
 
-        # calibration_output wrote and validated calibration.json in this same
+        # calibration_output wrote and validated this document in this same
         # publish, and the tables are those just written: neither is read back
-        return write_certificate(out, config.report.figures, written=True, published=published)
+        return write_certificate(out, config.report.figures, calibration=calibration, published=published)
 
     return View("certificate", draw)
 
