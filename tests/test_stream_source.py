@@ -28,7 +28,7 @@ from rotcal.ingest.spill import Spill
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
 from rotcal.simulate.streamed import write_streamed
-from rotcal.timebase import repair_timebase, stream_grid
+from rotcal.timebase import repair_timebase, stream_grid, stream_ranks
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
@@ -40,11 +40,11 @@ def small_batches(monkeypatch, request):
     """Batches of a few chunks and stamps read back 1000 at a time, so that
     a capture is many batches and its time base many blocks; the time
     base's medians narrowed by histograms over passes (as for captures
-    past ``stream_grid.HELD``), or picked among the values held."""
+    past ``stream_ranks.HELD``), or picked among the values held."""
     monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 100_000)
     monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
     if request.param == "histograms":
-        monkeypatch.setattr(stream_grid, "HELD", 1000)
+        monkeypatch.setattr(stream_ranks, "HELD", 1000)
 
 
 NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
@@ -115,6 +115,50 @@ def test_captures_with_time_base_defects(tmp_path, small_batches, defects):
     spec = SPEC.with_timebase(defects)
     directory = write_dataset(simulate(spec, 3), spec, tmp_path / "defects", "mcap-cdr", "dut")
     assert_streams_alike(directory, 777, bounded="drift" not in defects, grid_streamed="jitter_s=0.002" in defects)
+
+
+def _stamps(seed: int, n: int, jitter_ns: float = 0.0, drift_ppm: float = 0.0, drop: float = 0.0, pauses: int = 0,
+            slip: bool = False) -> np.ndarray:
+    """A logger's stamps at 1 kHz (epoch nanoseconds): white jitter, a clock
+    running ``drift_ppm`` fast, lost samples, and pauses of 50 to 500 slots
+    after which the grid's phase holds or (``slip``) moves by a fraction of a slot."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(n, dtype=float)
+    for a in np.sort(rng.choice(np.arange(1, n), pauses, replace=False)):
+        k[a:] += rng.integers(50, 500) + (rng.uniform(0.2, 0.8) if slip else 0.0)
+    t = np.rint(k * 1e6 * (1 + drift_ppm * 1e-6) + rng.normal(0.0, jitter_ns, n)).astype(np.int64)
+    return 1_700_000_000_000_000_000 + t[rng.random(n) >= drop]  # whole ns past the epoch (a float's step: 256 ns)
+
+
+@pytest.mark.parametrize("block", [777, 1 << 16])
+@pytest.mark.parametrize("held", [True, False])
+@pytest.mark.parametrize("defects", [
+    {},  # the slots counted from the intervals are the fitted grid's at once
+    {"jitter_ns": 2e4},
+    {"drift_ppm": 300, "drop": 0.02, "pauses": 5},  # runs joined at each lost sample; three re-slotting passes
+    {"pauses": 20, "slip": True, "drop": 0.01, "jitter_ns": 1e4},  # runs joined, then the fixed point
+    {"pauses": 20, "drop": 0.05, "jitter_ns": 5e4},
+])
+def test_the_time_base_from_blocks_is_the_in_memory_one(monkeypatch, block, held, defects):
+    """``stream_grid`` against ``check_capture`` on the same stamps: the
+    same findings (values to rounding), missing slots, gaps and pauses,
+    whatever the blocks cut (many runs a block, or one)."""
+    if not held:
+        monkeypatch.setattr(stream_ranks, "HELD", 1000)
+    t = _stamps(1, 200_000, **defects)
+    streamed = stream_grid.stream_grid(lambda: (t[a : a + block].copy() for a in range(0, t.size, block)), t.size, "c")
+    memory = check_capture(t, [np.zeros(t.size)] * 3, "c")
+    assert streamed is not None and memory.gaps is not None and streamed.gaps is not None
+    truth = 1e-3 * (1 + defects.get("drift_ppm", 0) * 1e-6)
+    # the simulated clock, within the noise and the float's step at the epoch (256 ns) over the span
+    assert abs(streamed.interval_s / truth - 1) < 4 * streamed.findings[0].std_uncertainty / truth + 256 / (t[-1] - t[0])
+    for a, b in zip(streamed.findings, memory.findings, strict=True):
+        assert (a.check, a.detected, a.action) == (b.check, b.detected, b.action)
+        assert np.isclose(a.value, b.value, rtol=1e-9, atol=1e-12), (a, b)
+    g, h = streamed.gaps, memory.gaps
+    assert (g.missing, g.slots, g.phase_pauses) == (h.missing, h.slots, h.phase_pauses)
+    np.testing.assert_array_equal(g.length, h.length)
+    np.testing.assert_allclose(g.middle_ns, h.middle_ns, rtol=0, atol=1.0)
 
 
 @pytest.mark.parametrize("room", [True, False])
@@ -196,7 +240,7 @@ from pathlib import Path
 from rotcal.ingest import load_dataset, mcap_fast, stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
-from rotcal.timebase import repair_timebase, stream_grid
+from rotcal.timebase import repair_timebase, stream_ranks
 
 def status(key):
     return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])
@@ -209,7 +253,7 @@ if sys.argv[2] == "memory":
     n = repair_timebase(ds.samples, ds.name).samples.height
 else:
     # small batches and blocks: the part of the memory that does not grow with the capture
-    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_grid.GATHER = 1 << 20, 1 << 14, 1 << 15
+    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_ranks.GATHER = 1 << 20, 1 << 14, 1 << 15
     capture = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
     n = sum(block.height for block in capture.blocks())
 print(n, status("VmHWM") - base)
