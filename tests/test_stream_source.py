@@ -203,23 +203,27 @@ def test_a_spill_gives_back_what_was_written():
     spill.close()
 
 
-def test_frames_are_kept_by_the_first_whole_pass_and_read_back():
+AXES3 = pl.Enum(["x", "y", "z"])
+FRAMES = [pl.DataFrame({"t_ns": [1, 2, 3], "axis": pl.Series(["x", None, "z"], dtype=AXES3), "rate_hz": [0.5, -1.0, 2.0]}),
+          pl.DataFrame({"t_ns": [4], "axis": pl.Series(["y"], dtype=AXES3), "rate_hz": [np.nan]}),
+          pl.DataFrame(schema={"t_ns": pl.Int64(), "axis": AXES3, "rate_hz": pl.Float64()})]
+
+
+@pytest.mark.parametrize("keeps", [True, False])
+def test_labels_are_kept_by_the_first_whole_pass_and_read_back(keeps):
     """``spill.replayed``: a pass left off keeps nothing, the first whole
-    pass keeps the frames (Enum nulls and all), the later passes give them
-    back without reading again; a null number is not kept: read again."""
-    axes = pl.Enum(["x", "y", "z"])
-    columns = {"t_ns": pl.Int64(), "axis": axes, "rate_hz": pl.Float64()}
-    good = [pl.DataFrame({"t_ns": [1, 2, 3], "axis": pl.Series(["x", None, "z"], dtype=axes), "rate_hz": [0.5, -1.0, 2.0]}),
-            pl.DataFrame({"t_ns": [4], "axis": pl.Series(["y"], dtype=axes), "rate_hz": [np.nan]}),
-            pl.DataFrame(schema=columns)]
-    for frames, keeps in ((good, True), (good[:1] + [good[1].with_columns(rate_hz=None)], False)):
-        reads, kept = [], []
-        passes = replayed(lambda: reads.append(1) or iter(frames), columns, 4, lambda: kept.append(1))
-        next(passes())  # a pass left off
-        for _ in range(3):
-            for ours, theirs in zip(passes(), frames, strict=True):
-                assert_frame_equal(ours, theirs)
-        assert (len(reads), len(kept)) == ((2, 1) if keeps else (4, 0))
+    pass keeps the labels (Enum nulls and all), the later passes give them
+    back beside the other columns without reading again; a null number is
+    not kept: read again."""
+    frames = FRAMES if keeps else [FRAMES[0], FRAMES[1].with_columns(rate_hz=None)]
+    reads, kept = [], []
+    passes = replayed(lambda: reads.append(1) or iter(frames), {"axis": AXES3, "rate_hz": pl.Float64()}, 4,
+                      lambda: (f.select("t_ns") for f in frames), lambda: kept.append(1))
+    next(passes())  # a pass left off
+    for _ in range(3):
+        for ours, theirs in zip(passes(), frames, strict=True):
+            assert_frame_equal(ours, theirs)
+    assert (len(reads), len(kept)) == ((2, 1) if keeps else (4, 0))
 
 
 def _refusal(read) -> str:

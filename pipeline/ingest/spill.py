@@ -11,10 +11,10 @@ a piece at a time: the memory a pass needs stays bounded by the piece, not
 by the capture (the files are read into fresh arrays, never mapped: mapped
 pages would count as the process's resident memory).
 
-The first pass over a capture's sample blocks keeps them too, as the
-later stages read them (``FrameSpill``: labelled, time base repaired, 49
-bytes a sample), so that the later passes read them back instead of
-labelling and checking them again.
+The first pass over a capture's sample blocks keeps their labels too, as
+the table's messages give them (``FrameSpill``: 17 bytes a sample), so
+that the later passes read them back beside the samples instead of
+mapping the messages onto the stamps and checking the labels again.
 
 Each column is an anonymous temporary file (``tempfile.TemporaryFile``: no
 name on disk, so it is removed however the run ends) in the run's
@@ -119,17 +119,19 @@ class FrameSpill:
 
 
 def replayed(read: Callable[[], Iterator[pl.DataFrame]], columns: dict[str, pl.DataType], rows: int,
-             kept: Callable[[], None] = lambda: None) -> Callable[[], Iterator[pl.DataFrame]]:
-    """``read()``'s frames (of ``columns``, ``rows`` in all), anew for each
-    pass: the first pass that reads them all keeps them where the temporary
-    directory has room (``FrameSpill``), and the later passes read them
-    back instead; ``kept()`` is called once they are kept."""
+             rest: Callable[[], Iterator[pl.DataFrame]], kept: Callable[[], None]) -> Callable[[], Iterator[pl.DataFrame]]:
+    """``read()``'s frames (``rows`` in all), anew for each pass: the first
+    pass that reads them all keeps their ``columns`` where the temporary
+    directory has room (``FrameSpill``), and the later passes give them
+    back beside ``rest()``'s frames (the other columns, in the same heights)
+    instead of reading; ``kept()`` is called once they are kept."""
     held: list[FrameSpill] = []
     row_bytes = sum(1 if isinstance(t, pl.Enum) else 8 for t in columns.values())
 
     def frames() -> Iterator[pl.DataFrame]:
         if held:
-            yield from held[0].frames()
+            for other, mine in zip(rest(), held[0].frames(), strict=True):
+                yield other.hstack(mine.get_columns())
             return
         spill = FrameSpill(columns) if room_for(rows * row_bytes) else None
         try:

@@ -344,18 +344,28 @@ def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: L
         if other is not None:
             other.close()
 
-    def blocks() -> Iterator[pl.DataFrame]:
-        repair = timebase.repairer()
+    def labelled() -> Iterator[pl.DataFrame]:
         samples, tables = _sources(path, found, (imu_key, table_key), (imu, table), limits, workers, block)
         for frame in _raw_blocks(samples, tables, block):
-            yield repair(_canonical(frame, spec, path, source or "file", capture))
+            yield _canonical(frame, spec, path, source or "file", capture)
 
-    def decoded_no_more() -> None:  # the blocks are kept as the later passes read them
-        for spill in (s.spill for s in (imu, table) if s is not None and s.spill is not None):
-            spill.close()
-    frames = replayed(blocks, {c: schema("samples").polars_schema[c] for c in COLUMNS}, timebase.n_kept, decoded_no_more)
+    def unlabelled() -> Iterator[pl.DataFrame]:
+        assert imu.spill is not None
+        for piece in imu.spill.pieces(block):
+            yield pl.DataFrame({"t_ns": piece["t_ns"], "u": piece["x"], "v": piece["y"], "w": piece["z"]})
+
+    def table_no_more() -> None:  # the labels are kept: the table's messages are not read again
+        if table is not None and table.spill is not None:
+            table.spill.close()
+    labels = {c: schema("samples").polars_schema[c] for c in COLUMNS[4:]}
+    read = replayed(labelled, labels, imu.count, unlabelled, table_no_more) if keep else labelled
+
+    def blocks() -> Iterator[pl.DataFrame]:
+        repair = timebase.repairer()
+        for frame in read():
+            yield repair(frame)
     return StreamedCapture(capture, timebase.n_kept, source, meta.angle_source, notes if keep else (*notes, SPILL_NOTE),
-                           timebase, frames if keep else blocks, _files=tuple(s.spill for s in (imu, table) if s is not None))
+                           timebase, blocks, _files=tuple(s.spill for s in (imu, table) if s is not None))
 
 
 def open_stream(path: Path, meta: DatasetMeta, spec: CaptureSpec | None = None, limits: Limits = Limits(),
