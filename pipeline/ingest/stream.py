@@ -19,7 +19,9 @@ over, one past its last sample read ahead), and maps them onto the
 block's stamps with
 ``mcap_table.table_labels``'s rule (labels hold from the last message; angles
 interpolated within a run, extrapolated at the commanded rate past its
-end; docs/inputs.md, "Table channel").
+end; docs/inputs.md, "Table channel"); the first pass of ``blocks()`` to
+go through keeps the labels (``spill.replayed``), and the later ones read
+them back beside the samples.
 
 Whatever the streamed reader does not take (JSON messages, layouts the
 fast path does not decode, samples or table messages out of time order,
