@@ -24,11 +24,11 @@ from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import load_dataset, mcap_fast, mcap_source, stream
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.spill import Spill
+from rotcal.ingest.spill import Spill, replayed
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
 from rotcal.simulate.streamed import write_streamed
-from rotcal.timebase import repair_timebase, stream_grid
+from rotcal.timebase import repair_timebase, stream_grid, stream_ranks
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
@@ -40,11 +40,11 @@ def small_batches(monkeypatch, request):
     """Batches of a few chunks and stamps read back 1000 at a time, so that
     a capture is many batches and its time base many blocks; the time
     base's medians narrowed by histograms over passes (as for captures
-    past ``stream_grid.HELD``), or picked among the values held."""
+    past ``stream_ranks.HELD``), or picked among the values held."""
     monkeypatch.setattr(mcap_fast, "BATCH_BYTES", 100_000)
     monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
     if request.param == "histograms":
-        monkeypatch.setattr(stream_grid, "HELD", 1000)
+        monkeypatch.setattr(stream_ranks, "HELD", 1000)
 
 
 NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
@@ -117,6 +117,50 @@ def test_captures_with_time_base_defects(tmp_path, small_batches, defects):
     assert_streams_alike(directory, 777, bounded="drift" not in defects, grid_streamed="jitter_s=0.002" in defects)
 
 
+def _stamps(seed: int, n: int, jitter_ns: float = 0.0, drift_ppm: float = 0.0, drop: float = 0.0, pauses: int = 0,
+            slip: bool = False) -> np.ndarray:
+    """A logger's stamps at 1 kHz (epoch nanoseconds): white jitter, a clock
+    running ``drift_ppm`` fast, lost samples, and pauses of 50 to 500 slots
+    after which the grid's phase holds or (``slip``) moves by a fraction of a slot."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(n, dtype=float)
+    for a in np.sort(rng.choice(np.arange(1, n), pauses, replace=False)):
+        k[a:] += rng.integers(50, 500) + (rng.uniform(0.2, 0.8) if slip else 0.0)
+    t = np.rint(k * 1e6 * (1 + drift_ppm * 1e-6) + rng.normal(0.0, jitter_ns, n)).astype(np.int64)
+    return 1_700_000_000_000_000_000 + t[rng.random(n) >= drop]  # whole ns past the epoch (a float's step: 256 ns)
+
+
+@pytest.mark.parametrize("block", [777, 1 << 16])
+@pytest.mark.parametrize("held", [True, False])
+@pytest.mark.parametrize("defects", [
+    {},  # the slots counted from the intervals are the fitted grid's at once
+    {"jitter_ns": 2e4},
+    {"drift_ppm": 300, "drop": 0.02, "pauses": 5},  # runs joined at each lost sample; three re-slotting passes
+    {"pauses": 20, "slip": True, "drop": 0.01, "jitter_ns": 1e4},  # runs joined, then the fixed point
+    {"pauses": 20, "drop": 0.05, "jitter_ns": 5e4},
+])
+def test_the_time_base_from_blocks_is_the_in_memory_one(monkeypatch, block, held, defects):
+    """``stream_grid`` against ``check_capture`` on the same stamps: the
+    same findings (values to rounding), missing slots, gaps and pauses,
+    whatever the blocks cut (many runs a block, or one)."""
+    if not held:
+        monkeypatch.setattr(stream_ranks, "HELD", 1000)
+    t = _stamps(1, 200_000, **defects)
+    streamed = stream_grid.stream_grid(lambda: (t[a : a + block].copy() for a in range(0, t.size, block)), t.size, "c")
+    memory = check_capture(t, [np.zeros(t.size)] * 3, "c")
+    assert streamed is not None and memory.gaps is not None and streamed.gaps is not None
+    truth = 1e-3 * (1 + defects.get("drift_ppm", 0) * 1e-6)
+    # the simulated clock, within the noise and the float's step at the epoch (256 ns) over the span
+    assert abs(streamed.interval_s / truth - 1) < 4 * streamed.findings[0].std_uncertainty / truth + 256 / (t[-1] - t[0])
+    for a, b in zip(streamed.findings, memory.findings, strict=True):
+        assert (a.check, a.detected, a.action) == (b.check, b.detected, b.action)
+        assert np.isclose(a.value, b.value, rtol=1e-9, atol=1e-12), (a, b)
+    g, h = streamed.gaps, memory.gaps
+    assert (g.missing, g.slots, g.phase_pauses) == (h.missing, h.slots, h.phase_pauses)
+    np.testing.assert_array_equal(g.length, h.length)
+    np.testing.assert_allclose(g.middle_ns, h.middle_ns, rtol=0, atol=1.0)
+
+
 @pytest.mark.parametrize("room", [True, False])
 def test_the_capture_is_decoded_once(tmp_path, monkeypatch, room):
     """The first pass keeps the decoded samples and table messages on disk:
@@ -159,6 +203,29 @@ def test_a_spill_gives_back_what_was_written():
     spill.close()
 
 
+AXES3 = pl.Enum(["x", "y", "z"])
+FRAMES = [pl.DataFrame({"t_ns": [1, 2, 3], "axis": pl.Series(["x", None, "z"], dtype=AXES3), "rate_hz": [0.5, -1.0, 2.0]}),
+          pl.DataFrame({"t_ns": [4], "axis": pl.Series(["y"], dtype=AXES3), "rate_hz": [np.nan]}),
+          pl.DataFrame(schema={"t_ns": pl.Int64(), "axis": AXES3, "rate_hz": pl.Float64()})]
+
+
+@pytest.mark.parametrize("keeps", [True, False])
+def test_labels_are_kept_by_the_first_whole_pass_and_read_back(keeps):
+    """``spill.replayed``: a pass left off keeps nothing, the first whole
+    pass keeps the labels (Enum nulls and all), the later passes give them
+    back beside the other columns without reading again; a null number is
+    not kept: read again."""
+    frames = FRAMES if keeps else [FRAMES[0], FRAMES[1].with_columns(rate_hz=None)]
+    reads, kept = [], []
+    passes = replayed(lambda: reads.append(1) or iter(frames), {"axis": AXES3, "rate_hz": pl.Float64()}, 4,
+                      lambda: (f.select("t_ns") for f in frames), lambda: kept.append(1))
+    next(passes())  # a pass left off
+    for _ in range(3):
+        for ours, theirs in zip(passes(), frames, strict=True):
+            assert_frame_equal(ours, theirs)
+    assert (len(reads), len(kept)) == ((2, 1) if keeps else (4, 0))
+
+
 def _refusal(read) -> str:
     with pytest.raises(InputError) as error:
         read()
@@ -196,7 +263,7 @@ from pathlib import Path
 from rotcal.ingest import load_dataset, mcap_fast, stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
-from rotcal.timebase import repair_timebase, stream_grid
+from rotcal.timebase import repair_timebase, stream_ranks
 
 def status(key):
     return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])
@@ -209,7 +276,7 @@ if sys.argv[2] == "memory":
     n = repair_timebase(ds.samples, ds.name).samples.height
 else:
     # small batches and blocks: the part of the memory that does not grow with the capture
-    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_grid.GATHER = 1 << 20, 1 << 14, 1 << 15
+    mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_ranks.GATHER = 1 << 20, 1 << 14, 1 << 15
     capture = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
     n = sum(block.height for block in capture.blocks())
 print(n, status("VmHWM") - base)

@@ -19,7 +19,9 @@ over, one past its last sample read ahead), and maps them onto the
 block's stamps with
 ``mcap_table.table_labels``'s rule (labels hold from the last message; angles
 interpolated within a run, extrapolated at the commanded rate past its
-end; docs/inputs.md, "Table channel").
+end; docs/inputs.md, "Table channel"); the first pass of ``blocks()`` to
+go through keeps the labels (``spill.replayed``), and the later ones read
+them back beside the samples.
 
 Whatever the streamed reader does not take (JSON messages, layouts the
 fast path does not decode, samples or table messages out of time order,
@@ -50,8 +52,8 @@ from rotcal.ingest.mcap_source import chosen_topics
 from rotcal.ingest.mcap_table import TableTrack, fast_table_track, table_labels
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
-from rotcal.ingest.spill import Spill, room_for
-from rotcal.tables import conform
+from rotcal.ingest.spill import Spill, replayed, room_for
+from rotcal.tables import conform, schema
 from rotcal.timebase.check import TimebaseConfig, check_capture
 from rotcal.timebase.stream_grid import stream_grid
 from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome
@@ -154,17 +156,17 @@ def _table_batch(seen: _Seen, topic: DecodedTopic, path: Path, keep: bool) -> No
         seen.spill.append({name: getattr(track, name) for name in TABLE_COLUMNS})
 
 
-def _room(path: Path, limits: Limits) -> bool:
+def _room(path: Path, limits: Limits, messages: int | None) -> bool:
     """Whether the temporary directory holds the capture's decoded columns
-    (32 bytes a message of any channel, counted from the message indexes;
-    twice the file's size where they cannot be counted)."""
-    try:
-        with path.open("rb") as fh:
-            counts = mcap_fast._message_counts(fh, McapFile(path, limits))[0]
-        size = 32 * sum(counts.values())
-    except (Unsupported, InputError, OSError):
-        size = 2 * path.stat().st_size
-    return room_for(size)
+    (32 bytes a message of any channel: ``messages``, else counted from the
+    message indexes; twice the file's size where they cannot be counted)."""
+    if messages is None:
+        try:
+            with path.open("rb") as fh:
+                messages = sum(mcap_fast._message_counts(fh, McapFile(path, limits))[0].values())
+        except (Unsupported, InputError, OSError):
+            return room_for(2 * path.stat().st_size)
+    return room_for(32 * messages)
 
 
 def _first_pass(path: Path, meta: DatasetMeta, limits: Limits, workers: int,
@@ -313,8 +315,8 @@ def _in_memory(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: 
 
 
 def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int, capture: str,
-              config: TimebaseConfig, block: int) -> StreamedCapture:
-    keep = _room(path, limits)
+              config: TimebaseConfig, block: int, messages: int | None) -> StreamedCapture:
+    keep = _room(path, limits, messages)
     found, seen = _first_pass(path, meta, limits, workers, keep)
     imu_key, table_key, notes = chosen_topics(found, path, meta)
     # the in-memory reader's checks, in its order (mcap_source._capture)
@@ -344,31 +346,47 @@ def _streamed(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: L
         if other is not None:
             other.close()
 
-    def blocks() -> Iterator[pl.DataFrame]:
-        repair = timebase.repairer()
+    def labelled() -> Iterator[pl.DataFrame]:
         samples, tables = _sources(path, found, (imu_key, table_key), (imu, table), limits, workers, block)
         for frame in _raw_blocks(samples, tables, block):
-            yield repair(_canonical(frame, spec, path, source or "file", capture))
+            yield _canonical(frame, spec, path, source or "file", capture)
+
+    def unlabelled() -> Iterator[pl.DataFrame]:
+        assert imu.spill is not None
+        for piece in imu.spill.pieces(block):
+            yield pl.DataFrame({"t_ns": piece["t_ns"], "u": piece["x"], "v": piece["y"], "w": piece["z"]})
+
+    def table_no_more() -> None:  # the labels are kept: the table's messages are not read again
+        if table is not None and table.spill is not None:
+            table.spill.close()
+    labels = {c: schema("samples").polars_schema[c] for c in COLUMNS[4:]}
+    read = replayed(labelled, labels, imu.count, unlabelled, table_no_more) if keep else labelled
+
+    def blocks() -> Iterator[pl.DataFrame]:
+        repair = timebase.repairer()
+        for frame in read():
+            yield repair(frame)
     return StreamedCapture(capture, timebase.n_kept, source, meta.angle_source, notes if keep else (*notes, SPILL_NOTE),
                            timebase, blocks, _files=tuple(s.spill for s in (imu, table) if s is not None))
 
 
 def open_stream(path: Path, meta: DatasetMeta, spec: CaptureSpec | None = None, limits: Limits = Limits(),
                 workers: int = 0, block_samples: int = BLOCK_SAMPLES, capture: str | None = None,
-                config: TimebaseConfig = TimebaseConfig()) -> StreamedCapture:
+                config: TimebaseConfig = TimebaseConfig(), messages: int | None = None) -> StreamedCapture:
     """One capture file of a dataset (``meta`` its ``dataset.toml``, ``spec``
     its ``[[capture]]`` entry), read block by block: its time base checked
     and its samples yielded by ``blocks()`` in blocks of ``block_samples``
     rows (fewer where the time base drops some, and the last), on
     ``parallel.cores(workers)`` cores. ``capture`` is its name in the
     dataset (``load_dataset``: the path relative to the dataset's root;
-    default the file's name). Bad input raises the ``InputError`` the
-    in-memory reader raises."""
+    default the file's name); ``messages``, the file's messages of every
+    channel where the caller has counted them. Bad input raises the
+    ``InputError`` the in-memory reader raises."""
     path = Path(path)
     capture = capture or path.name
     if path.suffix.lower() == ".mcap":
         try:
-            return _streamed(path, meta, spec, limits, workers, capture, config, block_samples)
+            return _streamed(path, meta, spec, limits, workers, capture, config, block_samples, messages)
         except (_InMemory, NotSorted):
             pass  # read below, outside the handler
     return _in_memory(path, meta, spec, limits, workers, capture, config, block_samples)

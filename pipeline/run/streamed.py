@@ -61,11 +61,12 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
     files = capture_files(path, meta)
-    if len(files) != 1 or files[0][0].suffix.lower() != ".mcap" or _messages(files[0][0], config) <= config.run.stream_above_samples:
+    counts = _messages(files[0][0], config) if len(files) == 1 and files[0][0].suffix.lower() == ".mcap" else []
+    if max(counts, default=0) <= config.run.stream_above_samples:
         return whole()
     file, spec = files[0]
     capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture)
+    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
         read = whole()
         return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
@@ -81,15 +82,15 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
                            in_memory=whole)
 
 
-def _messages(file: Path, config: RunConfig) -> int:
-    """The most messages of any channel of an MCAP file (its samples, for
-    a capture whose table channel is slower), from its message indexes; 0
-    where it has none the fast reader can count (it is then read whole)."""
+def _messages(file: Path, config: RunConfig) -> list[int]:
+    """The messages of each channel of an MCAP file, from its message
+    indexes (the most: its samples, for a capture whose table channel is
+    slower); none where it has none the fast reader can count (it is then read whole)."""
     try:
         with file.open("rb") as fh:
-            return max(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values(), default=0)
+            return list(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values())
     except (Unsupported, InputError, OSError):
-        return 0
+        return []
 
 
 def why_not(ds: StreamedDataset, config: RunConfig, streamed: StreamedSegments | None = None) -> str | None:

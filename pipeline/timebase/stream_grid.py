@@ -2,18 +2,18 @@
 with no sample-length array (issue 16, item 1).
 
 The grid ``t_k = a_run + T k`` (``timebase.grid``) is fitted as in memory,
-from sums that are additive over blocks: every slot ``k`` and logging run
-is a function of the stamp and of a few numbers per run, recomputed in
-each pass (``_Slots``): at first from the running count of intervals
-(rounded to the first period), then re-read from the fitted lines. The
-per-run sums are accumulated in the in-memory order (``np.add.at`` over
-the blocks in turn is ``np.bincount``'s loop), so the means are the
-in-memory means bit for bit; the cross products come in another order
-(to rounding). The medians (first period, the robust jitter) are exact:
-a histogram of the values narrows each rank to one bin, whose values are
-then gathered (``_ranked``), each step one pass over the stamps; up to
-``HELD`` values (a memory bound, not the capture's), all are gathered and
-partitioned in one pass.
+``grid.grid_slots``'s iterations stopped at the same fixed point, from sums
+that are additive over blocks. Every slot ``k`` and logging run is a
+function of the stamp's sample number and of a few numbers per run
+(``_Slots``): within a run of one-slot intervals the running count of
+slots is the sample number plus the slots skipped before the run, so only
+the runs' first sample numbers are kept; later the slots are re-read from
+the fitted lines. The sums come in another order than in memory (per block,
+then across blocks), so the fit equals the in-memory one to rounding. The
+medians (first period, the robust jitter) are exact: up to ``HELD`` values
+(a memory bound, not the capture's) they are held and ``np.median`` taken
+as in memory; past that a histogram of the values narrows each rank to one
+bin, whose values are then gathered (``_ranked``), each step one pass.
 
 Captures with repeated stamps (duplicates, collisions to place) or whose
 slots would need a sort are left to the in-memory check (``None``).
@@ -21,199 +21,98 @@ slots would need a sort are left to the in-memory check (``None``).
 
 from __future__ import annotations
 
-import os
-import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from rotcal.timebase.check import Gaps, GridStats, TimebaseConfig, grid_findings
-from rotcal.timebase.grid import grid_residuals, intervals
+from rotcal.timebase.grid import intervals
+from rotcal.timebase.stream_ranks import HELD, Collected, median
 from rotcal.timebase.streamed import Repairer, Stamps, StreamedTimebase, replaced
 
-GATHER = 1 << 18  # values gathered and sorted to pick a rank
-HELD = 1 << 24  # values up to which ranks are picked among all of them held at once (8 bytes each, 128 MB at most)
-BINS = 1 << 12  # bins of a histogram narrowing a rank
-SPILL_BLOCK = 1 << 18  # values read back from a temporary file at a time
+Runs = np.ndarray | int  # each sample's run, or the one run of a whole block
 
 
 class _NotStreamed(Exception):
     """The capture needs the in-memory check."""
 
 
-def _ranked(values: Callable[[], Iterator[np.ndarray]], n: int, ranks: list[int]) -> list[float]:
-    """The values of ``ranks`` (0-based, in ascending order of value) among
-    the ``n`` values ``values()`` yields, exactly, a few passes each.
-
-    Each rank's candidates lie in a range of values [lo, hi) (hi included
-    while it is the maximum), with ``below`` values under it; a histogram
-    of the range finds the bin holding the rank, until the range holds few
-    enough values to sort or a single value. Up to ``HELD`` values, the
-    ranks are picked among them all, in one pass and a partition (the
-    memory stays bounded by ``HELD``, the time is a tenth)."""
-    if n <= HELD:
-        held, filled = np.empty(n), 0
-        for x in values():
-            held[filled : filled + x.size] = x
-            filled += x.size
-        held.partition(ranks)
-        return [float(held[r]) for r in ranks]
-    low, high = np.inf, -np.inf
-    for x in values():
-        if x.size:
-            low, high = min(low, float(x.min())), max(high, float(x.max()))
-    state: list[list] = [[low, high, True, 0] for _ in ranks]  # lo, hi, hi included, values below lo
-    found: dict[int, float] = {}
-    while len(found) < len(ranks):
-        open_ranks = [i for i in range(len(ranks)) if i not in found]
-        for i in open_ranks:
-            if state[i][0] == state[i][1]:
-                found[i] = state[i][0]
-        open_ranks = [i for i in open_ranks if i not in found]
-        if not open_ranks:
-            break
-        edges = {i: np.linspace(state[i][0], state[i][1], BINS + 1) for i in open_ranks}
-        counts = {i: np.zeros(BINS, np.int64) for i in open_ranks}
-        lows = {i: np.full(BINS, np.inf) for i in open_ranks}
-        highs = {i: np.full(BINS, -np.inf) for i in open_ranks}
-        for x in values():
-            for i in open_ranks:
-                lo, hi, closed, _ = state[i]
-                mine = x[(x >= lo) & ((x <= hi) if closed else (x < hi))]
-                where = _bin(mine, edges[i])
-                counts[i] += np.bincount(where, minlength=BINS)
-                np.minimum.at(lows[i], where, mine)
-                np.maximum.at(highs[i], where, mine)
-        gather = []
-        for i in open_ranks:
-            cumulative = np.cumsum(counts[i])
-            b = int(np.searchsorted(cumulative, ranks[i] - state[i][3], "right"))
-            state[i][3] += int(cumulative[b] - counts[i][b])
-            # the bin's own values span [low, high]: a bin of one value ends the search
-            state[i][:3] = [float(lows[i][b]), float(highs[i][b]), True]
-            if counts[i][b] <= GATHER and lows[i][b] < highs[i][b]:
-                gather.append(i)
-        if gather:
-            picked: dict[int, list[np.ndarray]] = {i: [] for i in gather}
-            for x in values():
-                for i in gather:
-                    lo, hi, closed, _ = state[i]
-                    picked[i].append(x[(x >= lo) & ((x <= hi) if closed else (x < hi))])
-            for i in gather:
-                found[i] = float(np.sort(np.concatenate(picked[i]))[ranks[i] - state[i][3]])
-    return [found[i] for i in range(len(ranks))]
-
-
-def _bin(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Each value's bin among ``edges`` (``edges[b] <= x < edges[b + 1]``, the
-    last bin closed), as ``np.searchsorted(edges, x, "right") - 1``: a guess
-    from the spacing, corrected by a bin where rounding misplaced it."""
-    last = edges.size - 2
-    width = (edges[-1] - edges[0]) / (last + 1)
-    b = np.zeros(x.size, np.int64) if width <= 0 else np.clip(((x - edges[0]) / width).astype(np.int64), 0, last)
-    b -= (x < edges[b]) & (b > 0)
-    b += (x >= edges[np.minimum(b + 1, last + 1)]) & (b < last)
-    return b
-
-
-def _median(values: Callable[[], Iterator[np.ndarray]], n: int) -> float:
-    """``np.median`` of the values, exactly (the mean of the two middle ones for an even count)."""
-    middle = _ranked(values, n, [(n - 1) // 2, n // 2] if n % 2 == 0 else [n // 2])
-    return float(np.mean(middle))
-
-
-def _robust_sd(values: Callable[[], Iterator[np.ndarray]], n: int) -> float:
-    """``grid._robust_sd``: 1.4826 times the median absolute deviation."""
-    if not n:
-        return 0.0
-    centre = _median(values, n)
-    return float(1.4826 * _median(lambda: (np.abs(x - centre) for x in values()), n))
-
-
 @dataclass(eq=False)
 class _Slots:
-    """Every stamp's slot ``k`` and logging run, as functions of the stamp:
-    ``k = base + shift[run0]`` and ``run = rmap[run0]``, where ``run0``
-    counts the intervals of two slots or more so far, and ``base`` is the
-    running count of slots (``grid`` None) or the slot on a fitted line
-    (``grid``: offsets by run, period, each run0's run)."""
+    """Every stamp's slot ``k`` and logging run, as functions of its sample
+    number ``i`` and stamp ``s``: ``run0`` counts the intervals of two slots
+    or more before it (``starts``: each run0's first sample number), the
+    run is ``rmap[run0]`` and ``k = base + shift[run0]``, where ``base`` is
+    the running count of slots, ``i + extra[run0]`` (``grid`` None: every
+    interval within a run0 is one slot), or the slot on a fitted line,
+    ``rint((s - offset[gmap[run0]]) / period)`` (``grid``: offsets by run,
+    period, each run0's run)."""
 
-    first_period: float
+    starts: np.ndarray
+    extra: np.ndarray
     rmap: np.ndarray
     shift: np.ndarray
     grid: tuple[np.ndarray, float, np.ndarray] | None = None
     counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
-    def walker(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """A function of the blocks of stamps in turn: each block's slots and runs."""
-        carry: list = [None, 0, 0.0]  # the last stamp, its run0 and its running count of slots
+    @property
+    def n_runs(self) -> int:
+        return int(self.rmap[-1]) + 1
 
-        def walk(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            last, run0_last, k0_last = carry
-            steps = np.empty(s.size)  # the intervals from the stamp before, in slots
-            steps[0] = 0.0 if last is None else float(s[0]) - float(last)
-            np.subtract(s[1:], s[:-1], out=steps[1:], dtype=np.float64)
-            steps /= self.first_period
-            np.rint(steps, out=steps)
-            np.maximum(steps, 1.0, out=steps)  # as grid_slots: any advance is at least one slot
-            if last is None:
-                steps[0] = 0.0
-            jumps = steps >= 2
-            # a block within one run (most): its run's numbers taken once, not looked up a sample at a time
-            run0: np.ndarray | int = run0_last + np.cumsum(jumps) if jumps.any() else run0_last
-            if self.grid is None:
-                base = k0_last + np.cumsum(steps)  # whole numbers: exact in any order
-                k0_last = float(base[-1])
-            else:
-                offset, period, gmap = self.grid
-                base = np.rint((s - offset[gmap[run0]]) / period)
-                k0_last += float(steps.sum())
-            carry[:] = [s[-1], int(run0 if isinstance(run0, int) else run0[-1]), k0_last]
-            run = self.rmap[run0]
-            return base + self.shift[run0], run if isinstance(run0, np.ndarray) else np.full(s.size, run)
-        return walk
+    def at(self, s: np.ndarray, first: int) -> tuple[np.ndarray, Runs]:
+        """The slots and runs of the stamps ``s``, sample numbers ``first`` on
+        (the run an int where they lie in one: most blocks)."""
+        m = s.size
+        lo, hi = np.searchsorted(self.starts, [first, first + m - 1], "right") - 1
+        run0: np.ndarray | int = int(lo)
+        if hi > lo:
+            cuts = np.r_[0, self.starts[lo + 1 : hi + 1] - first, m]
+            run0 = np.repeat(np.arange(lo, hi + 1), np.diff(cuts))
+        if self.grid is None:  # whole numbers: exact in any order
+            k = np.arange(first, first + m, dtype=np.float64)
+            k += self.extra[run0] + self.shift[run0]
+        else:
+            offset, period, gmap = self.grid
+            k = s - offset[gmap[run0]]
+            k /= period
+            np.rint(k, out=k)
+            k += self.shift[run0]
+        run = self.rmap[run0]
+        return k, (int(run) if isinstance(run0, int) else run)
 
 
-def _walked(stamps: Stamps, slots: _Slots) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+def _by_run(total: np.ndarray, run: Runs, values: np.ndarray) -> None:
+    """``total[run] += values`` one value after the other, as ``np.bincount``
+    adds them in memory (a cumulative sum where the block is one run)."""
+    if isinstance(run, int):
+        total[run] = np.cumsum(_led(total[run], values))[-1]
+    else:
+        np.add.at(total, run, values)
+
+
+def _within(run: Runs) -> np.ndarray | slice:
+    """Which successive pairs lie within one run (a slice: all of them)."""
+    return slice(None) if isinstance(run, int) else run[1:] == run[:-1]
+
+
+def _walked(stamps: Stamps, slots: _Slots) -> Iterator[tuple[np.ndarray, np.ndarray, Runs, int]]:
     """Blocks of (stamps, slots, runs), each led by the previous block's last
     sample (pairs across a boundary), and how many lead (0 or 1)."""
-    walk = slots.walker()
-    previous = None
+    first, previous = 0, None
     for s in stamps():
-        k, run = walk(s)
-        if previous is None:
-            yield s, k, run, 0
-        else:
-            yield _led(previous[0], s), _led(previous[1], k), _led(previous[2], run), 1
-        previous = (s[-1], k[-1], run[-1])
+        led = s if previous is None else _led(previous, s)
+        lead = led.size - s.size
+        k, run = slots.at(led, first - lead)
+        yield led, k, run, lead
+        first, previous = first + s.size, s[-1]
 
 
 def _led(first: np.generic, rest: np.ndarray) -> np.ndarray:
-    """``np.r_[first, rest]`` without its parsing of the arguments (thousands of blocks)."""
+    """``np.r_[first, rest]`` without its parsing of the arguments."""
     out = np.empty(rest.size + 1, rest.dtype)
     out[0], out[1:] = first, rest
     return out
-
-
-def _fit(stamps: Stamps, slots: _Slots, n_runs: int) -> tuple[float, np.ndarray]:
-    """``grid._grid_fit``: least squares ``s = a_run + T k``; the samples per run kept in ``slots.counts``."""
-    count, k_sum, s_sum = np.zeros(n_runs, np.int64), np.zeros(n_runs), np.zeros(n_runs)
-    for s, k, run, lead in _walked(stamps, slots):
-        np.add.at(count, run[lead:], 1)
-        np.add.at(k_sum, run[lead:], k[lead:])
-        np.add.at(s_sum, run[lead:], s[lead:].astype(np.float64))
-    k_mean, s_mean = k_sum / count, s_sum / count
-    den = num = 0.0
-    for s, k, run, lead in _walked(stamps, slots):
-        dk = k[lead:] - k_mean[run[lead:]]
-        den += _dot(dk, dk)
-        num += _dot(dk, s[lead:] - s_mean[run[lead:]])
-    if den <= 0:
-        raise _NotStreamed("no run spans two slots")
-    slots.counts = count
-    period = num / den
-    return period, s_mean - period * k_mean
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -221,48 +120,57 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def _white_jitter(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray) -> float:
-    """``grid.white_jitter``: the robust sd of successive residual differences
-    within runs, over sqrt(2). The differences are computed once, kept in a
-    temporary file (8 bytes each) for the passes of the medians."""
-    with tempfile.TemporaryFile() as spill:
-        n = 0
-        for s, k, run, _ in _walked(stamps, slots):
-            step = np.diff(grid_residuals(s, k, run, period, offset))[run[1:] == run[:-1]]
-            spill.write(step.tobytes())
-            n += step.size
-        spill.flush()
-
-        def steps() -> Iterator[np.ndarray]:
-            for a in range(0, n, SPILL_BLOCK):
-                yield np.frombuffer(os.pread(spill.fileno(), 8 * min(SPILL_BLOCK, n - a), 8 * a), np.float64)
-        return _robust_sd(steps, n) / np.sqrt(2.0)
-
-
-def _grid_slots(stamps: Stamps, n: int) -> tuple[_Slots, float, np.ndarray]:
-    """``grid.grid_slots`` (three re-slotting iterations) from passes over the stamps."""
+def _first_slots(stamps: Stamps, n: int) -> _Slots:
+    """``grid.grid_slots``'s first slots: the intervals' median is the first
+    period; the intervals of two of its slots or more start a run."""
     def d() -> Iterator[np.ndarray]:
         previous = None
         for s in stamps():
-            yield intervals(s if previous is None else np.r_[previous, s])
+            yield intervals(s if previous is None else _led(previous, s))
             previous = s[-1]
-    first_period = _median(d, n - 1)
-    n_runs0 = 1 + sum(int(np.count_nonzero(np.maximum(np.rint(x / first_period), 1.0) >= 2)) for x in d())
-    slots = _Slots(first_period, np.arange(n_runs0), np.zeros(n_runs0))
-    for _ in range(3):
-        period, offset = _fit(stamps, slots, int(slots.rmap[-1]) + 1)
-        jitter = _white_jitter(stamps, slots, period, offset)
-        u_offset = np.maximum(jitter, 1.0) / np.sqrt(np.maximum(slots.counts.astype(np.float64), 1.0))
-        slip = (offset[1:] - offset[:-1]) / period
-        whole = np.rint(slip)
-        tolerance = np.minimum(4 * np.hypot(u_offset[1:], u_offset[:-1]) + 1e-4 * period, period / 2)
-        hold = np.abs(slip - whole) * period < tolerance
-        slots.shift = np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][slots.rmap]
-        slots.rmap = np.r_[0, np.cumsum(~hold)][slots.rmap]
-        period, offset = _fit(stamps, slots, int(slots.rmap[-1]) + 1)
-        slots.grid, slots.shift = (offset, period, slots.rmap.copy()), np.zeros(n_runs0)
-    period, offset = _fit(stamps, slots, int(slots.rmap[-1]) + 1)
-    return slots, period, offset
+    if n - 1 <= HELD:
+        held = Collected(n - 1)
+        for x in d():
+            held.add(x)
+        first_period = held.median()
+    else:
+        first_period = median(d, n - 1)
+    starts, extra, i = [np.zeros(1, np.int64)], [np.zeros(1)], 0
+    for x in d():
+        steps = np.rint(x / first_period)
+        jump = np.flatnonzero(steps >= 2)
+        starts.append(i + jump + 1)
+        extra.append(steps[jump] - 1)
+        i += x.size
+    runs0 = np.concatenate(starts)
+    return _Slots(runs0, np.cumsum(np.concatenate(extra)), np.arange(runs0.size), np.zeros(runs0.size))
+
+
+def _fit(stamps: Stamps, slots: _Slots) -> tuple[float, np.ndarray]:
+    """``grid._grid_fit``: least squares ``s = a_run + T k``; the samples per run kept in ``slots.counts``."""
+    n_runs = slots.n_runs
+    count, k_sum, s_sum = np.zeros(n_runs, np.int64), np.zeros(n_runs), np.zeros(n_runs)
+    for s, k, run, lead in _walked(stamps, slots):
+        own = run if isinstance(run, int) else run[lead:]
+        if isinstance(own, int):  # whole numbers: exact in any order
+            count[own] += s.size - lead
+            k_sum[own] += k[lead:].sum()
+        else:
+            count += np.bincount(own, minlength=n_runs)
+            k_sum += np.bincount(own, k[lead:], n_runs)
+        _by_run(s_sum, own, s[lead:].astype(np.float64))
+    k_mean, s_mean = k_sum / count, s_sum / count
+    den = num = 0.0
+    for s, k, run, lead in _walked(stamps, slots):
+        own = run if isinstance(run, int) else run[lead:]
+        dk = k[lead:] - k_mean[own]
+        den += _dot(dk, dk)
+        num += _dot(dk, s[lead:] - s_mean[own])
+    if den <= 0:
+        raise _NotStreamed("no run spans two slots")
+    slots.counts = count
+    period = num / den
+    return period, s_mean - period * k_mean
 
 
 @dataclass
@@ -278,38 +186,88 @@ class _Sums:
     pairs: int = 0
     x: float = 0.0
     y: float = 0.0
+    disordered: bool = False  # slots two samples share, or slots or runs going back
     centred: np.ndarray = field(default_factory=lambda: np.zeros(5))  # (r - mean)^2, (k - mean)^2, xx, yy, xy
 
-
-def _statistics(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray) -> _Sums:
-    """Two passes: the residuals' spread, largest, sum of squares, the
-    slots' scatter and the lag-1 sums within runs (``grid.lag1_within``);
-    slots two samples share, or slots going back within a run, raise ``_NotStreamed``."""
-    sums = _Sums()
-    for s, k, run, lead in _walked(stamps, slots):
-        r = grid_residuals(s, k, run, period, offset)
-        within = run[1:] == run[:-1]
-        slot = k.astype(np.int64)
-        if np.any(within & (slot[1:] <= slot[:-1])) or np.any(run[1:] < run[:-1]):
-            raise _NotStreamed("samples sharing a slot, or slots out of order")
+    def add(self, r: np.ndarray, k: np.ndarray, run: Runs, lead: int) -> None:
+        """A block's residuals, slots and runs (``lead`` samples of the block before)."""
+        within = _within(run)
+        if not isinstance(run, int):
+            self.disordered |= bool(np.any(run[1:] < run[:-1]))
+        self.disordered |= bool(np.any(k[1:][within] <= k[:-1][within]))
         own = r[lead:]
-        sums.n += own.size
-        sums.r += float(own.sum())
-        sums.rr += _dot(own, own)
-        sums.k += float(k[lead:].sum())
-        sums.high, sums.low = max(sums.high, float(own.max())), min(sums.low, float(own.min()))
-        sums.pairs += int(np.count_nonzero(within))
-        sums.x += float(r[:-1][within].sum())
-        sums.y += float(r[1:][within].sum())
+        self.n += own.size
+        self.r += float(own.sum())
+        self.rr += _dot(own, own)
+        self.k += float(k[lead:].sum())
+        self.high, self.low = max(self.high, float(own.max())), min(self.low, float(own.min()))
+        x, y = r[:-1][within], r[1:][within]
+        self.pairs += x.size
+        self.x += float(x.sum())
+        self.y += float(y.sum())
+
+
+def _residuals(s: np.ndarray, k: np.ndarray, run: Runs, period: float, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``grid.grid_residuals`` and ``s - a_run`` (the stamps from their run's line, whose slots re-read them)."""
+    u = s - offset[run]
+    return u - period * k, u
+
+
+def _residual_pass(stamps: Stamps, slots: _Slots, n: int, period: float, offset: np.ndarray) -> tuple[float, bool, _Sums]:
+    """One pass at the fitted grid: ``grid.white_jitter`` (the robust sd of
+    successive residual differences within runs, over sqrt(2)); whether
+    re-reading the slots from the lines leaves every one as it is
+    (``grid_slots``'s fixed point); and the residuals' sums."""
+    steps, steady, sums = Collected(n - 1), True, _Sums()
+    try:
+        for s, k, run, lead in _walked(stamps, slots):
+            r, u = _residuals(s, k, run, period, offset)
+            if steady:
+                u /= period
+                steady = np.array_equal(np.rint(u, out=u), k)
+            steps.add(np.diff(r)[_within(run)])
+            sums.add(r, k, run, lead)
+        return steps.robust_sd() / np.sqrt(2.0), steady, sums
+    finally:
+        steps.close()
+
+
+def _grid_slots(stamps: Stamps, n: int) -> tuple[_Slots, float, np.ndarray, float, _Sums]:
+    """``grid.grid_slots`` from passes over the stamps, to its fixed point
+    (at most three re-slotting iterations), with the jitter and residual
+    sums ``check_capture`` takes at the final grid."""
+    slots = _first_slots(stamps, n)
+    period, offset = _fit(stamps, slots)
+    for _ in range(3):
+        jitter, steady, sums = _residual_pass(stamps, slots, n, period, offset)
+        u_offset = np.maximum(jitter, 1.0) / np.sqrt(np.maximum(slots.counts.astype(np.float64), 1.0))
+        slip = (offset[1:] - offset[:-1]) / period
+        whole = np.rint(slip)
+        tolerance = np.minimum(4 * np.hypot(u_offset[1:], u_offset[:-1]) + 1e-4 * period, period / 2)
+        hold = np.abs(slip - whole) * period < tolerance
+        if not hold.any() and steady:
+            return slots, period, offset, jitter, sums  # a further pass would repeat this one exactly
+        if hold.any():  # the runs whose line continues the one before's are joined
+            slots.shift = np.r_[0.0, np.cumsum(np.where(hold, whole, 0.0))][slots.rmap]
+            slots.rmap = np.r_[0, np.cumsum(~hold)][slots.rmap]
+            period, offset = _fit(stamps, slots)
+        slots.grid, slots.shift = (offset, period, slots.rmap.copy()), np.zeros(slots.rmap.size)
+        period, offset = _fit(stamps, slots)
+    jitter, _, sums = _residual_pass(stamps, slots, n, period, offset)
+    return slots, period, offset, jitter, sums
+
+
+def _centred(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray, sums: _Sums) -> None:
+    """The second pass of the statistics: the residuals' and slots' scatter
+    about their means and the lag-1 sums within runs (``grid.lag1_within``)."""
     r_mean, k_mean = sums.r / sums.n, sums.k / sums.n
     x_mean, y_mean = sums.x / max(sums.pairs, 1), sums.y / max(sums.pairs, 1)
     for s, k, run, lead in _walked(stamps, slots):
-        r = grid_residuals(s, k, run, period, offset)
-        within = run[1:] == run[:-1]
+        r, _ = _residuals(s, k, run, period, offset)
+        within = _within(run)
         x, y = r[:-1][within] - x_mean, r[1:][within] - y_mean
         dr, dk = r[lead:] - r_mean, k[lead:] - k_mean
         sums.centred += _dot(dr, dr), _dot(dk, dk), _dot(x, x), _dot(y, y), _dot(x, y)
-    return sums
 
 
 def _lag1(sums: _Sums) -> float:
@@ -327,7 +285,8 @@ def _gaps(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray, regu
     stamps on the grid (``refit``) would go back."""
     missing, lengths, middles, last = 0, [], [], None
     for s, k, run, lead in _walked(stamps, slots):
-        within = run[1:] == run[:-1]
+        within = np.ones(s.size - 1, bool) if isinstance(run, int) else run[1:] == run[:-1]
+        runs = np.full(s.size, run) if isinstance(run, int) else run
         if regular:
             p = k.astype(np.int64)
             step = np.diff(p)
@@ -335,7 +294,7 @@ def _gaps(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray, regu
             missing += int(np.sum(step, where=counted)) - int(counted.sum())
             at_gap = counted & (step > config.gap_min_slots)
             lengths.append(step[at_gap] - 1)
-            middles.append(offset[run[1:][at_gap]] + period * (p[1:][at_gap] + p[:-1][at_gap]) / 2)
+            middles.append(offset[runs[1:][at_gap]] + period * (p[1:][at_gap] + p[:-1][at_gap]) / 2)
         else:
             d = intervals(s)
             holes = np.where(within & (d > 0), np.maximum(np.rint(d / period), 1.0) - 1, 0.0)
@@ -344,17 +303,18 @@ def _gaps(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray, regu
             lengths.append(holes[at_gap])
             middles.append((s[1:][at_gap] + s[:-1][at_gap]) / 2)
         if refit:
-            t = _on_grid(k[lead:], run[lead:], period, offset)
+            t = _on_grid(k[lead:], run if isinstance(run, int) else run[lead:], period, offset)
             if np.any(t[1:] < t[:-1]) or (last is not None and t[0] < last):
                 raise _NotStreamed("stamps on the grid out of order")
             last = t[-1]
     return Gaps(capture, missing, missing + int(slots.counts.sum()), period / 1e9, np.concatenate(middles),
-                np.concatenate(lengths), int(slots.rmap[-1]), config.gap_min_slots)
+                np.concatenate(lengths), slots.n_runs - 1, config.gap_min_slots)
 
 
-def _on_grid(k: np.ndarray, run: np.ndarray, period: float, offset: np.ndarray) -> np.ndarray:
-    grid = offset[run]  # the regular time base, offset[run] + period * slot, as check_capture rounds it
-    grid += period * k
+def _on_grid(k: np.ndarray, run: Runs, period: float, offset: np.ndarray) -> np.ndarray:
+    """The regular time base, ``offset[run] + period * k``, as ``check_capture`` rounds it."""
+    grid = period * k
+    grid += offset[run]
     return np.rint(grid, out=grid).astype(np.int64)
 
 
@@ -366,9 +326,10 @@ def stream_grid(stamps: Stamps, n: int, capture: str, config: TimebaseConfig = T
     if n < 3:
         return None
     try:
-        slots, period, offset = _grid_slots(stamps, n)
-        jitter = _white_jitter(stamps, slots, period, offset)
-        sums = _statistics(stamps, slots, period, offset)
+        slots, period, offset, jitter, sums = _grid_slots(stamps, n)
+        if sums.disordered:
+            raise _NotStreamed("samples sharing a slot, or slots out of order")
+        _centred(stamps, slots, period, offset, sums)
         spread = float(np.sqrt(sums.centred[0] / n))
         u_period = float(np.sqrt(sums.rr / max(n - 2, 1) / sums.centred[1])) / 1e9
         stats = GridStats(n, n, period, u_period, jitter, _lag1(sums), spread, max(sums.high, -sums.low))
@@ -379,11 +340,13 @@ def stream_grid(stamps: Stamps, n: int, capture: str, config: TimebaseConfig = T
     findings, warnings, unrepairable, refit = grid_findings(stats, 0, 0, gaps, capture, config)
 
     def repairer() -> Repairer:
-        walk = slots.walker()
+        first = 0
 
         def repair(block):
+            nonlocal first
             t_ns = block["t_ns"].to_numpy()
-            k, run = walk(t_ns)
+            k, run = slots.at(t_ns, first)
+            first += t_ns.size
             return replaced(block, np.ones(t_ns.size, bool), _on_grid(k, run, period, offset))
         return repair if refit else (lambda block: block)
 
