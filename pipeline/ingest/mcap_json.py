@@ -7,7 +7,9 @@ reads the file with the per-message path, which words the problem.
 
 from __future__ import annotations
 
+import io
 import json
+from typing import IO
 
 import numpy as np
 import polars as pl
@@ -48,7 +50,9 @@ def json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> tuple[by
 
 def _read_json_lines(parts: list[bytes], n: int, types: dict) -> pl.DataFrame:
     try:
-        frame = pl.read_ndjson(parts, schema=types)  # each chunk's lines a source: no joined copy
+        # each chunk's lines a source (a BytesIO shares its bytes): no joined copy
+        sources: list[IO[bytes]] = [io.BytesIO(part) for part in parts]
+        frame = pl.read_ndjson(sources, schema=types)
     except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
         raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
     if frame.height != n:
