@@ -84,15 +84,16 @@ class DecodedTopic:
                 columns[name][start : start + k] = column
         return copy
 
-    def add_json(self, log_ns: np.ndarray, lines: bytes) -> None:
-        """Keep one chunk's JSON messages (one a line), parsed together at ``finish``."""
+    def add_json(self, log_ns: np.ndarray, lines: tuple[bytes, int]) -> None:
+        """Keep one chunk's JSON messages (``json_lines``: one a line, and
+        their colons), parsed together at ``finish``."""
         self._parts.append((log_ns, lines))
 
     def finish(self) -> None:
         if self.kind == "json":
             parts, self._parts = self._parts, []
             log_ns = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-            self.frame = parse_json_lines(b"\n".join(p[1] for p in parts), log_ns.size)
+            self.frame = parse_json_lines([p[1][0] for p in parts], log_ns.size, sum(p[1][1] for p in parts))
             self.columns = {"log_ns": log_ns}
             return
         self.columns = {name: column[: self._filled] for name, column in self.columns.items()} or {"t_ns": np.zeros(0, np.int64)}

@@ -7,7 +7,9 @@ reads the file with the per-message path, which words the problem.
 
 from __future__ import annotations
 
+import io
 import json
+from typing import IO
 
 import numpy as np
 import polars as pl
@@ -20,12 +22,18 @@ TEXT_FIELDS = ("axis",)
 JSON_TYPES = {name: pl.Float64 for name in NUMBER_FIELDS} | {name: pl.String for name in TEXT_FIELDS}
 
 
-def json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
+_NEWLINE, _COLON = 10, 58
+
+
+def json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> tuple[bytes, int]:
     """The messages' bytes (``sizes`` bytes at ``data`` in ``raw``, ascending),
-    one per line: the span from the first to the last compressed by a mask
-    of runs (each message and the byte after it, then the gap to the next),
-    the bytes after the messages made newlines. A third less than gathering
-    every byte by its own index (eight bytes of index per byte)."""
+    one per line, and the colons in them (``parse_json_lines`` counts the
+    keys by them, here while the chunk's lines are in the cache, not over
+    all of a channel's lines at once): the span from the first to the last
+    compressed by a mask of runs (each message and the byte after it, then
+    the gap to the next), the bytes after the messages made newlines. A
+    third less than gathering every byte by its own index (eight bytes of
+    index per byte)."""
     n = data.size
     runs = np.empty(2 * n - 1, np.int64)
     runs[0::2] = sizes + 1
@@ -33,19 +41,18 @@ def json_lines(raw: np.ndarray, data: np.ndarray, sizes: np.ndarray) -> bytes:
     runs[1::2] = data[1:] - (data[:-1] + sizes[:-1]) - 1  # record headers: at least 31 bytes
     message = np.zeros(runs.size, bool)
     message[0::2] = True
-    keep = np.repeat(message, runs)
-    out = raw[int(data[0]) : int(data[-1] + sizes[-1])][keep]
-    ends = np.cumsum(sizes + 1)[:-1] - 1
-    out[ends] = 0
-    if np.count_nonzero(out == 10):  # a message spans lines: not one object per line
+    out = raw[int(data[0]) : int(data[-1] + sizes[-1])][np.repeat(message, runs)]
+    out[np.cumsum(sizes + 1)[:-1] - 1] = _NEWLINE
+    if np.count_nonzero(out == _NEWLINE) != n - 1:  # a message spans lines: not one object per line
         raise Unsupported("JSON message with a line break")
-    out[ends] = 10
-    return out.tobytes()
+    return out.tobytes(), int(np.count_nonzero(out == _COLON))
 
 
-def _read_json_lines(text: bytes, n: int, types: dict) -> pl.DataFrame:
+def _read_json_lines(parts: list[bytes], n: int, types: dict) -> pl.DataFrame:
     try:
-        frame = pl.read_ndjson(text, schema=types)
+        # each chunk's lines a source (a BytesIO shares its bytes): no joined copy
+        sources: list[IO[bytes]] = [io.BytesIO(part) for part in parts]
+        frame = pl.read_ndjson(sources, schema=types)
     except Exception:  # noqa: BLE001 - any parser complaint: the per-message path words it
         raise Unsupported("JSON messages polars cannot parse as JSON lines") from None
     if frame.height != n:
@@ -62,25 +69,26 @@ def _first_fields(text: bytes) -> dict:
     return {name: t for name, t in JSON_TYPES.items() if name in first} if isinstance(first, dict) else JSON_TYPES
 
 
-def parse_json_lines(text: bytes, n: int) -> pl.DataFrame:
-    """JSON lines parsed in one pass with the fields' types given: no
+def parse_json_lines(parts: list[bytes], n: int, colons: int) -> pl.DataFrame:
+    """JSON lines (``parts``: each chunk's, from ``json_lines``, holding
+    ``colons`` colons) parsed in one pass with the fields' types given: no
     inference over every line first, which took twice the parse. The fields
     of the first message are read first; when the text holds as many
-    colons as values were read (a count at memory speed), no message has
-    another key, null or not, and that frame is the answer. Else every field
-    of ``JSON_TYPES`` is read, and a field is a column where some message
-    has it. ``Unsupported`` where polars refuses a line, where a field is
-    null wherever it appears (a key the types cannot tell from an absent
-    one), and where an axis label is not x, y or z (polars writes a number
-    given for text as text): the per-message path words those."""
+    colons as values were read, no message has another key, null or not,
+    and that frame is the answer. Else every field of ``JSON_TYPES`` is
+    read, and a field is a column where some message has it.
+    ``Unsupported`` where polars refuses a line, where a field is null
+    wherever it appears (a key the types cannot tell from an absent one),
+    and where an axis label is not x, y or z (polars writes a number given
+    for text as text): the per-message path words those."""
     if n == 0:
         return pl.DataFrame()
-    colons = np.count_nonzero(np.frombuffer(text, np.uint8) == ord(":"))
-    frame = _read_json_lines(text, n, _first_fields(text))
+    frame = _read_json_lines(parts, n, _first_fields(parts[0]))
     if frame.width * n - sum(frame.null_count().row(0)) != colons:
-        frame = _read_json_lines(text, n, JSON_TYPES)
+        frame = _read_json_lines(parts, n, JSON_TYPES)
         empty = [name for name, count in zip(frame.columns, frame.null_count().row(0)) if count == n]
-        if any(name.encode() in text for name in empty):  # a bare name: a quote in the needle slows the search tenfold
+        # a bare name: a quote in the needle slows the search tenfold
+        if any(name.encode() in part for name in empty for part in parts):
             raise Unsupported("JSON field null in every message")
         frame = frame.drop(empty)
     if "axis" in frame.columns and not frame.select((pl.col("axis").is_in(AXES) | pl.col("axis").is_null()).all()).item():

@@ -142,12 +142,17 @@ def finite_numbers(frame: pl.DataFrame) -> pl.DataFrame:
 
 def json_time_ns(t_s: np.ndarray, log_ns: np.ndarray, topic: str, path: Path) -> np.ndarray:
     """JSON ``t`` (s; NaN where absent: the log time) as int64 nanoseconds."""
-    present = ~np.isnan(t_s)
-    bad = present & ~(np.abs(t_s) < MAX_ABS_TIME_S)
+    bad = np.abs(t_s) >= MAX_ABS_TIME_S  # an absent time (NaN) compares false
     if bad.any():
         k = int(bad.argmax())
         raise InputError(f"topic {topic!r}: 't' of message {k + 1} is not a time in seconds ({t_s[k]:g})", path=path)
-    return np.where(present, np.round(np.where(present, t_s, 0.0) * 1e9).astype(np.int64), log_ns)
+    t_ns = t_s * 1e9
+    np.round(t_ns, out=t_ns)
+    absent = np.isnan(t_ns)
+    if not absent.any():  # every message has its time: no mask, no second array
+        return t_ns.astype(np.int64)
+    t_ns[absent] = 0.0
+    return np.where(absent, log_ns, t_ns.astype(np.int64))
 
 
 def _json_track(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path) -> TableTrack:
@@ -155,8 +160,9 @@ def _json_track(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path)
     def column(name: str) -> np.ndarray:
         values = frame[name].cast(pl.Float64) if name in frame.columns else pl.Series([None] * frame.height, dtype=pl.Float64)
         return values.fill_null(np.nan).to_numpy()
-    axis = frame["axis"].to_numpy().astype(object) if "axis" in frame.columns else np.full(frame.height, None, object)
-    code = _axis_code(axis, AXES)
+    # each label's index into AXES through the Enum's codes (a label of another spelling: null), -1 for none
+    axis = frame["axis"] if "axis" in frame.columns else pl.Series([None] * frame.height, dtype=pl.String)
+    code = axis.cast(pl.Enum(AXES), strict=False).to_physical().cast(pl.Int8).fill_null(-1).to_numpy()
     if np.any(code < 0):
         label = axis[int(np.argmax(code < 0))]
         raise InputError(f"table topic {topic!r}: unknown axis label {label!r} (expected x, y or z)", path=path)
