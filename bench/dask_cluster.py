@@ -85,7 +85,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "datasets"
         with ProcessPoolExecutor() as pool:
-            list(pool.map(_simulate, [(seed, root / f"dut{seed:03d}") for seed in range(1, args.datasets + 1)]))
+            list(pool.map(_simulate, [(seed, root / f"dut{seed:03d}", False) for seed in range(1, args.datasets + 1)]))
         print(f"{args.datasets} default-plan CSV datasets, {args.workers} workers; load average "
               f"{os.getloadavg()[0]:.1f} at the start", flush=True)
         single = batch(root, Path(tmp) / "single", "--workers", "1")
