@@ -194,6 +194,14 @@ def _used_segments(res: Residuals, r: int, keep) -> tuple[np.ndarray, np.ndarray
     return np.concatenate(rows), starts, segs
 
 
+def _wave(phase: np.ndarray) -> np.ndarray:
+    """(sin, cos) of ``phase`` as the columns of one (n, 2) array, written in place."""
+    wave = np.empty((phase.size, 2))
+    np.sin(phase, out=wave[:, 0])
+    np.cos(phase, out=wave[:, 1])
+    return wave
+
+
 def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
     """Harmonics k theta of the rotation in the residuals of each axis's
     rotation segments, per channel (chi-square with 2 per segment)."""
@@ -201,7 +209,7 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
     # the harmonics of every rotating sample once; each channel takes its used rows
     rotating = np.flatnonzero(res.rotating)
     theta = np.deg2rad(res.theta_deg[rotating])
-    waves = [np.column_stack([np.sin(k * theta), np.cos(k * theta)]) for k in orders]
+    waves = [_wave(k * theta) for k in orders]
     grams: dict[int, np.ndarray] = {}  # of the channels that use every rotating sample (the same rows)
     for r, channel in enumerate(CHANNELS):
         rows, starts, segs = _used_segments(res, r, lambda part: res.rotating[part.start])
