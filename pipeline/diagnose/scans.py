@@ -160,7 +160,11 @@ def _segment_grams(basis: np.ndarray, starts: np.ndarray) -> np.ndarray:
     q = basis.shape[1]
     # the products of each pair of basis columns once (the Gram matrices are symmetric)
     i, j = np.triu_indices(q)
-    sums = np.add.reduceat(basis[:, i] * basis[:, j], starts, axis=0)
+    # each pair's product into its column (gathering the pairs' columns first copied the basis twice: 2x slower)
+    products = np.empty((basis.shape[0], i.size))
+    for k, (a, b) in enumerate(zip(i, j)):
+        np.multiply(basis[:, a], basis[:, b], out=products[:, k])
+    sums = np.add.reduceat(products, starts, axis=0)
     gram = np.empty((starts.size, q, q))
     gram[:, i, j] = sums
     gram[:, j, i] = sums
