@@ -309,7 +309,9 @@ class Linearisation:
                 self._column(r, i, None if every else rows, params is not None, columns[4 + k])
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
-            d = ChannelDesign(columns, obs.rate_idx[rows], rows, self.resid[rows, r], base, ext)
+            # every sample used: a strided copy of the residuals' column instead of a gather (same values)
+            d = ChannelDesign(columns, obs.rate_idx if every else obs.rate_idx[rows], rows,
+                              np.ascontiguousarray(self.resid[:, r]) if every else self.resid[rows, r], base, ext)
             G, b = normal_equations(d, p, m)
             designs.append(d)
             grams.append(G)

@@ -80,15 +80,21 @@ def step_scan(res: Residuals) -> tuple[float, float, float]:
     usable (clipping sets different channels aside at different times),
     there is no position to test and the p-value is 1."""
     order = np.argsort(res.t_s, kind="stable")
-    order = order[res.use[order].all(axis=1)]  # in time order, the samples with all three channels usable
-    e = res.resid[order] / res.sigma[None, :]
+    # in time order, the samples with all three channels usable; the channels'
+    # masks and squares combined column by column (the same values as
+    # ``all``/``sum`` over the rows' three entries, in a third of the time)
+    usable = res.use[:, 0] & res.use[:, 1] & res.use[:, 2]
+    order = order[usable[order]]
+    e = np.take(res.resid, order, axis=0)
+    e /= res.sigma[None, :]
     n = e.shape[0]
     if n < 22:
         return float(np.median(res.t_s)), 0.0, 1.0
     k = np.arange(1, n)
     s = np.cumsum(e, axis=0)[:-1]
-    centred = s - (k / n)[:, None] * s[-1]
-    stat = (centred**2).sum(axis=1) / (k * (n - k) / n)
+    squares = np.square(s - (k / n)[:, None] * s[-1])  # of the centred cumulative sums
+    stat = (squares[:, 0] + squares[:, 1]) + squares[:, 2]
+    stat /= k * (n - k) / n
     inner = slice(10, n - 11)
     j = int(np.argmax(stat[inner])) + inner.start
     t = res.t_s[order]
@@ -160,7 +166,11 @@ def _segment_grams(basis: np.ndarray, starts: np.ndarray) -> np.ndarray:
     q = basis.shape[1]
     # the products of each pair of basis columns once (the Gram matrices are symmetric)
     i, j = np.triu_indices(q)
-    sums = np.add.reduceat(basis[:, i] * basis[:, j], starts, axis=0)
+    # each pair's product into its column (gathering the pairs' columns first copied the basis twice: 2x slower)
+    products = np.empty((basis.shape[0], i.size))
+    for k, (a, b) in enumerate(zip(i, j)):
+        np.multiply(basis[:, a], basis[:, b], out=products[:, k])
+    sums = np.add.reduceat(products, starts, axis=0)
     gram = np.empty((starts.size, q, q))
     gram[:, i, j] = sums
     gram[:, j, i] = sums
@@ -194,6 +204,14 @@ def _used_segments(res: Residuals, r: int, keep) -> tuple[np.ndarray, np.ndarray
     return np.concatenate(rows), starts, segs
 
 
+def _wave(phase: np.ndarray) -> np.ndarray:
+    """(sin, cos) of ``phase`` as the columns of one (n, 2) array, written in place."""
+    wave = np.empty((phase.size, 2))
+    np.sin(phase, out=wave[:, 0])
+    np.cos(phase, out=wave[:, 1])
+    return wave
+
+
 def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
     """Harmonics k theta of the rotation in the residuals of each axis's
     rotation segments, per channel (chi-square with 2 per segment)."""
@@ -201,7 +219,7 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
     # the harmonics of every rotating sample once; each channel takes its used rows
     rotating = np.flatnonzero(res.rotating)
     theta = np.deg2rad(res.theta_deg[rotating])
-    waves = [np.column_stack([np.sin(k * theta), np.cos(k * theta)]) for k in orders]
+    waves = [_wave(k * theta) for k in orders]
     grams: dict[int, np.ndarray] = {}  # of the channels that use every rotating sample (the same rows)
     for r, channel in enumerate(CHANNELS):
         rows, starts, segs = _used_segments(res, r, lambda part: res.rotating[part.start])

@@ -51,12 +51,13 @@ class ChannelState:
         self.unit_slope = unit_slope   # ``slope`` is 1 everywhere (no gain or scale effect)
         self._R_rates, self._obs = R_rates, obs
 
-    @cached_property
-    def R_row(self) -> np.ndarray:
-        """This channel's responsivity row per sample, (n, 3)."""
-        out = np.empty((self._obs.n, 3))
+    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The responsivity row's component j times ``values`` per sample: one
+        number per rate block, so no (n, 3) row per sample is gathered (the
+        products are those of the gathered row, bit for bit)."""
+        out = np.empty(values.size) if out is None else out
         for row, at in zip(self._R_rates[:, self.r], rate_blocks(self._obs)):
-            out[at] = row
+            np.multiply(values[at], row[j], out=out[at])
         return out
 
     def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -83,8 +83,6 @@ class Channel(Protocol):
     @property
     def r(self) -> int: ...
     @property
-    def R_row(self) -> np.ndarray: ...     # the channel's responsivity row, (n, 3), output unit per g
-    @property
     def y(self) -> np.ndarray: ...         # offset-free linear output
     @property
     def u(self) -> np.ndarray: ...         # y / x1g
@@ -103,6 +101,9 @@ class Channel(Protocol):
 
     def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
     # R_row . vectors per sample, vectors (3, n) per component (into ``out`` if given)
+
+    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
+    # the responsivity row's component j (output unit per g) times ``values`` per sample
 
 
 class ColumnContext(Protocol):

@@ -78,7 +78,7 @@ class Centripetal(ForceEffect):
         m = ctx.motion
         factor = ctx.cached(("centripetal", a), lambda: np.where(
             m.rotating & ctx.on_axis[a], -(2 * np.pi * m.rate_hz * ctx.effects.rate_factor()) ** 2 / ctx.g_local, 0.0))
-        return np.multiply(np.multiply(st.slope, st.R_row[:, j], out=out), factor, out=out)
+        return np.multiply(st.responsivity_times(j, st.slope, out), factor, out=out)
 
     def report(self, cand, value, cov, output_unit):
         radius = float(np.hypot(*value))
