@@ -12,7 +12,7 @@ import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from rotcal.batch.jobs import _write_part, open_executor
+from rotcal.batch.jobs import WORKER_MALLOC, _write_part, open_executor
 from rotcal.combine.labelled import rate_segments, segment_coefficients
 from rotcal.config import BatchConfig
 from rotcal.tables import PARQUET_OPTIONS, write_table
@@ -31,18 +31,21 @@ def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
     assert (tmp_path / "parts" / "fits.parquet").read_bytes() == (tmp_path / "expected.parquet").read_bytes()
 
 
-def _polars_threads(_: int) -> int:
+def _worker_settings(_: int) -> tuple[int, str | None, str | None]:
     import polars
 
-    return polars.thread_pool_size()
+    return polars.thread_pool_size(), os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_")
 
 
-def test_pool_workers_size_polars_to_their_share_of_the_cores():
-    assert "POLARS_MAX_THREADS" not in os.environ
+def test_pool_workers_size_polars_to_their_share_of_the_cores_and_keep_freed_memory():
+    assert "POLARS_MAX_THREADS" not in os.environ and "MALLOC_MMAP_THRESHOLD_" not in os.environ
     with open_executor(BatchConfig(workers=2), 4) as (executor, workers):
-        sizes = [f.result() for f in [executor.submit(_polars_threads, k) for k in range(4)]]
-    assert workers == 2 and sizes == [1, 1, 1, 1]  # two cores, two workers: one thread each
-    assert "POLARS_MAX_THREADS" not in os.environ  # the batch process's environment as it was
+        settings = [f.result() for f in [executor.submit(_worker_settings, k) for k in range(4)]]
+    # two cores, two workers: one thread each; malloc keeps 64 MB arrays on the heap, 256 MB freed
+    assert workers == 2 and settings == [(1, str(64 << 20), str(256 << 20))] * 4
+    assert WORKER_MALLOC == {"MALLOC_MMAP_THRESHOLD_": "67108864", "MALLOC_TRIM_THRESHOLD_": "268435456"}
+    # the batch process's environment as it was
+    assert not {"POLARS_MAX_THREADS", *WORKER_MALLOC} & set(os.environ)
 
 
 def _fits(segments: list[tuple[int, str, float, str]], scale: float) -> pl.DataFrame:
