@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotcal.model.conventions import AXES, COS_COMPONENT, SIN_COMPONENT, axis_index
+from rotcal.model.conventions import AXES, axis_index, gravity_direction
 from rotcal.model.effects.base import ALL, Candidate, Channel, ColumnContext, GravityEffect, Parameter, ReportedParameter
 
 
@@ -59,13 +59,9 @@ class AxisTilt(GravityEffect):
         def make() -> np.ndarray:   # per component, (3, n)
             tilt = np.deg2rad((ctx.effects.states.get(self.name) or {}).get(a, (0.0,))[0])
             d_a = np.zeros((3, ctx.motion.t_s.size))
-            on = np.flatnonzero(ctx.on_axis[a])
-            # gravity_direction's two components on this axis (Eq. 5), written
-            # straight into theirs; the axial one is zero, leaving cos(tilt)
-            theta = np.deg2rad(st.theta[on])
-            d_a[SIN_COMPONENT[a], on] = -np.sin(tilt) * -np.sin(theta) * (np.pi / 180.0)
-            d_a[COS_COMPONENT[a], on] = -np.sin(tilt) * np.cos(theta) * (np.pi / 180.0)
-            d_a[a, on] = np.cos(tilt) * (np.pi / 180.0)
+            on = ctx.on_axis[a]
+            d_a[:, on] = (-np.sin(tilt) * gravity_direction(ctx.motion.axis_idx[on], st.theta[on]) * (np.pi / 180.0)).T
+            d_a[a, on] += np.cos(tilt) * (np.pi / 180.0)
             return d_a
         return np.multiply(st.slope, st.responsivity_dot(ctx.cached((name, delay), make), out=out), out=out)
 
