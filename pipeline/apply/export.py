@@ -32,6 +32,7 @@ import numpy as np
 from rotcal import __version__
 from rotcal.apply.files import atomic_write
 from rotcal.errors import InputError
+from rotcal.jsontext import json_text
 from rotcal.model.calibration import Calibration, RateCalibration
 
 FORMATS = ("ardupilot", "px4", "yaml", "json")
@@ -184,7 +185,7 @@ def _json(cal: Calibration, rc: RateCalibration) -> Export:
            "u_P": np.array([q.std_uncertainty for q in rc.P]).reshape(3, 3).tolist(),
            "u_O": [q.std_uncertainty for q in rc.O],
            "covariance": {"of": "P row-major, then O", "matrix": rc.correction_cov.tolist()}}
-    return Export("json", json.dumps(doc, indent=1, allow_nan=False) + "\n", ())
+    return Export("json", json_text(doc), ())
 
 
 def export_calibration(cal: Calibration, fmt: str, rate_hz: float | None = None,

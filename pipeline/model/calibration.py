@@ -28,6 +28,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.errors import InputError
+from rotcal.jsontext import json_text
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal.tables import schema_text
@@ -288,7 +289,7 @@ class Calibration:
         """Write the document (validated first: a bug, not the user's input, if it fails)."""
         doc = self.to_dict()
         _compiled_validator()(doc)
-        path.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        path.write_text(json_text(doc))
         return path
 
     @classmethod

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 from rotcal import __version__
 from rotcal.errors import InputError
+from rotcal.jsontext import json_text
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -163,7 +164,7 @@ def publish_directory(out: OutputDir, write: Callable[[Path], Sequence[Path]], l
         written = list(write(staging))
         if listed:
             doc = listing(staging)
-            (staging / LISTING).write_text(json.dumps(doc, indent=1) + "\n")
+            (staging / LISTING).write_text(json_text(doc))
             written.append(staging / LISTING)
         _swap(staging, target)
     except BaseException:
