@@ -34,8 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import log_ndtr
-from scipy.stats import binom
+from scipy.special import betainc, log_ndtr
 
 from rotcal.model.physics import CHANNELS
 
@@ -94,7 +93,7 @@ def stuck_values(y: np.ndarray, q: float, model: tuple[np.ndarray, np.ndarray] |
             count = int(np.count_nonzero(at))
             lo, hi = sorted((value + inner, value))
             neighbour = int(np.count_nonzero((col >= lo) & (col <= hi))) - count
-            p = float(binom.sf(count - 1, count + neighbour, 0.5))
+            p = float(betainc(count, neighbour + 1, 0.5))  # binom.sf(count - 1, count + neighbour, 1/2), the same bits
             if model is not None and q >= COARSE * model[1][r]:
                 sign = 1.0 if side == "high" else -1.0   # the low side mirrored
                 pred, sigma = model

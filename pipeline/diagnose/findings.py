@@ -5,11 +5,10 @@ the parameters of every detected effect."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
 from rotcal.diagnose.candidates import STEP, report_parameters
 from rotcal.diagnose.clipping import StuckValue
-from rotcal.diagnose.fitting import ModelFit, bic, score, without
+from rotcal.diagnose.fitting import ModelFit, bic, chi2_sf, score, without
 from rotcal.diagnose.model import predict
 from rotcal.diagnose.scans import Unexplained, _fmt
 from rotcal.model.effects import effect_named
@@ -55,7 +54,7 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
     reduced = without(final, tuple(found))
     lr = float(np.sum(final.ev.n_used * np.log(reduced.ev.rss / final.ev.rss)))
     k = sum(len(c.names) for c in found)
-    p = float(chi2.sf(lr, k))
+    p = chi2_sf(lr, k)
     params, rows = [], []
     for c in found:
         value, cov = final.param_block(c)

@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from rotcal.fit.segments import SegmentFit, design, linear_fit, residual_stats
 
@@ -116,6 +115,7 @@ def fit_sine(t_ns: np.ndarray, y: np.ndarray, rate_guess_hz: float, search: bool
         grid = grid[grid > 0]
         best = grid[int(np.argmin([_rss(f, tau_s, centred, yy) for f in grid]))]
     step = resolution / 20
+    from scipy.optimize import minimize_scalar  # here: only segments of unknown rate need scipy.optimize (0.1 s to import)
     rate = float(minimize_scalar(_rss, bounds=(best - step, best + step), args=(tau_s, centred, yy), method="bounded",
                                  options={"xatol": 1e-12 * max(best, 1e-12)}).x)
     x = design(360.0 * rate * tau_s)
