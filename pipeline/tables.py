@@ -95,6 +95,8 @@ def conform(frame: pl.DataFrame, name: str) -> pl.DataFrame:
     programming error, not a user's.
     """
     sch = _require_columns(frame, name)
+    if frame.columns == list(sch.columns) and frame.dtypes == list(sch.dtypes):
+        return frame  # as the select would give it, without its query (0.2 ms: most frames are built conforming)
     return frame.select(pl.col(c).cast(t, strict=True) for c, t in zip(sch.columns, sch.dtypes))
 
 

@@ -2,6 +2,7 @@
 plot, each with its schema recorded."""
 
 import polars as pl
+import pytest
 
 from rotcal.tables import read_schema_name
 
@@ -65,3 +66,19 @@ def test_non_finite_list_elements_are_published_as_null(tmp_path):
     back = pl.read_parquet(write_parquet(frame, tmp_path / "fits.parquet", "fits"))
     assert back.schema == pl.Schema(sch.polars_schema)
     assert back.row(0, named=True) | {} == row | {"segment": 3, "dof": 7, "C": None, "cov_u": [1.0, None, 2.0], "cov_v": [None, None]}
+
+
+def test_conform_casts_reorders_and_refuses():
+    from rotcal.tables import conform, schema
+
+    sch = schema("components")
+    typed = pl.DataFrame({c: pl.Series([], dtype=t) for c, t in zip(sch.columns, sch.dtypes)})
+    assert conform(typed, "components") is typed  # already the contract's: as it is
+    floats = [c for c, t in zip(sch.columns, sch.dtypes) if t == pl.Float64]
+    as_ints = typed.with_columns(pl.col(c).cast(pl.Int64) for c in floats)  # same order, other types
+    reordered = typed.select(reversed(sch.columns)).with_columns(pl.lit(1).alias("extra"))
+    for loose in (as_ints, reordered):
+        out = conform(loose, "components")
+        assert out.columns == list(sch.columns) and out.dtypes == list(sch.dtypes)
+    with pytest.raises(KeyError, match=sch.columns[0]):
+        conform(typed.drop(sch.columns[0]), "components")
