@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.stats import chi2, f
+from scipy.special import chdtrc, chdtri, fdtrc, fdtri
 
 from rotcal.combine import StaticReduction
 from rotcal.config import DiagnosisConfig
@@ -117,10 +117,10 @@ class Linearised:
         if self.model.excess:
             scale = self.solve(larger)[1] / dof
             stat = removed / scale
-            p = float(f.sf(stat / k, k, dof))
+            p = float(fdtrc(k, dof, stat / k))  # scipy.stats.f.sf: stat >= 0
         else:
             stat = removed
-            p = float(chi2.sf(stat, k))
+            p = float(chdtrc(k, stat))  # scipy.stats.chi2.sf: stat >= 0
         return Test(added, stat, p, -stat + k * np.log(self.n))
 
     def limit(self, cand: Candidate, active: tuple[Candidate, ...], alpha: float) -> dict[str, float]:
@@ -134,9 +134,10 @@ class Linearised:
         if dof <= 0:
             return dict.fromkeys(cand.names, float("inf"))
         if self.model.excess:
-            threshold = k * float(f.isf(alpha, k, dof)) * self.solve(others + (cand,))[1] / dof
+            # f.isf(alpha) as scipy.stats computes it (its ppf at 1 - alpha), to the bit
+            threshold = k * float(fdtri(k, dof, 1.0 - alpha)) * self.solve(others + (cand,))[1] / dof
         else:
-            threshold = float(chi2.isf(alpha, k))
+            threshold = float(chdtri(k, alpha))  # scipy.stats.chi2.isf
         out = {}
         for name, col in zip(cand.names, self.model.columns(cand)):
             column = self.jac[:, col]
