@@ -226,7 +226,7 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         return static_diagnosis_stage(seg, reductions.static, ds, config), ()
     if not config.diagnosis.enabled:
         return None, ()
-    from rotcal.diagnose import diagnose  # scipy.stats loads when diagnosing, after the large stages
+    from rotcal.diagnose import diagnose  # the diagnosis loads when diagnosing, after the large stages
 
     in_table = {rate for r in reductions.all if r.frame == "table" for rate in r.rates}
     notes = []
@@ -281,7 +281,7 @@ def static_diagnosis_stage(seg: Segmented, static: StaticReduction, ds: Dataset,
     """The diagnosis of a static recording's poses (``diagnose.static``)."""
     if not config.diagnosis.enabled:
         return None
-    from rotcal.diagnose.static import diagnose_static  # scipy.stats loads when diagnosing
+    from rotcal.diagnose.static import diagnose_static  # loaded when diagnosing a static recording
 
     t_ns = seg.samples["t_ns"]
     return diagnose_static(static, None if t_ns.is_empty() else int(t_ns.to_numpy().min()), ds.name, ds.meta.output_unit,
