@@ -7,7 +7,17 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import AXES, axis_index, gravity_direction
-from rotcal.model.effects.base import ALL, Candidate, Channel, ColumnContext, GravityEffect, Parameter, ReportedParameter
+from rotcal.model.effects.base import (
+    ALL,
+    Candidate,
+    Channel,
+    ColumnContext,
+    GravityEffect,
+    Parameter,
+    ReportedParameter,
+    Support,
+    on_runs,
+)
 
 
 class AxisTilt(GravityEffect):
@@ -63,7 +73,12 @@ class AxisTilt(GravityEffect):
             d_a[:, on] = (-np.sin(tilt) * gravity_direction(ctx.motion.axis_idx[on], st.theta[on]) * (np.pi / 180.0)).T
             d_a[a, on] += np.cos(tilt) * (np.pi / 180.0)
             return d_a
-        return np.multiply(st.slope, st.responsivity_dot(ctx.cached((name, delay), make), out=out), out=out)
+        runs = ctx.runs(self.support(cand))
+        column = st.responsivity_dot(ctx.cached((name, delay), make), out, runs)
+        return column if st.unit_slope else on_runs(runs, column, st.slope, out=column)
+
+    def support(self, cand):
+        return Support(AXES.index(cand.scope))
 
     def report(self, cand, value, cov, output_unit):
         # the model holds the tilt through its sine and cosine, so the fit may settle a whole turn away

@@ -9,7 +9,17 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import AXES, axis_index
-from rotcal.model.effects.base import ALL, AngleEffect, Candidate, Channel, ColumnContext, Parameter, ReportedParameter
+from rotcal.model.effects.base import (
+    ALL,
+    AngleEffect,
+    Candidate,
+    Channel,
+    ColumnContext,
+    Parameter,
+    ReportedParameter,
+    Support,
+    on_runs,
+)
 
 
 class RateRipple(AngleEffect):
@@ -76,7 +86,10 @@ class RateRipple(AngleEffect):
             sel = ctx.on_axis[a][idx]
             out[idx[sel]] = wave(np.deg2rad(st.base[sel]))
             return out
-        return np.multiply(st.d_theta, ctx.cached((name, delay), make), out=out)
+        return on_runs(ctx.runs(self.support(cand)), st.d_theta, ctx.cached((name, delay), make), out=out)
+
+    def support(self, cand):
+        return Support(AXES.index(cand.scope), rotating=True)
 
     def report(self, cand, value, cov, output_unit):
         alpha, beta = value
