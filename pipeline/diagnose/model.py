@@ -222,8 +222,8 @@ class Linearisation:
             groups = np.searchsorted(layout.group[ext], np.arange(GROUPS + 1))
             runs = sample_runs(obs) if every else runs_of(obs.rate_idx[rows], obs.motion.axis_idx[rows],
                                                           obs.motion.rotating[rows])
-            shared = max(groups[4 + 2 * a] - groups[2 + 2 * a] for a in range(3))   # rows of the axes' columns
-            columns = design_buffer(obs, 4 + groups[2] + shared, rows.size, width)
+            shared = max(groups[3 + 2 * a] - groups[1 + 2 * a] for a in range(3))   # rows of the axes' columns
+            columns = design_buffer(obs, 4 + groups[1] + shared, rows.size, width)
             columns[0] = 1.0
             if every and st.unit_slope:
                 columns[1:4] = st.geo.force
@@ -231,12 +231,12 @@ class Linearisation:
                 np.multiply(st.slope, st.geo.force, out=columns[1:4])
             else:
                 columns[1:4] = (st.slope * st.geo.force)[:, rows]
-            for k, i in enumerate(ext[:groups[2]]):
+            for k, i in enumerate(ext[:groups[1]]):
                 self._column(r, i, None if every else rows, params is not None, columns[4 + k])
             for a in range(3):   # each axis's columns into the shared rows, on its runs
                 on_axis = [run.samples for run in runs if run.axis == a]
-                for k, i in enumerate(ext[groups[2 + 2 * a]:groups[4 + 2 * a]]):
-                    self._column(r, i, None if every else rows, params is not None, columns[4 + groups[2] + k], on_axis)
+                for k, i in enumerate(ext[groups[1 + 2 * a]:groups[3 + 2 * a]]):
+                    self._column(r, i, None if every else rows, params is not None, columns[4 + groups[1] + k], on_axis)
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             # every sample used: a strided copy of the residuals' column instead of a gather (same values)

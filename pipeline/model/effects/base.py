@@ -71,9 +71,9 @@ class Candidate:
 @dataclass(frozen=True)
 class Support:
     """The samples on which an extension's Jacobian columns can be nonzero:
-    those of one table ``axis`` (None: every axis), only the rotating ones
+    those of one table ``axis`` (None: every sample), only its rotating ones
     if ``rotating``. The model computes the columns and their normal
-    equations there alone (``rotcal.diagnose.model``)."""
+    equations there alone (``rotcal.diagnose.design``)."""
 
     axis: int | None = None
     rotating: bool = False

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects.base import Candidate, Channel, ColumnContext, Parameter, SamplingEffect, Support, on_runs
+from rotcal.model.effects.base import Candidate, Channel, ColumnContext, Parameter, SamplingEffect
 
 
 class ChannelDelay(SamplingEffect):
@@ -47,10 +47,7 @@ class ChannelDelay(SamplingEffect):
         """d theta / d delay = the true rate, 360 rate (1 + e) degree per s."""
         m = ctx.motion
         rate = ctx.cached("delay", lambda: np.where(m.rotating, 360.0 * m.rate_hz * ctx.effects.rate_factor(), 0.0))
-        return on_runs(ctx.runs(self.support(cand)), st.d_theta, st.stretch, rate, out=out)
-
-    def support(self, cand):
-        return Support(rotating=True)
+        return np.multiply(np.multiply(st.d_theta, st.stretch, out=out), rate, out=out)
 
 
 EFFECT = ChannelDelay()

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotcal.model.effects.base import ALL, AngleEffect, Candidate, Channel, ColumnContext, Parameter, Support, on_runs
+from rotcal.model.effects.base import ALL, AngleEffect, Candidate, Channel, ColumnContext, Parameter
 
 
 class RateError(AngleEffect):
@@ -41,10 +41,7 @@ class RateError(AngleEffect):
         """d theta / d e = 360 rate (t + delay - t_start), through the ripple's stretch."""
         m, delay = ctx.motion, ctx.effects.delays()[st.r]
         rate = ctx.cached(("rate", delay), lambda: np.where(m.rotating, 360.0 * m.rate_hz * (m.t_s + delay - m.t_start_s), 0.0))
-        return on_runs(ctx.runs(self.support(cand)), st.d_theta, st.stretch, rate, out=out)
-
-    def support(self, cand):
-        return Support(rotating=True)
+        return np.multiply(np.multiply(st.d_theta, st.stretch, out=out), rate, out=out)
 
 
 EFFECT = RateError()
