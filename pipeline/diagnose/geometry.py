@@ -15,7 +15,15 @@ from functools import cached_property
 import numpy as np
 
 from rotcal.model.effects import AngleEffect, ForceEffect, SamplingEffect
-from rotcal.model.physics import Effects, Motion, gravity_direction_derivative, specific_force, true_angle, uniform_angle
+from rotcal.model.physics import (
+    Effects,
+    Motion,
+    gravity_direction,
+    gravity_direction_derivative,
+    specific_force,
+    true_angle,
+    uniform_angle,
+)
 
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).
@@ -52,10 +60,11 @@ class Observations:
 @dataclass(frozen=True, eq=False)
 class Geometry:
     """What the table did, seen at one sampling delay: specific force / g,
-    true angle, d(force)/d(theta) per degree, and the uniform angle of the
-    rotating samples. Channels without a delay share one."""
+    gravity's direction, true angle, d(force)/d(theta) per degree, and the
+    uniform angle of the rotating samples. Channels without a delay share one."""
 
     force: np.ndarray     # (3, n), per component
+    up: np.ndarray        # (3, n) gravity's direction (pointing up, Geist 2017 Eq. 5), per component
     theta: np.ndarray
     deriv: np.ndarray     # (3, n), per component
     base: np.ndarray
@@ -80,9 +89,10 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
             if slope is not None:
                 stretch[rot] += slope
         # per component, (3, n): a rate's projections are then three contiguous products (``states.project``)
-        force = np.ascontiguousarray((specific_force(m, effects, g, delay) / g).T)
+        up = gravity_direction(m.axis_idx, theta)   # once: the force and the axis tilt's column read it
+        force = np.ascontiguousarray((specific_force(m, effects, g, delay, up) / g).T)
         deriv = np.ascontiguousarray((gravity_direction_derivative(m.axis_idx, theta) * scale[:, None]).T)
-        out[delay] = Geometry(force, theta, deriv, base, stretch)
+        out[delay] = Geometry(force, np.ascontiguousarray(up.T), theta, deriv, base, stretch)
     return out
 
 
@@ -102,7 +112,7 @@ def motion_reuse(obs: Observations, effects: Effects) -> dict:
     if key not in slots:
         geometries = _geometries(obs, effects)
         for geo in geometries.values():
-            for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
+            for array in (geo.force, geo.up, geo.theta, geo.deriv, geo.base, geo.stretch):
                 array.flags.writeable = False
         for old in [k for k in slots if k != _NO_MOTION_EFFECT]:
             del slots[old]

@@ -283,6 +283,5 @@ def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, fl
 
 def rss_after(ev: Evaluation, step: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Per-channel residual sum of squares after a linearised step."""
-    return np.array([
-        ev.rss[r] - 2 * step @ ev.rhs[r][idx] + step @ ev.gram[r][idx[:, None], idx] @ step for r in range(3)
-    ])
+    gram, rhs = ev.gram[:, idx[:, None], idx], ev.rhs[:, idx]   # the three channels' blocks in one gather each
+    return np.array([ev.rss[r] - 2 * step @ rhs[r] + step @ gram[r] @ step for r in range(3)])

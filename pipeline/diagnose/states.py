@@ -89,6 +89,10 @@ class ChannelState:
         return self.geo.theta
 
     @property
+    def up(self) -> np.ndarray:
+        return self.geo.up
+
+    @property
     def base(self) -> np.ndarray:
         return self.geo.base
 

@@ -121,6 +121,8 @@ class Channel(Protocol):
     @property
     def theta(self) -> np.ndarray: ...     # true angle at the channel's sampling instant
     @property
+    def up(self) -> np.ndarray: ...        # gravity's direction there, (3, n) per component (Geist 2017 Eq. 5)
+    @property
     def base(self) -> np.ndarray: ...      # the rotating samples' uniform angle (before ripple)
     @property
     def stretch(self) -> np.ndarray: ...   # d theta / d base
