@@ -67,7 +67,7 @@ class AxisTilt(GravityEffect):
         a, delay = AXES.index(cand.scope), ctx.effects.delays()[st.r]
         runs = ctx.runs(self.support(cand))
 
-        def make() -> np.ndarray:   # per component, (3, n); on the axis's runs (slices, not a mask: 3x faster)
+        def make() -> np.ndarray:   # per component, (3, n); on the axis's runs (slices, not a mask: 2.3x faster)
             tilt = np.deg2rad((ctx.effects.states.get(self.name) or {}).get(a, (0.0,))[0])
             d_a = np.zeros((3, ctx.motion.t_s.size))
             for _, at in runs:
