@@ -102,7 +102,9 @@ def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
 
 def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray, obs: Observations) -> np.ndarray:
     """Each channel's noise from its residuals, never below the numerical floor."""
-    k = np.array([np.isin(layout.per_channel[r], idx).sum() for r in range(3)])
+    active = np.zeros(len(layout.names), bool)   # a mask, not np.isin (0.1 ms a call)
+    active[idx] = True
+    k = np.array([active[channel].sum() for channel in layout.per_channel])
     return np.maximum(np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1)), obs.noise_floor)
 
 
