@@ -31,8 +31,9 @@ import polars as pl
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, successive_noise
+from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
-from rotcal.diagnose.model import Layout, Observations, Structure, predict, with_columns
+from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
@@ -195,7 +196,7 @@ def _step_score(fit: ModelFit, alpha: float) -> StepScore | None:
         return None
     after = (fit.obs.motion.t_s >= t).astype(float)[:, None]
     extra = [(np.array([fit.layout.index[f"step_{c}"]]), after) for c in CHANNELS]
-    ev = with_columns(fit.ev, extra, fit.layout.n_rates, fit.obs)
+    ev = with_columns(fit.ev, extra)
     s = score(fit, (STEP,), p_value=p, ev=ev, extra_params=1)
     return StepScore(s.candidate, s.chi2, s.p_value, s.delta_bic, s.rss, t)
 

@@ -65,8 +65,16 @@ class ModelFit:
         return float(np.sqrt(self.ev.rss.sum() / self.n_total))
 
     def covariance(self) -> np.ndarray:
-        """Covariance of the active parameters (order ``idx``)."""
-        return np.linalg.pinv(self.G[np.ix_(self.idx, self.idx)])
+        """Covariance of the active parameters (order ``idx``): the
+        pseudo-inverse of the normal matrix scaled to unit diagonal (as
+        ``solve``). Unscaled, the parameters' scales span 1e15 where a rate
+        error is fitted, and the pseudo-inverse's cut-off lost three digits:
+        the last bits of G moved refined uncertainties by 3e-3."""
+        G = self.G[np.ix_(self.idx, self.idx)]
+        scale = np.sqrt(np.diag(G))
+        scale[scale == 0] = 1.0
+        outer = np.outer(scale, scale)
+        return np.linalg.pinv(G / outer) / outer
 
     def param_block(self, cand: Candidate) -> tuple[np.ndarray, np.ndarray]:
         """(values, covariance) of an active extension's parameters."""
@@ -94,7 +102,9 @@ def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
 
 def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray, obs: Observations) -> np.ndarray:
     """Each channel's noise from its residuals, never below the numerical floor."""
-    k = np.array([np.isin(layout.per_channel[r], idx).sum() for r in range(3)])
+    active = np.zeros(len(layout.names), bool)   # a mask, not np.isin (0.1 ms a call)
+    active[idx] = True
+    k = np.array([active[channel].sum() for channel in layout.per_channel])
     return np.maximum(np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1)), obs.noise_floor)
 
 

@@ -2,7 +2,7 @@
 for its model (Geist 2017 Eq. 5 with the angle, sampling and force effects
 of docs/effects.md, through ``rotcal.model.physics``), and what the model's
 evaluations keep between them: the geometries and shared column factors of
-the null model's motion and of the last other one, one scratch array for a gather of the design's columns and
+the null model's motion and of the last other one, and
 the designs' buffers (``Observations.reuse``)."""
 
 from __future__ import annotations
@@ -15,7 +15,15 @@ from functools import cached_property
 import numpy as np
 
 from rotcal.model.effects import AngleEffect, ForceEffect, SamplingEffect
-from rotcal.model.physics import Effects, Motion, gravity_direction_derivative, specific_force, true_angle, uniform_angle
+from rotcal.model.physics import (
+    Effects,
+    Motion,
+    gravity_direction,
+    gravity_direction_derivative,
+    specific_force,
+    true_angle,
+    uniform_angle,
+)
 
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).
@@ -34,7 +42,7 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
-    # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), scratch and design arrays
+    # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), design arrays
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
@@ -52,10 +60,11 @@ class Observations:
 @dataclass(frozen=True, eq=False)
 class Geometry:
     """What the table did, seen at one sampling delay: specific force / g,
-    true angle, d(force)/d(theta) per degree, and the uniform angle of the
-    rotating samples. Channels without a delay share one."""
+    gravity's direction, true angle, d(force)/d(theta) per degree, and the
+    uniform angle of the rotating samples. Channels without a delay share one."""
 
     force: np.ndarray     # (3, n), per component
+    up: np.ndarray        # (3, n) gravity's direction (pointing up, Geist 2017 Eq. 5), per component
     theta: np.ndarray
     deriv: np.ndarray     # (3, n), per component
     base: np.ndarray
@@ -80,9 +89,10 @@ def _geometries(obs: Observations, effects: Effects) -> dict[float, Geometry]:
             if slope is not None:
                 stretch[rot] += slope
         # per component, (3, n): a rate's projections are then three contiguous products (``states.project``)
-        force = np.ascontiguousarray((specific_force(m, effects, g, delay) / g).T)
+        up = gravity_direction(m.axis_idx, theta)   # once: the force and the axis tilt's column read it
+        force = np.ascontiguousarray((specific_force(m, effects, g, delay, up) / g).T)
         deriv = np.ascontiguousarray((gravity_direction_derivative(m.axis_idx, theta) * scale[:, None]).T)
-        out[delay] = Geometry(force, theta, deriv, base, stretch)
+        out[delay] = Geometry(force, np.ascontiguousarray(up.T), theta, deriv, base, stretch)
     return out
 
 
@@ -102,7 +112,7 @@ def motion_reuse(obs: Observations, effects: Effects) -> dict:
     if key not in slots:
         geometries = _geometries(obs, effects)
         for geo in geometries.values():
-            for array in (geo.force, geo.theta, geo.deriv, geo.base, geo.stretch):
+            for array in (geo.force, geo.up, geo.theta, geo.deriv, geo.base, geo.stretch):
                 array.flags.writeable = False
         for old in [k for k in slots if k != _NO_MOTION_EFFECT]:
             del slots[old]
@@ -110,26 +120,46 @@ def motion_reuse(obs: Observations, effects: Effects) -> dict:
     return slots[key]
 
 
-def rate_blocks(obs: Observations) -> list[slice]:
-    """The samples of each rate, a slice each: ``observations`` sorts them
-    by rate (the model's designs and projections rely on it)."""
+def rate_blocks(obs: Observations) -> list[tuple[int, slice]]:
+    """The samples of each rate f, (f, a slice) each: ``observations`` sorts
+    them by rate (the model's designs and projections rely on it)."""
     blocks = obs.reuse.get("rate_blocks")
     if blocks is None:
         if np.any(np.diff(obs.rate_idx) < 0):
             raise ValueError("the diagnosis's samples must be sorted by rate")
         cuts = np.searchsorted(obs.rate_idx, np.arange(obs.rates.size + 1))
-        blocks = obs.reuse["rate_blocks"] = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+        blocks = obs.reuse["rate_blocks"] = [(f, slice(a, b)) for f, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))]
     return blocks
 
 
-def column_buffer(obs: Observations, k: int) -> np.ndarray:
-    """A (k, n) scratch array for a gather of one channel's design columns
-    (``model.with_columns``), kept with the observations: a fresh array of that size costs its page faults
-    (about a millisecond per megabyte on a loaded machine) at every evaluation."""
-    buffer = obs.reuse.get("columns")
-    if buffer is None or buffer.shape[0] < k:
-        buffer = obs.reuse["columns"] = np.empty((k, obs.n))
-    return buffer[:k]
+@dataclass(frozen=True)
+class Run:
+    """Consecutive samples of one rate and one table axis (``samples`` a
+    slice of the samples they were cut from), and whether any rotates."""
+
+    rate: int
+    axis: int
+    rotating: bool
+    samples: slice
+
+
+def runs_of(rate_idx: np.ndarray, axis_idx: np.ndarray, rotating: np.ndarray) -> list[Run]:
+    """The samples cut where the rate or the axis changes: the default plan
+    visits the axes in turn at each rate, so there are a rate's three runs
+    (the columns of an effect on one axis are zero on the other two)."""
+    cuts = np.flatnonzero((np.diff(rate_idx) != 0) | (np.diff(axis_idx) != 0)) + 1
+    bounds = np.r_[0, cuts, rate_idx.size]
+    spins = np.logical_or.reduceat(rotating, bounds[:-1]) if rate_idx.size else np.zeros(0, bool)
+    return [Run(int(rate_idx[a]), int(axis_idx[a]), bool(spin), slice(int(a), int(b)))
+            for a, b, spin in zip(bounds[:-1], bounds[1:], spins)]
+
+
+def sample_runs(obs: Observations) -> list[Run]:
+    """``runs_of`` every sample, kept with the observations."""
+    runs = obs.reuse.get("runs")
+    if runs is None:
+        runs = obs.reuse["runs"] = runs_of(obs.rate_idx, obs.motion.axis_idx, obs.motion.rotating)
+    return runs
 
 
 def design_buffer(obs: Observations, k: int, n_used: int, width: int) -> np.ndarray:

@@ -18,16 +18,17 @@ extension, without refitting from scratch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
-from rotcal.diagnose.geometry import Observations, column_buffer, design_buffer, motion_reuse
+from rotcal.diagnose.design import GROUPS, ChannelDesign, Evaluation, normal_equations, support_group
+from rotcal.diagnose.geometry import Observations, design_buffer, motion_reuse, runs_of, sample_runs
 from rotcal.diagnose.states import ChannelState, channel_states
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
-from rotcal.model.effects.base import Candidate, Channel
+from rotcal.model.effects.base import EVERYWHERE, Candidate, Channel, Support
 from rotcal.model.physics import (
     Effects,
     nonlinearity,
@@ -39,7 +40,8 @@ from rotcal.model.physics import (
 
 class Layout:
     """Parameter order: offsets O (rate, channel), responsivities R (rate,
-    channel, component), then every candidate's parameters."""
+    channel, component), then every candidate's parameters; each extension
+    parameter's ``support_group``."""
 
     def __init__(self, n_rates: int, candidates: tuple[Candidate, ...]):
         names = [f"O.{f}.{r}" for f in range(n_rates) for r in range(3)]
@@ -48,9 +50,12 @@ class Layout:
         channels += [(r,) for f in range(n_rates) for r in range(3) for c in range(3)]
         self.n_base = len(names)
         self.candidates = candidates
+        groups = [0] * self.n_base
         for cand in candidates:
             names += cand.names
             channels += cand.channels
+            groups += [support_group(EVERYWHERE if cand == STEP else effect_named(cand.effect).support(cand))] * len(cand.names)
+        self.group = np.array(groups)
         self.names = tuple(names)
         self.index = {n: i for i, n in enumerate(names)}
         self.n_rates = n_rates
@@ -67,98 +72,6 @@ class Layout:
 
     def values(self, beta: np.ndarray, active: tuple[Candidate, ...]) -> dict[str, float]:
         return {n: float(beta[self.index[n]]) for c in active for n in c.names}
-
-
-@dataclass(frozen=True, eq=False)
-class ChannelDesign:
-    """One channel's Jacobian on its used samples, stored compactly and
-    column-major (each column contiguous, as it is computed): column 0 is
-    the offset and 1-3 the responsivity of the sample's own rate (their
-    parameters are ``base[rate]``), the rest are extensions (``ext``)."""
-
-    columns: np.ndarray    # (4 + k, n_used)
-    rate_idx: np.ndarray   # (n_used,), non-decreasing
-    rows: np.ndarray       # (n_used,) sample numbers
-    resid: np.ndarray      # (n_used,)
-    base: np.ndarray       # (m, 4) parameter numbers of O.f.r, R.f.r.x/y/z
-    ext: np.ndarray        # (k,) parameter numbers
-
-    @property
-    def X(self) -> np.ndarray:
-        """The design (n_used, 4 + k), a view."""
-        return self.columns.T
-
-
-@dataclass(frozen=True, eq=False)
-class Evaluation:
-    """Predictions, residuals and the unweighted normal-equation pieces of
-    every channel at one parameter vector (only samples in ``use``)."""
-
-    pred: np.ndarray      # (n, 3)
-    resid: np.ndarray     # (n, 3), zero where not used
-    gram: np.ndarray      # (3, p, p) per channel J'J
-    rhs: np.ndarray       # (3, p) per channel J' resid
-    rss: np.ndarray       # (3,)
-    n_used: np.ndarray    # (3,)
-    designs: tuple[ChannelDesign, ...]
-
-
-def normal_equations(d: ChannelDesign, p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """The full (p, p) J'J and J'r of one channel from its compact design
-    (rows sorted by rate, so each rate's block is a view; J'J of a block is
-    one BLAS ``syrk`` on the column-major columns, no transposed copy)."""
-    k = d.ext.size
-    # the channel's own parameters (every rate's base, then the extensions),
-    # scattered into the (p, p) matrix once
-    own, own_rhs = np.zeros((4 * m + k, 4 * m + k)), np.zeros(4 * m + k)
-    ext = slice(4 * m, None)
-    cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
-    for f in range(m):
-        Cf = d.columns[:, cuts[f]:cuts[f + 1]]
-        Gf = Cf @ Cf.T
-        bf = Cf @ d.resid[cuts[f]:cuts[f + 1]]
-        base = slice(4 * f, 4 * f + 4)
-        own[base, base] = Gf[:4, :4]
-        own[base, ext] = Gf[:4, 4:]
-        own[ext, base] = Gf[4:, :4]
-        own[ext, ext] += Gf[4:, 4:]
-        own_rhs[base] = bf[:4]
-        own_rhs[ext] += bf[4:]
-    params = np.concatenate([d.base.ravel(), d.ext])
-    G, b = np.zeros((p, p)), np.zeros(p)
-    G[params[:, None], params] = own
-    b[params] = own_rhs
-    return G, b
-
-
-def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]], m: int,
-                 obs: Observations | None = None) -> Evaluation:
-    """``ev`` with further Jacobian columns: ``extra[r]`` = (parameter
-    numbers, columns (n, k)) of channel r, e.g. an offset step's indicator
-    (``obs``: the observations whose scratch array can hold a gather of the
-    design's columns)."""
-    gram, rhs = ev.gram.copy(), ev.rhs.copy()
-    for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
-        E = columns[d.rows]
-        keep = ~np.isin(d.ext, params)  # the design holds these columns as zeros
-        kept = 4 + np.flatnonzero(keep)
-        if kept.size > 0 and kept[-1] - kept[0] == kept.size - 1:  # a run of columns: a view
-            ext_columns = d.columns[kept[0]:kept[-1] + 1]
-        else:  # into the scratch array: no fresh pages to fault in
-            ext_columns = np.take(d.columns, kept, axis=0,
-                                  mode="clip", out=None if obs is None else column_buffer(obs, kept.size)[:, :d.rows.size])
-        cross_ext = ext_columns @ E
-        gram[r][np.ix_(d.ext[keep], params)] = cross_ext
-        gram[r][np.ix_(params, d.ext[keep])] = cross_ext.T
-        gram[r][np.ix_(params, params)] = E.T @ E
-        rhs[r][params] = E.T @ d.resid
-        cuts = np.searchsorted(d.rate_idx, np.arange(m + 1))
-        for f in range(m):
-            at = slice(cuts[f], cuts[f + 1])
-            cross = d.columns[:4, at] @ E[at]
-            gram[r][np.ix_(d.base[f], params)] = cross
-            gram[r][np.ix_(params, d.base[f])] = cross.T
-    return replace(ev, gram=gram, rhs=rhs)
 
 
 @dataclass(frozen=True)
@@ -202,6 +115,11 @@ class _Factors:
         self.motion, self.g_local = obs.motion, obs.g_local
         self.cache: dict = motion_reuse(obs, effects)["factors"]
         self.on_axis = self.cached("on_axis", lambda: [obs.motion.axis_idx == a for a in range(3)])
+
+    def runs(self, support: Support) -> list[tuple[int, slice]]:
+        """(rate, samples) of the runs holding ``support``'s samples."""
+        return [(run.rate, run.samples) for run in sample_runs(self.obs)
+                if support.axis in (None, run.axis) and (run.rotating or not support.rotating)]
 
     def cached(self, key, make):
         if key not in self.cache:
@@ -263,11 +181,13 @@ class Linearisation:
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
-    def _column(self, r: int, i: int, rows: np.ndarray | None, keep: bool, row: np.ndarray) -> None:
+    def _column(self, r: int, i: int, rows: np.ndarray | None, keep: bool, row: np.ndarray,
+                runs: list[slice] | None = None) -> None:
         """Channel r's column of parameter i on the used ``rows`` (None:
-        every sample) into ``row``, the design's. ``keep``: kept for a later
-        evaluation (the active parameters'); the others are computed into
-        the design's row itself when every sample is used (no copy)."""
+        every sample) into ``row``, the design's (on ``runs`` of the used
+        samples alone, if given). ``keep``: kept for a later evaluation (the
+        active parameters'); the others are computed into the design's row
+        itself when every sample is used (no copy)."""
         column = self.built.get((r, i))
         if column is None:
             name = self.layout.names[i]
@@ -277,10 +197,11 @@ class Linearisation:
                 self.built[r, i] = column
         if column is row:
             return
-        if rows is None:
-            np.copyto(row, column)
-        else:
-            np.take(column, rows, out=row)
+        for at in [slice(None)] if runs is None else runs:
+            if rows is None:
+                np.copyto(row[at], column[at])
+            else:
+                np.take(column, rows[at], out=row[at])
 
     def evaluation(self, params: np.ndarray | None = None) -> Evaluation:
         """The normal equations of the Jacobian's columns of the base
@@ -290,14 +211,23 @@ class Linearisation:
         p, m = len(layout.names), layout.n_rates
         designs, grams, rhss = [], [], []
         width = 4 + max(int((channel >= layout.n_base).sum()) for channel in layout.per_channel)
+        chosen = None   # ``params`` as a mask (np.isin took 0.1 ms a call)
+        if params is not None:
+            chosen = np.zeros(p, bool)
+            chosen[params] = True
         for st in self.states:
             r = st.r
             rows = np.flatnonzero(use[:, r])
             every = rows.size == obs.n
             ext = layout.per_channel[r][layout.per_channel[r] >= layout.n_base]
-            if params is not None:
-                ext = ext[np.isin(ext, params)]
-            columns = design_buffer(obs, 4 + ext.size, rows.size, width)
+            if chosen is not None:
+                ext = ext[chosen[ext]]
+            ext = ext[np.argsort(layout.group[ext], kind="stable")]
+            groups = np.searchsorted(layout.group[ext], np.arange(GROUPS + 1))
+            runs = sample_runs(obs) if every else runs_of(obs.rate_idx[rows], obs.motion.axis_idx[rows],
+                                                          obs.motion.rotating[rows])
+            shared = max(groups[3 + 2 * a] - groups[1 + 2 * a] for a in range(3))   # rows of the axes' columns
+            columns = design_buffer(obs, 4 + groups[1] + shared, rows.size, width)
             columns[0] = 1.0
             if every and st.unit_slope:
                 columns[1:4] = st.geo.force
@@ -305,13 +235,18 @@ class Linearisation:
                 np.multiply(st.slope, st.geo.force, out=columns[1:4])
             else:
                 columns[1:4] = (st.slope * st.geo.force)[:, rows]
-            for k, i in enumerate(ext):
+            for k, i in enumerate(ext[:groups[1]]):
                 self._column(r, i, None if every else rows, params is not None, columns[4 + k])
+            for a in range(3):   # each axis's columns into the shared rows, on its runs
+                on_axis = [run.samples for run in runs if run.axis == a]
+                for k, i in enumerate(ext[groups[1 + 2 * a]:groups[3 + 2 * a]]):
+                    self._column(r, i, None if every else rows, params is not None, columns[4 + groups[1] + k], on_axis)
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             # every sample used: a strided copy of the residuals' column instead of a gather (same values)
             d = ChannelDesign(columns, obs.rate_idx if every else obs.rate_idx[rows], rows,
-                              np.ascontiguousarray(self.resid[:, r]) if every else self.resid[rows, r], base, ext)
+                              np.ascontiguousarray(self.resid[:, r]) if every else self.resid[rows, r], base, ext,
+                              groups, runs)
             G, b = normal_equations(d, p, m)
             designs.append(d)
             grams.append(G)
@@ -352,6 +287,5 @@ def solve(G: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, fl
 
 def rss_after(ev: Evaluation, step: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Per-channel residual sum of squares after a linearised step."""
-    return np.array([
-        ev.rss[r] - 2 * step @ ev.rhs[r][idx] + step @ ev.gram[r][idx[:, None], idx] @ step for r in range(3)
-    ])
+    gram, rhs = ev.gram[:, idx[:, None], idx], ev.rhs[:, idx]   # the three channels' blocks in one gather each
+    return np.array([ev.rss[r] - 2 * step @ rhs[r] + step @ gram[r] @ step for r in range(3)])

@@ -81,9 +81,5 @@ def with_phases_free(fit: ModelFit, segments: np.ndarray, step_deg: float = 1e-3
         w = 1.0 / fit.sigma[r] ** 2
         e = jac[d.rows, r, :]
         info += w * e.T @ e
-        cross[d.ext] += w * d.X[:, 4:].T @ e
-        cuts = np.searchsorted(d.rate_idx, np.arange(len(d.base) + 1))
-        for f, base in enumerate(d.base):
-            at = slice(cuts[f], cuts[f + 1])
-            cross[base] += w * d.X[at, :4].T @ e[at]
+        cross[np.concatenate([d.base.ravel(), d.ext])] += w * d.transposed_times(e)
     return replace(fit, G=fit.G - cross @ np.linalg.solve(info, cross.T))

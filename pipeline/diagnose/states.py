@@ -22,18 +22,26 @@ from rotcal.model.effects import GainEffect
 from rotcal.model.physics import Effects, scale_terms, scaled
 
 
-def project(rows: np.ndarray, vectors: np.ndarray, blocks: list[slice], out: np.ndarray | None = None) -> np.ndarray:
-    """rows[f] . vectors per sample of rate f's block: ``rows`` (m, 3) one
-    channel's responsivity row per rate, ``vectors`` (3, n) per component.
-    The three products are summed as numpy's einsum sums them, (0 + 2) + 1,
-    so the values are those the per-sample einsum gave, bit for bit."""
+def project(rows: np.ndarray, vectors: np.ndarray, runs: list[tuple[int, slice]], out: np.ndarray | None = None) -> np.ndarray:
+    """rows[f] . vectors per sample of each run (f, samples) of rate f:
+    ``rows`` (m, 3) one channel's responsivity row per rate, ``vectors``
+    (3, n) per component; ``out`` is left as it is off the runs. The three
+    products are summed as numpy's einsum sums them, (0 + 2) + 1, so the
+    values are those the per-sample einsum gave, bit for bit."""
     out = np.empty(vectors.shape[1]) if out is None else out
-    for row, at in zip(rows, blocks):
-        o, v = out[at], vectors[:, at]
+    for f, at in runs:
+        row, o, v = rows[f], out[at], vectors[:, at]
         np.multiply(v[0], row[0], out=o)
         o += v[2] * row[2]
         o += v[1] * row[1]
     return out
+
+
+def _new(out: np.ndarray | None, n: int, runs: list[tuple[int, slice]] | None) -> np.ndarray:
+    """``out``, or a new array: zero where ``runs`` (if given) leave it."""
+    if out is not None:
+        return out
+    return np.empty(n) if runs is None else np.zeros(n)
 
 
 class ChannelState:
@@ -51,18 +59,24 @@ class ChannelState:
         self.unit_slope = unit_slope   # ``slope`` is 1 everywhere (no gain or scale effect)
         self._R_rates, self._obs = R_rates, obs
 
-    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None,
+                           runs: list[tuple[int, slice]] | None = None) -> np.ndarray:
         """The responsivity row's component j times ``values`` per sample: one
         number per rate block, so no (n, 3) row per sample is gathered (the
-        products are those of the gathered row, bit for bit)."""
-        out = np.empty(values.size) if out is None else out
-        for row, at in zip(self._R_rates[:, self.r], rate_blocks(self._obs)):
-            np.multiply(values[at], row[j], out=out[at])
+        products are those of the gathered row, bit for bit); on ``runs``
+        (rate, samples) alone if given (``out`` left as it is off them)."""
+        out = _new(out, values.size, runs)
+        rows = self._R_rates[:, self.r]
+        for f, at in rate_blocks(self._obs) if runs is None else runs:
+            np.multiply(values[at], rows[f, j], out=out[at])
         return out
 
-    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """R_row . vectors per sample, ``vectors`` (3, n) per component."""
-        return project(self._R_rates[:, self.r], vectors, rate_blocks(self._obs), out)
+    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None,
+                         runs: list[tuple[int, slice]] | None = None) -> np.ndarray:
+        """R_row . vectors per sample, ``vectors`` (3, n) per component (on
+        ``runs`` alone if given, as ``responsivity_times``)."""
+        out = _new(out, vectors.shape[1], runs)
+        return project(self._R_rates[:, self.r], vectors, rate_blocks(self._obs) if runs is None else runs, out)
 
     @cached_property
     def d_theta(self) -> np.ndarray:
@@ -73,6 +87,10 @@ class ChannelState:
     @property
     def theta(self) -> np.ndarray:
         return self.geo.theta
+
+    @property
+    def up(self) -> np.ndarray:
+        return self.geo.up
 
     @property
     def base(self) -> np.ndarray:

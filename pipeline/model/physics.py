@@ -73,12 +73,16 @@ def true_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
     return theta
 
 
-def specific_force(motion: Motion, effects: Effects, g_local: float, delay_s: float) -> np.ndarray:
+def specific_force(motion: Motion, effects: Effects, g_local: float, delay_s: float,
+                   up: np.ndarray | None = None) -> np.ndarray:
     """Specific force (m/s^2, table frame) for a channel sampled ``delay_s``
     late: gravity of Geist Eq. 5 changed by the gravity effects (e.g.
-    ``axis_tilt``), then the added force terms (e.g. ``centripetal``)."""
-    theta = true_angle(motion, effects, delay_s)
-    a = g_local * gravity_direction(motion.axis_idx, theta)
+    ``axis_tilt``), then the added force terms (e.g. ``centripetal``).
+    ``up``: gravity's direction at the true angles (``gravity_direction``),
+    where the caller has it."""
+    if up is None:
+        up = gravity_direction(motion.axis_idx, true_angle(motion, effects, delay_s))
+    a = g_local * up
     factor = effects.rate_factor()
     for effect, state in effects.active(ForceEffect):
         effect.force(state, motion, a, g_local, factor)

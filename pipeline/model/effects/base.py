@@ -69,6 +69,34 @@ class Candidate:
 
 
 @dataclass(frozen=True)
+class Support:
+    """The samples on which an extension's Jacobian columns can be nonzero:
+    those of one table ``axis`` (None: every sample), only its rotating ones
+    if ``rotating``. The model computes the columns and their normal
+    equations there alone (``rotcal.diagnose.design``)."""
+
+    axis: int | None = None
+    rotating: bool = False
+
+
+EVERYWHERE = Support()
+
+
+def on_runs(runs: list[tuple[int, slice]], first: np.ndarray, *factors: np.ndarray,
+            out: np.ndarray | None = None) -> np.ndarray:
+    """first times ``factors`` per sample, multiplied in that order, on
+    ``runs`` (rate, samples) alone: into ``out`` if given (it may be
+    ``first``; left as it is off the runs), else a new array, zero there."""
+    out = np.zeros(first.size) if out is None else out
+    for _, at in runs:
+        product = out[at]
+        np.multiply(first[at], factors[0][at], out=product)
+        for factor in factors[1:]:
+            product *= factor[at]
+    return out
+
+
+@dataclass(frozen=True)
 class ReportedParameter:
     name: str
     value: float
@@ -93,17 +121,24 @@ class Channel(Protocol):
     @property
     def theta(self) -> np.ndarray: ...     # true angle at the channel's sampling instant
     @property
+    def up(self) -> np.ndarray: ...        # gravity's direction there, (3, n) per component (Geist 2017 Eq. 5)
+    @property
     def base(self) -> np.ndarray: ...      # the rotating samples' uniform angle (before ripple)
     @property
     def stretch(self) -> np.ndarray: ...   # d theta / d base
     @property
     def gained(self) -> np.ndarray: ...    # y times every gain effect's factor: what the scale effects multiply
+    @property
+    def unit_slope(self) -> bool: ...      # ``slope`` is 1 everywhere
 
-    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
-    # R_row . vectors per sample, vectors (3, n) per component (into ``out`` if given)
+    def responsivity_dot(self, vectors: np.ndarray, out: np.ndarray | None = None,
+                         runs: list[tuple[int, slice]] | None = None) -> np.ndarray: ...
+    # R_row . vectors per sample, vectors (3, n) per component (into ``out`` if given; if ``runs``
+    # (rate, samples) are given, on them alone: ``out`` left as it is off them, a new array zero)
 
-    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
-    # the responsivity row's component j (output unit per g) times ``values`` per sample
+    def responsivity_times(self, j: int, values: np.ndarray, out: np.ndarray | None = None,
+                           runs: list[tuple[int, slice]] | None = None) -> np.ndarray: ...
+    # the responsivity row's component j (output unit per g) times ``values`` per sample (``runs`` as above)
 
 
 class ColumnContext(Protocol):
@@ -116,6 +151,9 @@ class ColumnContext(Protocol):
     on_axis: list[np.ndarray]
 
     def cached(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray: ...
+
+    def runs(self, support: Support) -> list[tuple[int, slice]]: ...
+    # (rate index, samples) of the runs of one rate and axis that hold ``support``'s samples
 
     def gain_column(self, effect: GainEffect, st: Channel, out: np.ndarray | None = None) -> np.ndarray: ...
 
@@ -210,8 +248,14 @@ class Effect:
                out: np.ndarray | None = None) -> np.ndarray:
         """d output / d (internal parameter ``name``) in channel ``st.r``;
         ``out`` (n,), when given, may hold the result (the design's row:
-        the diagnosis then copies nothing), which is returned either way."""
+        the diagnosis then copies nothing), which is returned either way;
+        written there on the column's ``support`` alone (the design reads
+        nothing else), a new array is zero off it."""
         raise NotImplementedError
+
+    def support(self, cand: Candidate) -> Support:
+        """Where ``cand``'s columns can be nonzero (exactly zero elsewhere)."""
+        return EVERYWHERE
 
     def report(self, cand: Candidate, value: np.ndarray, cov: np.ndarray, output_unit: str) -> list[ReportedParameter]:
         """The docs/effects.md parameters of a fitted extension, with uncertainties."""

@@ -9,7 +9,17 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import AXES, axis_index
-from rotcal.model.effects.base import ALL, Candidate, Channel, ColumnContext, ForceEffect, Parameter, ReportedParameter
+from rotcal.model.effects.base import (
+    ALL,
+    Candidate,
+    Channel,
+    ColumnContext,
+    ForceEffect,
+    Parameter,
+    ReportedParameter,
+    Support,
+    on_runs,
+)
 
 
 def across(axis: str) -> tuple[str, str]:
@@ -78,7 +88,12 @@ class Centripetal(ForceEffect):
         m = ctx.motion
         factor = ctx.cached(("centripetal", a), lambda: np.where(
             m.rotating & ctx.on_axis[a], -(2 * np.pi * m.rate_hz * ctx.effects.rate_factor()) ** 2 / ctx.g_local, 0.0))
-        return np.multiply(st.responsivity_times(j, st.slope, out), factor, out=out)
+        runs = ctx.runs(self.support(cand))
+        column = st.responsivity_times(j, st.slope, out, runs)
+        return on_runs(runs, column, factor, out=column)
+
+    def support(self, cand):
+        return Support(AXES.index(cand.scope), rotating=True)
 
     def report(self, cand, value, cov, output_unit):
         radius = float(np.hypot(*value))

@@ -9,7 +9,17 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import AXES, axis_index
-from rotcal.model.effects.base import ALL, AngleEffect, Candidate, Channel, ColumnContext, Parameter, ReportedParameter
+from rotcal.model.effects.base import (
+    ALL,
+    AngleEffect,
+    Candidate,
+    Channel,
+    ColumnContext,
+    Parameter,
+    ReportedParameter,
+    Support,
+    on_runs,
+)
 
 
 class RateRipple(AngleEffect):
@@ -68,15 +78,20 @@ class RateRipple(AngleEffect):
                out: np.ndarray | None = None) -> np.ndarray:
         """d theta / d(a cos p) = sin(base), d theta / d(a sin p) = cos(base)."""
         a, delay = AXES.index(cand.scope), ctx.effects.delays()[st.r]
-        wave = np.sin if name.endswith(".a_deg") else np.cos
 
-        def make() -> np.ndarray:
-            out = np.zeros(ctx.motion.t_s.size)
+        def make() -> np.ndarray:   # (sin, cos) of the base angle on the axis's rotation samples: both columns' at once
+            waves = np.zeros((2, ctx.motion.t_s.size))
             idx = np.flatnonzero(ctx.motion.rotating)
             sel = ctx.on_axis[a][idx]
-            out[idx[sel]] = wave(np.deg2rad(st.base[sel]))
-            return out
-        return np.multiply(st.d_theta, ctx.cached((name, delay), make), out=out)
+            base = np.deg2rad(st.base[sel])
+            waves[0, idx[sel]] = np.sin(base)
+            waves[1, idx[sel]] = np.cos(base)
+            return waves
+        wave = ctx.cached(("ripple", a, delay), make)[0 if name.endswith(".a_deg") else 1]
+        return on_runs(ctx.runs(self.support(cand)), st.d_theta, wave, out=out)
+
+    def support(self, cand):
+        return Support(AXES.index(cand.scope), rotating=True)
 
     def report(self, cand, value, cov, output_unit):
         alpha, beta = value
