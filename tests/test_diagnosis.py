@@ -110,6 +110,8 @@ def test_clipping_that_leaves_no_sample_with_every_channel_usable(tmp_path):
     _, _, findings, params = _diagnose(tmp_path, 45, effects=("clipping:clip_high=0,clip_low=-100",))
     assert findings.filter(pl.col("effect") == "clipping")["detected"].item()
     assert dict(zip(params["parameter"], params["value"])) == {"clip_low": -100.0, "clip_high": 0.0}
+    # the rate-dependence finding names a component whose uncertainty is defined (it said "± nan")
+    assert not findings["evidence"].str.contains("nan").any(), findings["evidence"].to_list()
 
 
 @pytest.mark.parametrize("fitted, reported", [(715.0, -5.0), (725.0, 5.0), (-365.0, -5.0), (0.3, 0.3)])

@@ -288,14 +288,13 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
     p = chi2_sf(stat, diff.size)
     if p >= alpha:
         return []
-    z = diff / np.sqrt(np.diag(cov_diff))
-    k = int(np.argmax(np.abs(z)))
-    f, rc = 1 + k // 9, k % 9
-    rate = final.obs.rates[f]
-    return [Unexplained(
+    sd = np.sqrt(np.clip(np.diag(cov_diff), 0.0, None))  # 0 where clipping left a component undetermined: no z
+    k = int(np.argmax(np.abs(diff) * (sd > 0) / np.where(sd > 0, sd, 1.0)))
+    f, rc, rate = 1 + k // 9, k % 9, final.obs.rates[1 + k // 9]
+    return [] if sd[k] == 0 else [Unexplained(
         "rate_dependence", f"rate {rate:g} Hz against rate {final.obs.rates[0]:g} Hz, channel {CHANNELS[rc // 3]}",
         f"the responsivity changes with rate beyond its uncertainty: component {AXES[rc % 3]} of {CHANNELS[rc // 3]} "
-        f"at {rate:g} Hz differs by {diff[k]:+.3g} ± {np.sqrt(cov_diff[k, k]):.2g} {output_unit} per g "
+        f"at {rate:g} Hz differs by {diff[k]:+.3g} ± {sd[k]:.2g} {output_unit} per g "
         f"(chi-square {stat:.0f} on {diff.size}; p = {_fmt_p(p)})", p, np.zeros(3), 0)]
 
 
