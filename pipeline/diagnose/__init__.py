@@ -289,8 +289,9 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
     if p >= alpha:
         return []
     sd = np.sqrt(np.clip(np.diag(cov_diff), 0.0, None))  # 0 where clipping left a component undetermined: no z
-    k = int(np.argmax(np.abs(diff) * (sd > 0) / np.where(sd > 0, sd, 1.0)))
-    f, rc, rate = 1 + k // 9, k % 9, final.obs.rates[1 + k // 9]
+    k = int(np.argmax(np.abs(diff) / np.where(sd > 0, sd, np.inf)))
+    f, rc = 1 + k // 9, k % 9
+    rate = final.obs.rates[f]
     return [] if sd[k] == 0 else [Unexplained(
         "rate_dependence", f"rate {rate:g} Hz against rate {final.obs.rates[0]:g} Hz, channel {CHANNELS[rc // 3]}",
         f"the responsivity changes with rate beyond its uncertainty: component {AXES[rc % 3]} of {CHANNELS[rc // 3]} "

@@ -102,8 +102,7 @@ def active_indices(layout: Layout, active: tuple[Candidate, ...]) -> np.ndarray:
 
 def _sigma(ev: Evaluation, layout: Layout, idx: np.ndarray, obs: Observations) -> np.ndarray:
     """Each channel's noise from its residuals, never below the numerical floor."""
-    active = np.zeros(len(layout.names), bool)   # a mask, not np.isin (0.1 ms a call)
-    active[idx] = True
+    active = layout.mask(idx)
     k = np.array([active[channel].sum() for channel in layout.per_channel])
     return np.maximum(np.sqrt(ev.rss / np.maximum(ev.n_used - k, 1)), obs.noise_floor)
 

@@ -64,6 +64,12 @@ class Layout:
     def params(self, cand: Candidate) -> np.ndarray:
         return np.array([self.index[n] for n in cand.names])
 
+    def mask(self, idx: np.ndarray) -> np.ndarray:
+        """Parameter numbers ``idx`` as a mask over every parameter (``np.isin`` took 0.1 ms a call)."""
+        chosen = np.zeros(len(self.names), bool)
+        chosen[idx] = True
+        return chosen
+
     def offsets(self, beta: np.ndarray) -> np.ndarray:
         return beta[: 3 * self.n_rates].reshape(self.n_rates, 3)
 
@@ -211,10 +217,7 @@ class Linearisation:
         p, m = len(layout.names), layout.n_rates
         designs, grams, rhss = [], [], []
         width = 4 + max(int((channel >= layout.n_base).sum()) for channel in layout.per_channel)
-        chosen = None   # ``params`` as a mask (np.isin took 0.1 ms a call)
-        if params is not None:
-            chosen = np.zeros(p, bool)
-            chosen[params] = True
+        chosen = None if params is None else layout.mask(params)
         for st in self.states:
             r = st.r
             rows = np.flatnonzero(use[:, r])
