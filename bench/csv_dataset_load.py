@@ -1,5 +1,5 @@
 """A batch worker's ingest of default-plan CSV datasets (15 captures,
-54,000 samples each): ``ingest.load_dataset`` (listing, metadata, copies,
+54,000 samples each): ``ingest.dataset.load_dataset`` (listing, metadata, copies,
 parsing, validation, labels, time order) against ``polars.read_csv`` of the
 same files one by one, on one polars thread as ``rotcal batch`` workers run;
 milliseconds per dataset by the wall clock and by CPU time (the machine may
@@ -27,7 +27,7 @@ import polars as pl  # noqa: E402
 from batch_e2e import _simulate  # noqa: E402
 from common import best_cpu_of, best_of  # noqa: E402
 
-from rotcal.ingest import load_dataset  # noqa: E402
+from rotcal.ingest.dataset import load_dataset  # noqa: E402
 
 
 def _each(read: Callable[[Path], object], paths: list[Path]) -> None:

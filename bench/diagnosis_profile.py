@@ -45,7 +45,7 @@ def measure(root: Path, profile: bool) -> dict:
     from threadpoolctl import threadpool_limits
 
     from rotcal.config import RunConfig
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.run import Reductions, determined, diagnose_stage, intrinsic_table, recommend_stage, recommended_fits
     from rotcal.run.stages import reduce, segment_and_fit
 

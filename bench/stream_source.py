@@ -28,7 +28,7 @@ CHILD = """
 import json, sys, time
 from pathlib import Path
 import polars as pl
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.timebase import repair_timebase

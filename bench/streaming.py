@@ -154,7 +154,7 @@ def fits(dataset: Path, block: int, repeats: int = 3) -> None:
 
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.run.streaming import stream_segments
     from rotcal.segment import segment_by_labels
 

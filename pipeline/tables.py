@@ -11,18 +11,17 @@ label columns of millions of rows.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import polars as pl
 
 from rotcal import __version__
+from rotcal_schemas import schema_text
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -52,11 +51,6 @@ class TableSchema:
 
     def empty(self) -> pl.DataFrame:
         return pl.DataFrame(schema=self.polars_schema)
-
-
-def schema_text(name: str) -> dict:
-    """The parsed JSON document of a schema in ``schemas/``."""
-    return json.loads(resources.files("rotcal_schemas").joinpath(f"{name}.json").read_text())
 
 
 @cache

@@ -88,7 +88,7 @@ def run_dataset_form(directory: Path, config=None, full: bool = False, out: Path
     """The ingest, time-base, segmentation and fit stages in-process; with
     ``full``, ``run_dataset`` too, every table it publishes read back."""
     from rotcal.errors import UndeterminedError
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.run import run_dataset, segment_and_fit
     from rotcal.tables import conform, finite_or_null
 

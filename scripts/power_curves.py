@@ -39,7 +39,7 @@ from rotcal.diagnose import Diagnosis, _start
 from rotcal.diagnose.clipping import quantum
 from rotcal.diagnose.fitting import score
 from rotcal.diagnose.glr import clipping_glr, clipping_threshold, glr, null_fit
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.model.effects import effect_named, names
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult

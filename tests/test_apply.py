@@ -17,7 +17,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from rotcal.apply import correct, correction_covariance
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.model.calibration import Calibration
 from rotcal.run import RunOutcome, run_dataset
 

@@ -13,7 +13,7 @@ from rotcal.batch.plan import dataset_id, discover
 from rotcal.batch.runner import run_batch
 from rotcal.config import BatchConfig, RunConfig
 from rotcal.simulate import simulate, write_dataset
-from rotcal.tables import schema_text
+from rotcal_schemas import schema_text
 
 from batch_support import SERIAL, SMALL, assert_clean, assert_same_tables, config_file, make_root, manifest_rows, result_tables
 

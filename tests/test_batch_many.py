@@ -8,7 +8,7 @@ import polars as pl
 import pyarrow.dataset as pads
 
 from rotcal.batch.plan import dataset_id
-from rotcal.tables import schema_text
+from rotcal_schemas import schema_text
 
 from batch_support import assert_clean, config_file, make_root, manifest_rows
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.segment.blind import axis_from_normal, rough_calibration, segment_blind
 from rotcal.simulate import Plan, SimulationSpec, simulate
 

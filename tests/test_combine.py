@@ -76,7 +76,7 @@ def test_fits_table_round_trip_gives_each_segments_vector_and_covariance(make_da
     9-vector (channel-major C, A, B) and the 9 x 9 covariance."""
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.segment.labelled import segment_by_labels
 
     ds = load_dataset(make_dataset(6))

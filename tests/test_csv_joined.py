@@ -10,9 +10,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-import rotcal.ingest as ingest
+import rotcal.ingest.dataset as ingest
 from rotcal.errors import InputError
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.simulate import Plan, SimulationSpec
 
 SMALL = SimulationSpec(plan=Plan(rates_hz=(0.1,), rotation_samples=600, step_samples=10))

@@ -177,7 +177,7 @@ def _every_effect_on(make_dataset):
     from rotcal.combine.labelled import combine
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.model.results import IntrinsicResult
     from rotcal.run import run_dataset as _run  # noqa: F401
     from rotcal.segment.labelled import segment_by_labels
@@ -323,7 +323,7 @@ def test_corrected_samples_reuse_the_diagnosis_bit_for_bit(tmp_path):
     from dataclasses import replace
 
     from rotcal.diagnose.corrected import without_effects
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.run import determined, diagnose_stage
     from rotcal.run.stages import reduce, segment_and_fit
 

@@ -14,7 +14,7 @@ import pytest
 from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.reconstructed import with_reconstructed_angles
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.run import run_dataset
 from rotcal.run.stages import segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset

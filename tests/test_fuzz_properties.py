@@ -279,7 +279,7 @@ def test_a_failed_fits_nan_covariance_is_published_as_nulls():
 
 
 def test_a_capture_name_too_long_for_the_file_system_is_one_line(tmp_path):
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
 
     (tmp_path / "dataset.toml").write_text(f'[[capture]]\nfile = "{"x" * 10000}.csv"\n')
     with pytest.raises(InputError) as error:
@@ -293,7 +293,7 @@ def test_a_labelled_rotation_cut_short_without_angle_fails_its_fit_instead_of_na
     information matrix had negative variances, published as NaN
     uncertainties of an "ok" fit (fuzz seed 17, input 35260); from one, the
     spectral search raised ValueError (input 63580)."""
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
     from rotcal.run import segment_and_fit
     from rotcal.simulate import write_dataset
 

@@ -14,8 +14,8 @@ import pytest
 
 from rotcal.config import FitConfig, Limits
 from rotcal.errors import InputError
-from rotcal.ingest import load_dataset
 from rotcal.ingest.csv_source import read_csv_capture
+from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.meta import CsvFormat
 from rotcal.simulate import Plan, SimulationSpec
 

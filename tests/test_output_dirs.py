@@ -20,7 +20,7 @@ import pytest
 from test_bad_input import assert_one_line_error
 
 from rotcal.report.publish import LISTING, OutputDir, publish_directory
-from rotcal.tables import schema_text
+from rotcal_schemas import schema_text
 
 from posesim import hand_placed, samples_frame
 from testdata import REPO

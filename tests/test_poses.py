@@ -9,7 +9,7 @@ import pytest
 
 from rotcal.combine.multiposition import pose_arrays, pose_table
 from rotcal.combine.poses import LABEL_REFERENCE, correct_poses, labelled_poses, reference_fit
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.model.results import Failure
 from rotcal.segment.labelled import segment_by_labels
 

@@ -14,7 +14,7 @@ from rotcal.diagnose.clipping import quantum
 from rotcal.diagnose.glr import clipping_glr, glr, null_fit
 from rotcal.diagnose.model import Layout
 from rotcal.fit.segments import fit_segments, fits_frame
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.model.results import IntrinsicResult
 from rotcal.segment.labelled import segment_by_labels
 

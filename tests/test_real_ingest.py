@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.segment.stillness import still_intervals
 
 from testdata import REAL, REPO

@@ -22,7 +22,8 @@ from test_hostile_mcap import ACCELERATION, IMU, SMALL, TABLE, VELOCITY, _long_m
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import load_dataset, mcap_fast, mcap_source, stream
+from rotcal.ingest import mcap_fast, mcap_source, stream
+from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.spill import Spill, replayed
 from rotcal.ingest.stream import COLUMNS, open_stream
@@ -260,7 +261,8 @@ def test_an_empty_file_and_a_missing_topic(tmp_path):
 MEMORY_CHILD = """
 import sys
 from pathlib import Path
-from rotcal.ingest import load_dataset, mcap_fast, stream
+from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest import mcap_fast, stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
 from rotcal.timebase import repair_timebase, stream_ranks

@@ -19,7 +19,7 @@ import rotcal.run.streamed as streamed
 from rotcal.config import FitConfig, RunConfig, with_options
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.segments import fit_segments, fits_frame, sincos_deg, sine3_fit
-from rotcal.ingest import load_dataset
+from rotcal.ingest.dataset import load_dataset
 from rotcal.run import run_dataset
 from rotcal.run.streaming import stream_segments
 from rotcal.segment import segment_by_labels

@@ -1,6 +1,6 @@
 """``rotcal apply``: a calibration applied to a recording.
 
-The recording is read as every rotcal input is (``ingest.load_dataset``:
+The recording is read as every rotcal input is (``ingest.dataset.load_dataset``:
 any capture form, with its ``dataset.toml``), corrected with the chosen
 rate's a = P (R - O) (Geist 2017 Eq. 18) and written with the stamps it
 had, in the calibration's frame."""
@@ -64,7 +64,7 @@ def apply_calibration(calibration: Path, recording: Path, out: Path, rate_hz: fl
     The recording's output unit must be the calibration's where its
     dataset.toml names one. Raises ``InputError`` for a bad calibration,
     recording or output path."""
-    from rotcal.ingest import load_dataset
+    from rotcal.ingest.dataset import load_dataset
 
     output_format(out)
     writable_file(out)

@@ -29,7 +29,6 @@ from rotcal.config import EXECUTOR, BatchConfig, RunConfig
 from rotcal.errors import ConfigError, RotcalError
 from rotcal.parallel import cores, share
 from rotcal.report.publish import OutputDir
-from rotcal.tables import write_table
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -63,7 +62,10 @@ def _write_part(table: pa.Table, part_path: Path, dataset_path: str) -> None:
     renamed, by a view of the same buffers (a cast would load
     pyarrow.compute, 0.16 s of CPU in every worker), the others taken as
     they are (a cast per column cost more than the encoding of a small part)."""
-    import pyarrow as pa  # on workers only: the coordinating process never writes a table (0.3 s of its imports)
+    # on workers only: the coordinating process never writes a table, nor loads polars (0.3 s of its imports)
+    import pyarrow as pa
+
+    from rotcal.tables import write_table
 
     fields, columns = [pa.field("dataset_path", pa.string())], [pa.array([dataset_path] * table.num_rows, pa.string())]
     for field, column in zip(table.schema, table.columns):

@@ -38,7 +38,7 @@ from pathlib import Path
 from rotcal.errors import ExitCode, RotcalError
 from rotcal.ingest.duplicates import file_identity
 from rotcal.ingest.files import open_capture
-from rotcal.tables import schema_text
+from rotcal_schemas import schema_text
 
 MANIFEST_VERSION = 1
 _SQL_TYPES = {"string": "TEXT", "float64": "REAL", "int64": "INTEGER"}

@@ -16,7 +16,7 @@ from rotcal import __version__
 from rotcal.batch.manifest import Manifest
 from rotcal.config import Limits, RunConfig
 from rotcal.errors import InputError, LimitError, RotcalError, decoded
-from rotcal.ingest import CAPTURE_SUFFIXES, capture_files
+from rotcal.ingest.files import CAPTURE_SUFFIXES, capture_files
 from rotcal.ingest.meta import load_meta
 
 _CLEAN_PART = re.compile(r"[A-Za-z0-9.-]+(?:_[A-Za-z0-9.-]+)*")

@@ -8,9 +8,14 @@ from __future__ import annotations
 import os
 import stat
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
 from rotcal.errors import InputError
+
+if TYPE_CHECKING:
+    from rotcal.ingest.meta import CaptureSpec, DatasetMeta
+
+CAPTURE_SUFFIXES = (".csv", ".mcap")
 
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
@@ -48,3 +53,49 @@ def open_capture(path: Path) -> BinaryIO:
     except BaseException:
         os.close(fd)
         raise
+
+
+def dataset_name(path: Path) -> str:
+    return path.name if path.is_dir() else path.stem
+
+
+def inside(root: Path, relative: str, source: str | None) -> Path:
+    """``root / relative``, refused unless it stays inside ``root`` (no ``..``,
+    absolute paths or symlinks out)."""
+    candidate = Path(relative)
+    resolved = (root / candidate).resolve()
+    if candidate.is_absolute() or not resolved.is_relative_to(root.resolve()):
+        raise InputError(f"[[capture]] file {relative!r} points outside the dataset directory", path=source)
+    return resolved
+
+
+def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec | None]]:
+    """The dataset's captures with their ``[[capture]]`` entries, by file name.
+
+    Every capture must be a regular file (a FIFO named ``trap.csv`` is
+    refused, not waited on) inside the dataset directory: a link found in
+    the directory whose target resolves outside it is refused with one line,
+    as a ``[[capture]]`` entry pointing outside is; skipping it would
+    calibrate from fewer captures than the directory shows. A capture file
+    given itself (not a directory) is read wherever its link points.
+    """
+    if not path.is_dir():
+        require_regular(path)
+        specs = {c.file: c for c in meta.captures}
+        return [(path, specs.get(path.name))]
+    if meta.captures:
+        files = [(inside(path, c.file, meta.source), c) for c in meta.captures]
+        for file, _ in files:
+            if not os.path.exists(file):  # False, not OSError, for a name too long to exist
+                raise InputError("capture file named in dataset.toml does not exist", path=file)
+            require_regular(file)
+        return files
+    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir())
+    if not found:
+        raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
+    resolved = path.resolve()
+    for file in found:  # an entry that is no link lies in the directory: only a link can lead out of it
+        if file.is_symlink() and not file.resolve().is_relative_to(resolved):
+            raise InputError(f"{file.name!r} is a symbolic link pointing outside the dataset directory", path=file)
+        require_regular(file)
+    return [(f, None) for f in found]

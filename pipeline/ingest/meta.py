@@ -12,8 +12,8 @@ from pathlib import Path
 import jsonschema
 
 from rotcal.errors import InputError
-from rotcal.model.physics import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
-from rotcal.tables import schema_text
+from rotcal.model.conventions import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
+from rotcal_schemas import schema_text
 
 # The deepest valid value is three levels down ([[capture]] -> table -> key);
 # far deeper nesting is hostile (400 levels overflow tomllib's recursion).

@@ -44,6 +44,7 @@ import polars as pl
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import mcap_fast
+from rotcal.ingest.dataset import read_capture
 from rotcal.ingest.labels import MAX_ABS_VALUE, label_columns, time_ordered
 from rotcal.ingest.mcap_columns import DecodedTopic
 from rotcal.ingest.mcap_messages import require
@@ -295,11 +296,9 @@ def _canonical(frame: pl.DataFrame, spec: CaptureSpec | None, path: Path, source
 
 def _in_memory(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int, capture: str,
                config: TimebaseConfig, block: int) -> StreamedCapture:
-    """The capture read whole (``ingest.read_capture``), its time base checked
+    """The capture read whole (``ingest.dataset.read_capture``), its time base checked
     and repaired in memory (``check_capture``, ordered as
     ``repair_timebase`` orders it), and cut into blocks."""
-    from rotcal.ingest import read_capture  # the package imports its modules, not this one
-
     frame, notes = read_capture(path, spec, meta, limits, workers)
     samples = conform(frame.with_columns(capture=pl.lit(capture)), "samples")
     tb = check_capture(samples["t_ns"].to_numpy(), [samples[c].to_numpy() for c in ("u", "v", "w")], capture, config)

@@ -38,7 +38,7 @@ from scipy.stats import binom, chi2
 from rotcal.combine.labelled import combine
 from rotcal.config import FitConfig
 from rotcal.fit.segments import fit_segments, fits_frame
-from rotcal.ingest import Dataset, load_dataset
+from rotcal.ingest.dataset import Dataset, load_dataset
 from rotcal.metrology.uncertainty import COVERAGE_PROBABILITY
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult

@@ -31,7 +31,7 @@ from rotcal.errors import InputError
 from rotcal.jsontext import json_text
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
-from rotcal.tables import schema_text
+from rotcal_schemas import schema_text
 
 if TYPE_CHECKING:
     from rotcal.ingest.meta import DatasetMeta

@@ -19,8 +19,8 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
-from rotcal.model import Failure, IntrinsicResult, Table
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
 from rotcal.run.outputs import (
     INPUT_TABLES,

@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING
 import polars as pl
 
 from rotcal.config import RunConfig
-from rotcal.ingest import Dataset
+from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import content_hashes
 from rotcal.metrology import (
     cross_sensitivity_frame,
 )
-from rotcal.model import IntrinsicResult, Table
 from rotcal.model.calibration import Calibration, Recommended, recommended_calibration
+from rotcal.model.results import IntrinsicResult, Table
 from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.tables import contract_table, write_table
 

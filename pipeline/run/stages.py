@@ -28,7 +28,7 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
 from rotcal.fit.normal import SineSums
-from rotcal.ingest import Dataset
+from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.metrology import (
     budget_frame,
@@ -47,8 +47,8 @@ from rotcal.metrology import (
     temperature_frame,
 )
 from rotcal.metrology.simultaneous import simultaneous_from_sums
-from rotcal.model import Failure, IntrinsicResult, Reduction, Table
 from rotcal.model.calibration import BASELINE, REFINED, Recommended, recommend
+from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.run.outputs import Figure
 from rotcal.run.streamed import StreamedDataset, corrected_blocks, streamed_fits, streamed_segments
 from rotcal.run.streaming import StreamedSegments

@@ -21,7 +21,9 @@ import polars as pl
 from rotcal.config import RunConfig
 from rotcal.errors import InputError
 from rotcal.fit.segments import SegmentFit
-from rotcal.ingest import Dataset, capture_files, dataset_name, load_dataset, mcap_fast
+from rotcal.ingest import mcap_fast
+from rotcal.ingest.dataset import Dataset, load_dataset
+from rotcal.ingest.files import capture_files, dataset_name
 from rotcal.ingest.mcap_records import McapFile, Unsupported
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
