@@ -8,5 +8,8 @@ __version__ = "0.1.0"
 # returning them; rotcal's stages alternate polars and numpy, which cannot
 # reuse them, so on captures of millions of samples they add up to the peak
 # memory. Returned at once instead (read when polars is first imported; a
-# setting of the user's own is kept).
-os.environ.setdefault("_RJEM_MALLOC_CONF", "dirty_decay_ms:0,muzzy_decay_ms:0")
+# setting of the user's own is kept). Batch pool workers, which run many
+# small datasets one after another, keep them a second
+# (``batch.jobs.WORKER_MALLOC``).
+JEMALLOC_CONF = "dirty_decay_ms:0,muzzy_decay_ms:0"
+os.environ.setdefault("_RJEM_MALLOC_CONF", JEMALLOC_CONF)

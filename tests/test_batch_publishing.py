@@ -12,6 +12,7 @@ import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+import rotcal
 from rotcal.batch.jobs import WORKER_MALLOC, _write_part, open_executor
 from rotcal.combine.labelled import rate_segments, segment_coefficients
 from rotcal.config import BatchConfig
@@ -31,21 +32,36 @@ def test_a_part_is_the_published_file_read_back_with_its_dataset_path(tmp_path):
     assert (tmp_path / "parts" / "fits.parquet").read_bytes() == (tmp_path / "expected.parquet").read_bytes()
 
 
-def _worker_settings(_: int) -> tuple[int, str | None, str | None]:
+def _worker_settings(_: int) -> tuple[int, str | None, str | None, str]:
     import polars
 
-    return polars.thread_pool_size(), os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_")
+    return (polars.thread_pool_size(), os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+            os.environ["_RJEM_MALLOC_CONF"])
 
 
-def test_pool_workers_size_polars_to_their_share_of_the_cores_and_keep_freed_memory():
+def test_pool_workers_size_polars_to_their_share_of_the_cores_and_keep_freed_memory(monkeypatch):
+    monkeypatch.setenv("_RJEM_MALLOC_CONF", rotcal.JEMALLOC_CONF)  # rotcal's process default, as importing rotcal set it
     assert "POLARS_MAX_THREADS" not in os.environ and "MALLOC_MMAP_THRESHOLD_" not in os.environ
     with open_executor(BatchConfig(workers=2), 4) as (executor, workers):
         settings = [f.result() for f in [executor.submit(_worker_settings, k) for k in range(4)]]
-    # two cores, two workers: one thread each; malloc keeps 64 MB arrays on the heap, 256 MB freed
-    assert workers == 2 and settings == [(1, str(64 << 20), str(256 << 20))] * 4
-    assert WORKER_MALLOC == {"MALLOC_MMAP_THRESHOLD_": "67108864", "MALLOC_TRIM_THRESHOLD_": "268435456"}
+    # two cores, two workers: one thread each; malloc keeps 64 MB arrays on the heap, 256 MB freed;
+    # Polars' jemalloc keeps freed pages a second (Polars puts its own defaults before the setting)
+    assert workers == 2 and [s[:3] for s in settings] == [(1, str(64 << 20), str(256 << 20))] * 4
+    assert all(s[3].endswith(",dirty_decay_ms:1000,muzzy_decay_ms:1000") for s in settings), settings
+    assert WORKER_MALLOC == {"MALLOC_MMAP_THRESHOLD_": "67108864", "MALLOC_TRIM_THRESHOLD_": "268435456",
+                             "_RJEM_MALLOC_CONF": "dirty_decay_ms:1000,muzzy_decay_ms:1000"}
     # the batch process's environment as it was
-    assert not {"POLARS_MAX_THREADS", *WORKER_MALLOC} & set(os.environ)
+    assert not {"POLARS_MAX_THREADS", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"} & set(os.environ)
+    assert os.environ["_RJEM_MALLOC_CONF"] == rotcal.JEMALLOC_CONF
+
+
+def test_a_users_own_allocator_settings_reach_the_workers(monkeypatch):
+    monkeypatch.setenv("_RJEM_MALLOC_CONF", "dirty_decay_ms:7")
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "12345")
+    with open_executor(BatchConfig(workers=2), 2) as (executor, _):
+        settings = [f.result() for f in [executor.submit(_worker_settings, k) for k in range(2)]]
+    assert all(s[2] == "12345" and s[3].endswith(",dirty_decay_ms:7") for s in settings), settings
+    assert os.environ["_RJEM_MALLOC_CONF"] == "dirty_decay_ms:7" and os.environ["MALLOC_TRIM_THRESHOLD_"] == "12345"
 
 
 def _fits(segments: list[tuple[int, str, float, str]], scale: float) -> pl.DataFrame:
