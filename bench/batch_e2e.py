@@ -29,12 +29,17 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import numpy as np
-import polars as pl
+# the environment a new user's shell gives rotcal batch, taken before Polars is
+# imported here: Polars sets its allocator's variable (_RJEM_MALLOC_CONF) in
+# this process's environment, which every child would otherwise inherit
+NEW_USER_ENVIRONMENT = dict(os.environ)
 
-from rotcal.diagnose.scenarios import draw_effect
-from rotcal.model.effects import names
-from rotcal.simulate import SimulationSpec, simulate, write_dataset
+import numpy as np  # noqa: E402
+import polars as pl  # noqa: E402
+
+from rotcal.diagnose.scenarios import draw_effect  # noqa: E402
+from rotcal.model.effects import names  # noqa: E402
+from rotcal.simulate import SimulationSpec, simulate, write_dataset  # noqa: E402
 
 
 def effects_of(seed: int, mix: bool) -> tuple[str, ...]:
@@ -61,7 +66,8 @@ def batch(python: str, root: Path, out: Path, workers: int, config: Path | None)
     """Wall and CPU seconds (the batch process and its workers) of one fresh ``rotcal batch``."""
     command = [python, "-m", "rotcal", "batch", str(root), "--out", str(out), "--workers", str(workers)]
     cpu, start = _children_cpu(), time.perf_counter()
-    run = subprocess.run(command + (["--config", str(config)] if config else []), capture_output=True, text=True)
+    run = subprocess.run(command + (["--config", str(config)] if config else []), capture_output=True, text=True,
+                         env=NEW_USER_ENVIRONMENT)
     if run.returncode != 0:
         raise SystemExit(f"{' '.join(command)}: exit {run.returncode}\n{run.stderr[-2000:]}")
     return time.perf_counter() - start, _children_cpu() - cpu

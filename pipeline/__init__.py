@@ -12,4 +12,5 @@ __version__ = "0.1.0"
 # small datasets one after another, keep them a second
 # (``batch.jobs.WORKER_MALLOC``).
 JEMALLOC_CONF = "dirty_decay_ms:0,muzzy_decay_ms:0"
+USER_JEMALLOC_CONF = os.environ.get("_RJEM_MALLOC_CONF")  # the user's own, kept everywhere
 os.environ.setdefault("_RJEM_MALLOC_CONF", JEMALLOC_CONF)

@@ -40,7 +40,8 @@ def _worker_settings(_: int) -> tuple[int, str | None, str | None, str]:
 
 
 def test_pool_workers_size_polars_to_their_share_of_the_cores_and_keep_freed_memory(monkeypatch):
-    monkeypatch.setenv("_RJEM_MALLOC_CONF", rotcal.JEMALLOC_CONF)  # rotcal's process default, as importing rotcal set it
+    monkeypatch.setattr(rotcal, "USER_JEMALLOC_CONF", None)  # as in a shell without the variable
+    conf = os.environ["_RJEM_MALLOC_CONF"]  # rotcal's process default, as Polars left it here
     assert "POLARS_MAX_THREADS" not in os.environ and "MALLOC_MMAP_THRESHOLD_" not in os.environ
     with open_executor(BatchConfig(workers=2), 4) as (executor, workers):
         settings = [f.result() for f in [executor.submit(_worker_settings, k) for k in range(4)]]
@@ -52,11 +53,12 @@ def test_pool_workers_size_polars_to_their_share_of_the_cores_and_keep_freed_mem
                              "_RJEM_MALLOC_CONF": "dirty_decay_ms:1000,muzzy_decay_ms:1000"}
     # the batch process's environment as it was
     assert not {"POLARS_MAX_THREADS", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"} & set(os.environ)
-    assert os.environ["_RJEM_MALLOC_CONF"] == rotcal.JEMALLOC_CONF
+    assert os.environ["_RJEM_MALLOC_CONF"] == conf
 
 
 def test_a_users_own_allocator_settings_reach_the_workers(monkeypatch):
     monkeypatch.setenv("_RJEM_MALLOC_CONF", "dirty_decay_ms:7")
+    monkeypatch.setattr(rotcal, "USER_JEMALLOC_CONF", "dirty_decay_ms:7")  # as importing rotcal found it
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "12345")
     with open_executor(BatchConfig(workers=2), 2) as (executor, _):
         settings = [f.result() for f in [executor.submit(_worker_settings, k) for k in range(2)]]

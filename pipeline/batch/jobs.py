@@ -206,15 +206,16 @@ def _worker_environment(threads: int) -> Iterator[None]:
     on each other for every small frame (about a tenth of a dataset's CPU).
     Results do not depend on either."""
     wanted = {"POLARS_MAX_THREADS": str(threads), **WORKER_MALLOC}
-    before = {name: os.environ.get(name) for name in wanted}
-    ours = {"_RJEM_MALLOC_CONF": rotcal.JEMALLOC_CONF}  # rotcal's process default, not the user's
-    changed = [name for name, value in before.items() if value is None or value == ours.get(name)]
-    os.environ.update({name: wanted[name] for name in changed})
+    mine = {name for name in wanted if name not in os.environ}
+    if rotcal.USER_JEMALLOC_CONF is None:  # it holds rotcal's process default (or Polars' own), not the user's
+        mine.add("_RJEM_MALLOC_CONF")
+    before = {name: os.environ.get(name) for name in mine}
+    os.environ.update({name: wanted[name] for name in mine})
     try:
         yield
     finally:
-        for name in changed:
-            if (value := before[name]) is None:
+        for name, value in before.items():
+            if value is None:
                 del os.environ[name]
             else:
                 os.environ[name] = value
