@@ -21,7 +21,13 @@ import sys
 import time
 from pathlib import Path
 
-from rotcal.simulate import SimulationSpec, simulate, write_dataset
+# the environment a new user's shell gives rotcal batch, taken before rotcal
+# and Polars are imported here: they set Polars' allocator variable
+# (_RJEM_MALLOC_CONF) in this process's environment, which every child would
+# otherwise inherit
+NEW_USER_ENVIRONMENT = dict(os.environ)
+
+from rotcal.simulate import SimulationSpec, simulate, write_dataset  # noqa: E402
 
 
 def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
@@ -30,7 +36,7 @@ def batch(root: Path, out: Path, *args: str) -> tuple[float, dict, int, float]:
     one ``rotcal batch``."""
     start = time.perf_counter()
     run = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", sys.executable, "-m", "rotcal", "batch", str(root),
-                          "--out", str(out), "--json", *args], capture_output=True, text=True)
+                          "--out", str(out), "--json", *args], capture_output=True, text=True, env=NEW_USER_ENVIRONMENT)
     wall = time.perf_counter() - start
     if run.returncode not in (0, 4):
         raise SystemExit(run.stderr)
