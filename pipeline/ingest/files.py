@@ -1,7 +1,9 @@
-"""Capture files as the file system holds them: a name is opened as it is
+"""Capture files as the file system holds them: a dataset's captures
+(``capture_files``) stay inside its directory, a name is opened as it is
 written (``x[yz].csv`` is that file, never a glob pattern matching
 ``xz.csv``), and only a regular file is read (a FIFO would block the run
-forever waiting for a writer, a device would never end)."""
+forever waiting for a writer, a device would never end). Nothing here loads
+Polars: the batch process finds a dataset's captures with it."""
 
 from __future__ import annotations
 
