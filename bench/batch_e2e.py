@@ -73,6 +73,17 @@ def batch(python: str, root: Path, out: Path, workers: int, config: Path | None)
     return time.perf_counter() - start, _children_cpu() - cpu
 
 
+# whether a rotcal's modules load from bytecode or are compiled from source in
+# every process (an editable install where PYTHONDONTWRITEBYTECODE is set):
+# about 0.1 s of CPU a process, the batch process's and each worker's
+BYTECODE = ("import importlib.util, os, rotcal.run as m; "
+            "print('bytecode' if os.path.exists(importlib.util.cache_from_source(m.__file__)) else 'no bytecode')")
+
+
+def bytecode(python: str) -> str:
+    return subprocess.run([python, "-c", BYTECODE], capture_output=True, text=True, env=NEW_USER_ENVIRONMENT).stdout.strip()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--datasets", type=int, default=100)
@@ -81,6 +92,7 @@ def main() -> None:
     parser.add_argument("--without-diagnosis", action="store_true", help="also run the clean datasets with [diagnosis] enabled = false")
     args = parser.parse_args()
     n = args.datasets
+    pythons = [("this rotcal", sys.executable)] + ([("reference", args.reference)] if args.reference else [])
     with tempfile.TemporaryDirectory() as tmp:
         roots = {"clean": Path(tmp) / "clean", "mix": Path(tmp) / "mix"}
         jobs = [(seed, root / f"dut{seed:03d}", kind == "mix") for kind, root in roots.items() for seed in range(1, n + 1)]
@@ -92,13 +104,13 @@ def main() -> None:
         print(f"{n} datasets, {rows:,} samples; polars.read_csv of every capture: {floor:.2f} s; {os.cpu_count()} cores; "
               f"rotcal batch --workers {args.workers}, default configuration (report.md and certificate.html per dataset, "
               f"no PNG figures)", flush=True)
+        print("rotcal's modules: " + "; ".join(f"{who}: {bytecode(python)}" for who, python in pythons), flush=True)
         no_diagnosis = Path(tmp) / "no_diagnosis.toml"
         no_diagnosis.write_text("[diagnosis]\nenabled = false\n")
         runs = [("clean", "clean datasets", None), ("mix", "two thirds with a catalogue effect", None)]
         if args.without_diagnosis:
             runs.insert(0, ("clean", "clean datasets, diagnosis off", no_diagnosis))
         for k, (kind, label, config) in enumerate(runs):
-            pythons = [("this rotcal", sys.executable)] + ([("reference", args.reference)] if args.reference else [])
             measured = {}
             for who, python in pythons:
                 load = os.getloadavg()[0]
