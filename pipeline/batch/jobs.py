@@ -192,9 +192,8 @@ class _LocalPool(Executor):
 # oversize_threshold) are returned at once all the same, so a large capture's
 # peak grows little. Measured (run_job in one process, 20 clean datasets,
 # two alternations): page faults 5,100 to 1,100 a dataset, system time 21 to
-# 13-14 ms of 178 (100 ms: 1,850 faults, 250 ms: 1,250); a batch of 100 mix
-# datasets 4.5 % less CPU; a batch of a 4.8-million-sample MCAP capture and a
-# default-plan one: peak 650 to 705 MB.
+# 13-14 ms of 178 (100 ms: 1,850 faults, 250 ms: 1,250); a batch of a
+# 4.8-million-sample MCAP capture and a default-plan one: peak 650 to 705 MB.
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(64 << 20), "MALLOC_TRIM_THRESHOLD_": str(256 << 20),
                  "_RJEM_MALLOC_CONF": "dirty_decay_ms:1000,muzzy_decay_ms:1000"}
 
