@@ -21,11 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-# the environment a new user's shell gives rotcal batch, taken before rotcal
-# and Polars are imported here: they set Polars' allocator variable
-# (_RJEM_MALLOC_CONF) in this process's environment, which every child would
-# otherwise inherit
-NEW_USER_ENVIRONMENT = dict(os.environ)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from batch_e2e import NEW_USER_ENVIRONMENT  # noqa: E402  (first: taken before Polars is imported)
 
 from rotcal.simulate import SimulationSpec, simulate, write_dataset  # noqa: E402
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtrc, gammaincc, gammaln, ndtr
+from scipy.special import gammaincc, gammaln, ndtr
 
 from rotcal.diagnose.fitting import chi2_sf
 from rotcal.model.physics import AXES, CHANNELS
@@ -44,7 +44,7 @@ def normal_p(values: np.ndarray) -> float:
         denom = 1 + x * (2 / (a - 4.0)) ** 0.5
         term2 = np.sign(denom) * np.where(denom == 0.0, np.nan, ((1 - 2.0 / a) / np.abs(denom)) ** (1 / 3))
         z_kurt = ((1 - 2 / (9.0 * a)) - term2) / (2 / (9.0 * a)) ** 0.5
-    return float(chdtrc(2.0, z_skew * z_skew + z_kurt * z_kurt))
+    return chi2_sf(z_skew * z_skew + z_kurt * z_kurt, 2.0)
 
 
 @dataclass(frozen=True)

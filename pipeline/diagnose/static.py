@@ -32,11 +32,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.special import chdtrc, chdtri, fdtrc, fdtri
+from scipy.special import chdtri, fdtrc, fdtri
 
 from rotcal.combine import StaticReduction
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import report_parameters
+from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.scans import _fmt
 from rotcal.diagnose.static_model import PoseModel, pose_model
 from rotcal.fit.lsq import nonlinear
@@ -120,7 +121,7 @@ class Linearised:
             p = float(fdtrc(k, dof, stat / k))  # scipy.stats.f.sf: stat >= 0
         else:
             stat = removed
-            p = float(chdtrc(k, stat))  # scipy.stats.chi2.sf: stat >= 0
+            p = chi2_sf(stat, k)
         return Test(added, stat, p, -stat + k * np.log(self.n))
 
     def limit(self, cand: Candidate, active: tuple[Candidate, ...], alpha: float) -> dict[str, float]:
