@@ -76,7 +76,8 @@ def _dtype(column: dict) -> pl.DataType:
 def _require_columns(frame: pl.DataFrame, name: str) -> TableSchema:
     """Contract ``name``, which ``frame`` has every column of; else ``KeyError`` naming the missing ones."""
     sch = schema(name)
-    missing = [c for c in sch.columns if c not in frame.columns]
+    present = set(frame.columns)  # a list built anew at each access: once, not per column
+    missing = [c for c in sch.columns if c not in present]
     if missing:
         raise KeyError(f"table {name!r} lacks columns {missing}")
     return sch

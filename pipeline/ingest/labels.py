@@ -58,7 +58,8 @@ def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("
     bounds = {name: MAX_ABS_VALUE for name in ("u", "v", "w")} | {"t": MAX_ABS_TIME_S}
     bounds |= {name: MAX_ABS_VALUE for name in (*OPTIONAL_FLOATS, *required) if name != "t"}
     within = _within(frame, bounds)
-    checked = [name for name in bounds if name in frame.columns and name not in within]
+    present = set(frame.columns)
+    checked = [name for name in bounds if name in present and name not in within]
     if not checked:
         return
     first_bad = frame.select(
@@ -78,8 +79,8 @@ def _within(frame: pl.DataFrame, bounds: dict[str, float]) -> set[str]:
     it), in one select of three passes per column without a copy, the
     columns in parallel; any other column goes to the row by row search
     for the fault."""
-    names = [name for name in bounds if name in frame.columns and frame.schema[name] == pl.Float64
-             and not frame[name].null_count()]
+    types = frame.schema  # built anew at each access: once, not per name
+    names = [name for name in bounds if types.get(name) == pl.Float64 and not frame[name].null_count()]
     if not names or not frame.height:
         return set()
     stats = frame.select(pl.col(names).min().name.suffix(" min"), pl.col(names).max().name.suffix(" max"),
