@@ -35,9 +35,11 @@ def content_hashes(files: tuple[Path, ...], root: Path, known: Mapping[tuple[int
     run's inputs (calibration.json's ``inputs``). ``known``: SHA-256s the
     caller has, by ``file_identity``, taken for a file that still has it
     instead of reading it again (the batch hashed every input to plan)."""
+    top = root.resolve()
+
     def name(f: Path) -> str:
         resolved = f.resolve()
-        return (resolved.relative_to(root.resolve()) if resolved.is_relative_to(root.resolve()) else resolved).as_posix()
+        return (resolved.relative_to(top) if resolved.is_relative_to(top) else resolved).as_posix()
 
     def entry(f: Path) -> dict:
         st = f.stat()
