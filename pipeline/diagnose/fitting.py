@@ -123,7 +123,7 @@ def fit_model(obs: Observations, layout: Layout, beta: np.ndarray, active: tuple
     buffers until the garbage collector runs).
     """
     null = ("null fit", layout, clip, use.tobytes()) if not active and structure == Structure() else None
-    held = obs.reuse.get(null, lambda: None)()
+    held = obs.reuse[null]() if null in obs.reuse else None
     if held is not None:
         return held
     # Hand-written rather than scipy's least_squares, which needs the dense
