@@ -13,8 +13,12 @@ load average. ``--reference PYTHON`` runs another rotcal installation (an
 interpreter whose ``-m rotcal`` is, say, the main branch) on the same
 datasets in the same bench run, each run beside its reference, and prints
 the ratios: on a shared machine the ratio is the figure to trust.
+``--rounds N`` runs every batch N times on the same datasets, the two
+rotcals in turn first (on the 2-core machine the one run first was several
+percent slower, docs/measured.md, eleventh session), and ends with each
+ratio's median.
 
-    python bench/batch_e2e.py [--datasets 100] [--workers 2] [--reference /path/to/python] [--without-diagnosis]
+    python bench/batch_e2e.py [--datasets 100] [--workers 2] [--reference /path/to/python] [--rounds 1] [--without-diagnosis]
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -90,6 +95,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="rotcal batch --workers; 0 = one per core")
     parser.add_argument("--reference", help="python of another rotcal installation, run beside this one")
     parser.add_argument("--without-diagnosis", action="store_true", help="also run the clean datasets with [diagnosis] enabled = false")
+    parser.add_argument("--rounds", type=int, default=1, help="runs of every batch, the rotcals in turn first")
     args = parser.parse_args()
     n = args.datasets
     pythons = [("this rotcal", sys.executable)] + ([("reference", args.reference)] if args.reference else [])
@@ -111,18 +117,25 @@ def main() -> None:
         runs = [("clean", "clean datasets", None), ("mix", "two thirds with a catalogue effect", None)]
         if args.without_diagnosis:
             runs.insert(0, ("clean", "clean datasets, diagnosis off", no_diagnosis))
-        for k, (kind, label, config) in enumerate(runs):
-            measured = {}
-            for who, python in pythons:
-                load = os.getloadavg()[0]
-                wall, cpu = batch(python, roots[kind], Path(tmp) / f"out{k}_{who[0]}", args.workers, config)
-                measured[who] = (wall, cpu)
-                print(f"{who}, {n} {label}: {wall:.1f} s wall ({60 * n / wall:.0f} datasets/minute, "
-                      f"{wall / floor:.0f} x the read_csv floor), CPU {cpu:.1f} s = {cpu / n:.3f} s per dataset "
-                      f"({60 * n / cpu:.0f} datasets per CPU-minute); load average {load:.1f} at the start", flush=True)
-            if args.reference:
-                (wall, cpu), (ref_wall, ref_cpu) = measured["this rotcal"], measured["reference"]
-                print(f"  {label}: this rotcal over the reference: {ref_wall / wall:.2f}x wall, {ref_cpu / cpu:.2f}x CPU", flush=True)
+        ratios: dict[str, list[tuple[float, float]]] = {label: [] for _, label, _ in runs}
+        for r in range(args.rounds):
+            for k, (kind, label, config) in enumerate(runs):
+                measured = {}
+                for who, python in pythons if r % 2 == 0 else pythons[::-1]:
+                    load = os.getloadavg()[0]
+                    wall, cpu = batch(python, roots[kind], Path(tmp) / f"out{r}_{k}_{who[0]}", args.workers, config)
+                    measured[who] = (wall, cpu)
+                    print(f"{who}, {n} {label}: {wall:.1f} s wall ({60 * n / wall:.0f} datasets/minute, "
+                          f"{wall / floor:.0f} x the read_csv floor), CPU {cpu:.1f} s = {cpu / n:.3f} s per dataset "
+                          f"({60 * n / cpu:.0f} datasets per CPU-minute); load average {load:.1f} at the start", flush=True)
+                if args.reference:
+                    (wall, cpu), (ref_wall, ref_cpu) = measured["this rotcal"], measured["reference"]
+                    ratios[label].append((ref_wall / wall, ref_cpu / cpu))
+                    print(f"  {label}: this rotcal over the reference: {ref_wall / wall:.2f}x wall, {ref_cpu / cpu:.2f}x CPU", flush=True)
+        if args.reference and args.rounds > 1:
+            for label, pairs in ratios.items():
+                print(f"{label}, median of {args.rounds} rounds: this rotcal over the reference "
+                      f"{statistics.median(w for w, _ in pairs):.2f}x wall, {statistics.median(c for _, c in pairs):.2f}x CPU")
 
 
 if __name__ == "__main__":
