@@ -3,7 +3,7 @@ statistics come from scipy.special (scipy.stats costs 0.32 s of CPU to
 import, in every worker), with the same values to the bit as the
 scipy.stats functions they stand for; the combined parts' lists are renamed
 without pyarrow.compute. The batch process plans a run without loading
-polars, pyarrow or scipy, so its pool starts sooner."""
+numpy, polars, pyarrow or scipy, so its pool starts sooner."""
 
 import shutil
 import subprocess
@@ -32,10 +32,10 @@ def test_a_worker_job_leaves_out_scipy_stats_optimize_and_pyarrow_compute(make_d
     assert run.stdout.strip() == "ok []"
 
 
-def test_the_batch_process_plans_without_polars_pyarrow_or_scipy(make_dataset, tmp_path):
+def test_the_batch_process_plans_without_numpy_polars_pyarrow_or_scipy(make_dataset, tmp_path):
     """What ``rotcal batch`` imports before its pool starts, and what planning
-    a dataset (its captures found and hashed) loads: none of the three (0.2 s
-    of the batch process's imports, while one core waits)."""
+    a dataset (its captures found and hashed) loads: none of the four (0.4 s
+    of the batch process's imports, while the workers start on both cores)."""
     shutil.copytree(make_dataset(1), tmp_path / "root" / "dut")
     code = ("import json, sys\n"
             "from pathlib import Path\n"
@@ -47,7 +47,7 @@ def test_the_batch_process_plans_without_polars_pyarrow_or_scipy(make_dataset, t
             "config, manifest = RunConfig(), Manifest(tmp / 'manifest.sqlite')\n"
             "plans = [plan_dataset(f, root, config, manifest, config_json(config)) for f in discover(root, tmp / 'out')]\n"
             "print([(p.refusal, len(json.loads(p.inputs))) for p in plans], "
-            "sorted(m for m in ('polars', 'pyarrow', 'scipy') if m in sys.modules))")
+            "sorted(m for m in ('numpy', 'polars', 'pyarrow', 'scipy') if m in sys.modules))")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.strip() == "[(None, 16)] []"
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import jsonschema
 
 from rotcal.errors import InputError
-from rotcal.model.conventions import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
+from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
 from rotcal_schemas import schema_text
 
 # The deepest valid value is three levels down ([[capture]] -> table -> key);

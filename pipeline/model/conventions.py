@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY  # noqa: F401 (the conventions' names)
+
 AXES = ("x", "y", "z")
 CHANNELS = ("u", "v", "w")
 INTRINSIC = ("s_u", "s_v", "s_w", "phi_uv", "phi_vw", "phi_wu", "O_u", "O_v", "O_w")
@@ -21,9 +23,6 @@ SIN_COMPONENT = np.array([1, 0, 0])
 COS_COMPONENT = np.array([2, 2, 1])
 # theta (seen from the DUT) from the table's right-hand joint angle q.
 JOINT_SIGN = {"x": -1.0, "y": 1.0, "z": -1.0}
-
-STANDARD_GRAVITY = 9.80665
-STANDARD_GRAVITY_UNCERTAINTY = 0.02
 
 
 def axis_index(axis: str) -> int:
