@@ -9,8 +9,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY  # noqa: F401 (the conventions' names)
-
 AXES = ("x", "y", "z")
 CHANNELS = ("u", "v", "w")
 INTRINSIC = ("s_u", "s_v", "s_w", "phi_uv", "phi_vw", "phi_wu", "O_u", "O_v", "O_w")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
 from rotcal.model.conventions import (
     ANGLE_PAIRS,
     AXES,
@@ -29,8 +30,6 @@ from rotcal.model.conventions import (
     INTRINSIC,
     JOINT_SIGN,
     SIN_COMPONENT,
-    STANDARD_GRAVITY,
-    STANDARD_GRAVITY_UNCERTAINTY,
     Dut,
     Motion,
     axis_index,
