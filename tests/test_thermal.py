@@ -27,7 +27,7 @@ THERMAL = "thermal:tco_v=1.5,tcs_v=6e-5,warmup_k=6,tau_frac=0.25"
 def _motion(temperature):
     n = len(temperature)
     return Motion(t_s=np.arange(n, dtype=float), axis_idx=np.array([0, 0, 1, 2]), rotating=np.zeros(n, bool),
-                  theta_cmd_deg=np.array([0.0, 90.0, 180.0, 30.0]), theta0_deg=np.zeros(n), t_start_s=np.zeros(n),
+                  theta_cmd_deg=np.array([0.0, 90.0, 180.0, 30.0]), t_start_s=np.zeros(n),
                   rate_hz=np.zeros(n), temperature_c=np.asarray(temperature, float))
 
 

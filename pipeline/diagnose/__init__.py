@@ -128,7 +128,6 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
         axis_idx=axis[order].astype(np.int64),
         rotating=rotating[order],
         theta_cmd_deg=angle[order],
-        theta0_deg=np.repeat(angle[np.r_[0, np.cumsum(kept)[:-1]]], kept)[order],  # each segment's first angle
         t_start_s=start_s[order],
         rate_hz=column[motion_rate][taken],
         t0_s=int(column["t_ns"].min()) / 1e9,

@@ -6,9 +6,9 @@ phi), with theta_k and sigma_k = +-1 solved jointly with the intrinsic
 parameters by the phase-free reduction (``rotcal.combine.phasefree``, whose
 sign convention this follows). Written into the samples as ``angle_deg``,
 with the segment's axis and rate, the segments enter the diagnosis as if
-referenced; the model's rotation (theta0 + 360 rate (t - t_start), Motion)
-then runs at the signed fitted rate sigma_k f from the segment's first
-sample.
+referenced; the model's rotation follows those angles, and its effects
+move them at the signed fitted rate sigma_k f from the segment's first
+sample (``model.physics.uniform_angle``).
 
 What the reconstruction cannot give is an angle independent of the signals:
 the fitted rate is the rate the samples show, so a rate error of the table
@@ -70,7 +70,7 @@ def with_phases_free(fit: ModelFit, segments: np.ndarray, step_deg: float = 1e-3
     columns = []
     for k in segments:
         on = obs.segment == k
-        shifted = [predict(replace(obs, motion=replace(motion, theta0_deg=np.where(on, motion.theta0_deg + h, motion.theta0_deg))),
+        shifted = [predict(replace(obs, motion=replace(motion, theta_cmd_deg=np.where(on, motion.theta_cmd_deg + h, motion.theta_cmd_deg))),
                            fit.beta, fit.layout, fit.active, (None, None), fit.structure) for h in (step_deg, -step_deg)]
         columns.append((shifted[0] - shifted[1]) / (2 * np.radians(step_deg)))
     jac = np.stack(columns, axis=2)  # (n, 3, K): d output / d theta_k (per radian)

@@ -104,17 +104,16 @@ class Motion:
     """What the table did at each sample: the inputs of the forward model.
 
     ``theta_cmd_deg`` is the commanded angle at the stamp. For rotation
-    samples, ``theta0_deg``, ``t_start_s`` and ``rate_hz`` describe the
-    commanded rotation theta0 + 360 rate (t - t_start) so that effects can
-    re-evaluate it at another instant or rate. ``temperature_c`` is the
-    DUT's temperature at each sample (degree C), None when not recorded.
+    samples, ``t_start_s`` (the rotation's start) and ``rate_hz`` let
+    effects move it to another instant or rate
+    (``physics.uniform_angle``). ``temperature_c`` is the DUT's temperature
+    at each sample (degree C), None when not recorded.
     """
 
     t_s: np.ndarray
     axis_idx: np.ndarray
     rotating: np.ndarray
     theta_cmd_deg: np.ndarray
-    theta0_deg: np.ndarray
     t_start_s: np.ndarray
     rate_hz: np.ndarray
     t0_s: float = field(default=0.0)

@@ -51,10 +51,18 @@ __all__ = [
 
 def uniform_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:
     """The rotating samples' angle at the true rate, before angle terms:
-    theta0 + 360 rate (1 + e) (t + delay - t_start)."""
+    theta0 + 360 rate (1 + e) (t + delay - t_start), written as each
+    sample's commanded angle theta_cmd = theta0 + 360 rate (t - t_start)
+    moved by 360 rate (e (t - t_start) + (1 + e) delay). The stamps then
+    enter only through the effects' small terms, as the segment fits see
+    them (they fit on the commanded angles): a time base repaired from
+    jittery stamps, whose scale is known to a fraction of a ppm, would
+    otherwise put a chirp of a few output units into every long rotation
+    and be read as an effect."""
     rot = motion.rotating
-    elapsed = motion.t_s[rot] + delay_s - motion.t_start_s[rot]
-    return motion.theta0_deg[rot] + 360.0 * motion.rate_hz[rot] * effects.rate_factor() * elapsed
+    factor = effects.rate_factor()
+    moved = (factor - 1.0) * (motion.t_s[rot] - motion.t_start_s[rot]) + factor * delay_s
+    return motion.theta_cmd_deg[rot] + 360.0 * motion.rate_hz[rot] * moved
 
 
 def true_angle(motion: Motion, effects: Effects, delay_s: float) -> np.ndarray:

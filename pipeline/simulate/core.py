@@ -68,7 +68,7 @@ def build_effects(requests: tuple, rng: np.random.Generator) -> tuple[Effects, l
 
 def plan_parts(plan: Plan, rng: np.random.Generator) -> Iterator[dict]:
     """The plan's segments in order, one at a time: sample times (int64 ns),
-    axis, rate, commanded angles, start angle and segment number.
+    axis, rate, commanded angles and segment number.
 
     Per axis: the static steps (logging paused ``step_move_s`` while the table
     moves), then each rate; logging paused ``pause_s`` between segments. A
@@ -80,13 +80,13 @@ def plan_parts(plan: Plan, rng: np.random.Generator) -> Iterator[dict]:
         steps = np.arange(0.0, 360.0, plan.step_deg)
         step_start = t_next + np.arange(steps.size) * (plan.step_samples * dt_ns + int(plan.step_move_s * 1e9))
         t = (step_start[:, None] + np.arange(plan.step_samples)[None, :] * dt_ns).ravel()
-        yield dict(t_ns=t, axis=axis, rate_hz=0.0, angle=np.repeat(steps, plan.step_samples), theta0=0.0, seg=seg)
+        yield dict(t_ns=t, axis=axis, rate_hz=0.0, angle=np.repeat(steps, plan.step_samples), seg=seg)
         t_next, seg = int(t[-1]) + int(plan.pause_s * 1e9), seg + 1
         for rate in plan.rates_hz:
             t = t_next + np.arange(plan.rotation_samples, dtype=np.int64) * dt_ns
             theta0 = rng.uniform(0.0, 360.0)
             angle = theta0 + 360.0 * rate * (t - t[0]) / 1e9
-            yield dict(t_ns=t, axis=axis, rate_hz=rate, angle=angle, theta0=theta0, seg=seg)
+            yield dict(t_ns=t, axis=axis, rate_hz=rate, angle=angle, seg=seg)
             t_next, seg = int(t[-1]) + int(plan.pause_s * 1e9), seg + 1
 
 
@@ -102,7 +102,6 @@ def schedule(plan: Plan, rng: np.random.Generator) -> tuple[Motion, pl.DataFrame
         axis_idx=np.repeat([axis_index(p["axis"]) for p in parts], sizes),
         rotating=rate != 0,
         theta_cmd_deg=np.concatenate([p["angle"] for p in parts]),
-        theta0_deg=np.repeat([p["theta0"] for p in parts], sizes),
         t_start_s=t_start,
         rate_hz=rate,
         t0_s=t_ns[0] / 1e9,

@@ -72,7 +72,7 @@ def _blocks(parts: Iterator[dict], dut: Dut, effects: Effects, g_local: float, n
         for a in range(0, t_ns.size, block):
             t, m = t_ns[a : a + block], min(block, t_ns.size - a)
             motion = Motion(t_s=t / 1e9, axis_idx=np.full(m, axis_index(part["axis"])), rotating=np.full(m, part["rate_hz"] != 0),
-                            theta_cmd_deg=angle[a : a + block], theta0_deg=np.full(m, part["theta0"]),
+                            theta_cmd_deg=angle[a : a + block],
                             t_start_s=np.full(m, t_ns[0] / 1e9), rate_hz=np.full(m, part["rate_hz"]), t0_s=t0_s)
             observed = observe(noise_free_output(motion, dut, effects, g_local), dut, effects, noise_rng)
             yield t, [np.ascontiguousarray(observed[:, r]) for r in range(3)]

@@ -152,7 +152,6 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
     axis_idx = np.zeros(n, int)
     theta = np.zeros(n)
     theta_cmd = np.zeros(n)
-    theta0 = np.zeros(n)
     t_start = np.zeros(n)
     rate = np.zeros(n)
     rotating = np.zeros(n, bool)
@@ -179,7 +178,7 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
         elif p.kind == "rotation":
             rotating[on] = True
             theta_cmd[on] = p.theta0_deg + 360.0 * p.rate0_hz * tau_s
-            theta0[on], t_start[on], rate[on] = p.theta0_deg, p.t0_s, p.rate0_hz
+            t_start[on], rate[on] = p.t0_s, p.rate0_hz
         else:
             theta[on] = p.theta0_deg
         if p.kind in ("step", "rotation"):
@@ -189,7 +188,7 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
             plan_segment[on] = p.plan_segment
         end_direction = gravity_direction(np.array([axis_index(p.axis)]), np.array([p.end_deg]))[0]
     theta_cmd = np.where(rotating, theta_cmd, theta)
-    motion = Motion(t_s=t_s, axis_idx=axis_idx, rotating=rotating, theta_cmd_deg=theta_cmd, theta0_deg=theta0,
+    motion = Motion(t_s=t_s, axis_idx=axis_idx, rotating=rotating, theta_cmd_deg=theta_cmd,
                     t_start_s=t_start, rate_hz=rate, t0_s=0.0)
     labels = pl.DataFrame({
         "t_ns": t_ns,
