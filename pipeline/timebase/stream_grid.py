@@ -55,6 +55,7 @@ class _Slots:
     shift: np.ndarray
     grid: tuple[np.ndarray, float, np.ndarray] | None = None
     counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    k_means: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def n_runs(self) -> int:
@@ -147,7 +148,8 @@ def _first_slots(stamps: Stamps, n: int) -> _Slots:
 
 
 def _fit(stamps: Stamps, slots: _Slots) -> tuple[float, np.ndarray]:
-    """``grid._grid_fit``: least squares ``s = a_run + T k``; the samples per run kept in ``slots.counts``."""
+    """``grid._grid_fit``: least squares ``s = a_run + T k``; the samples and mean slot per run kept in
+    ``slots.counts`` and ``slots.k_means``."""
     n_runs = slots.n_runs
     count, k_sum, s_sum = np.zeros(n_runs, np.int64), np.zeros(n_runs), np.zeros(n_runs)
     for s, k, run, lead in _walked(stamps, slots):
@@ -168,7 +170,7 @@ def _fit(stamps: Stamps, slots: _Slots) -> tuple[float, np.ndarray]:
         num += _dot(dk, s[lead:] - s_mean[own])
     if den <= 0:
         raise _NotStreamed("no run spans two slots")
-    slots.counts = count
+    slots.counts, slots.k_means = count, k_mean
     period = num / den
     return period, s_mean - period * k_mean
 
@@ -180,14 +182,13 @@ class _Sums:
     n: int = 0
     r: float = 0.0
     rr: float = 0.0
-    k: float = 0.0
     high: float = -np.inf
     low: float = np.inf
     pairs: int = 0
     x: float = 0.0
     y: float = 0.0
     disordered: bool = False  # slots two samples share, or slots or runs going back
-    centred: np.ndarray = field(default_factory=lambda: np.zeros(5))  # (r - mean)^2, (k - mean)^2, xx, yy, xy
+    centred: np.ndarray = field(default_factory=lambda: np.zeros(5))  # (r - mean)^2, (k - its run's mean)^2, xx, yy, xy
 
     def add(self, r: np.ndarray, k: np.ndarray, run: Runs, lead: int) -> None:
         """A block's residuals, slots and runs (``lead`` samples of the block before)."""
@@ -199,7 +200,6 @@ class _Sums:
         self.n += own.size
         self.r += float(own.sum())
         self.rr += _dot(own, own)
-        self.k += float(k[lead:].sum())
         self.high, self.low = max(self.high, float(own.max())), min(self.low, float(own.min()))
         x, y = r[:-1][within], r[1:][within]
         self.pairs += x.size
@@ -260,13 +260,13 @@ def _grid_slots(stamps: Stamps, n: int) -> tuple[_Slots, float, np.ndarray, floa
 def _centred(stamps: Stamps, slots: _Slots, period: float, offset: np.ndarray, sums: _Sums) -> None:
     """The second pass of the statistics: the residuals' and slots' scatter
     about their means and the lag-1 sums within runs (``grid.lag1_within``)."""
-    r_mean, k_mean = sums.r / sums.n, sums.k / sums.n
+    r_mean = sums.r / sums.n
     x_mean, y_mean = sums.x / max(sums.pairs, 1), sums.y / max(sums.pairs, 1)
     for s, k, run, lead in _walked(stamps, slots):
         r, _ = _residuals(s, k, run, period, offset)
         within = _within(run)
         x, y = r[:-1][within] - x_mean, r[1:][within] - y_mean
-        dr, dk = r[lead:] - r_mean, k[lead:] - k_mean
+        dr, dk = r[lead:] - r_mean, k[lead:] - slots.k_means[run if isinstance(run, int) else run[lead:]]
         sums.centred += _dot(dr, dr), _dot(dk, dk), _dot(x, x), _dot(y, y), _dot(x, y)
 
 
@@ -331,7 +331,7 @@ def stream_grid(stamps: Stamps, n: int, capture: str, config: TimebaseConfig = T
             raise _NotStreamed("samples sharing a slot, or slots out of order")
         _centred(stamps, slots, period, offset, sums)
         spread = float(np.sqrt(sums.centred[0] / n))
-        u_period = float(np.sqrt(sums.rr / max(n - 2, 1) / sums.centred[1])) / 1e9
+        u_period = float(np.sqrt(sums.rr / max(n - 1 - slots.n_runs, 1) / sums.centred[1])) / 1e9
         stats = GridStats(n, n, period, u_period, jitter, _lag1(sums), spread, max(sums.high, -sums.low))
         jittery, _, regular = stats.regularity(config)
         gaps = _gaps(stamps, slots, period, offset, regular, jittery and regular, capture, config)
