@@ -235,11 +235,9 @@ def check_capture(t_ns: np.ndarray, channels, capture: str, config: TimebaseConf
     np.square(resid, out=resid)
     ss_resid = np.sum(resid)
     del resid
-    # the period's uncertainty from the slots' scatter within each run (each run has its own offset)
-    n_runs = int(run.max()) + 1
-    dk = k - (np.bincount(run, k, n_runs) / np.bincount(run, minlength=n_runs))[run]
+    dk = k - (np.bincount(run, k) / np.bincount(run))[run]  # about each run's mean: each run has its own offset
     np.square(dk, out=dk)
-    u_period = float(np.sqrt(ss_resid / max(s.size - 1 - n_runs, 1) / np.sum(dk))) / 1e9
+    u_period = float(np.sqrt(ss_resid / max(s.size - 2 - int(run.max()), 1) / np.sum(dk))) / 1e9  # n - 1 - runs dof
     del dk
     slot = k.astype(np.int64)
     del k
