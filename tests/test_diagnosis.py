@@ -53,13 +53,13 @@ def test_stamps_repaired_from_jitter_raise_no_finding(tmp_path, seed):
     is no misfit; built on theta0 + 360 rate (t - t_start) instead, it put
     a chirp of a few counts into every 0.5 Hz rotation, read as a
     channel_delay, a rate_error and unexplained misfits (seeds 7 and 8)."""
-    _, truth, findings, params = _diagnose(tmp_path, seed, spec=JITTERY)
+    _, _, findings, params = _diagnose(tmp_path, seed, spec=JITTERY)
     assert not findings["detected"].any(), findings.filter(pl.col("detected"))
     assert params.height == 0
 
 
 def test_an_effect_under_jittery_stamps_is_still_named_and_measured(tmp_path):
-    _, truth, findings, params = _diagnose(tmp_path, 7, effects=("channel_delay:delay_w_s=0.0008",), spec=JITTERY)
+    _, _, findings, params = _diagnose(tmp_path, 7, effects=("channel_delay:delay_w_s=0.0008",), spec=JITTERY)
     assert set(findings.filter(pl.col("detected"))["effect"]) == {"channel_delay"}
     row = params.filter(pl.col("parameter") == "delay_w_s")
     assert abs(row["value"][0] - 0.0008) <= 3 * row["std_uncertainty"][0], row.row(0)
