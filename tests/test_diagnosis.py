@@ -12,8 +12,9 @@ import polars as pl
 import pytest
 
 from rotcal.config import DiagnosisConfig, RunConfig, RunSection
-from rotcal.diagnose import STEP, _start, extensions, kept_per_segment, observations
+from rotcal.diagnose import STEP, _start, extensions
 from rotcal.diagnose.model import Layout, Structure, evaluate, predict
+from rotcal.diagnose.observed import kept_per_segment, observations
 from rotcal.diagnose.scans import step_scan_p
 from rotcal.run import run_dataset
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset

@@ -23,7 +23,7 @@ remains unexplained.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import polars as pl
@@ -34,6 +34,8 @@ from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, success
 from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
+from rotcal.diagnose.noise import whitening
+from rotcal.diagnose.observed import observations
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
@@ -44,10 +46,9 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
-from rotcal.fit.segments import segment_rows
 from rotcal.model.effects import LimitEffect, listed
 from rotcal.model.effects.base import Candidate
-from rotcal.model.physics import AXES, CHANNELS, Motion
+from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
 
@@ -65,78 +66,6 @@ class Diagnosis:
     before: dict[str, np.ndarray]   # finding -> residuals of the model without it
     samples_available: int          # in the fitted segments; the model's are ``final.obs.n``
     phases: pl.DataFrame | None = None  # the segments whose angles were reconstructed (``reconstructed``)
-
-
-def kept_per_segment(counts: np.ndarray, max_samples: int) -> np.ndarray:
-    """How many samples of each segment the model keeps: all of every segment
-    when the total is within ``max_samples``, else the same number c from
-    each segment longer than c, with c chosen so that the total is
-    ``max_samples`` (short segments, the static steps, are kept whole)."""
-    if counts.sum() <= max_samples:
-        return counts
-    ordered = np.sort(counts)
-    below = np.r_[0, np.cumsum(ordered)[:-1]]  # samples in the segments shorter than each
-    cap = (max_samples - below) / (ordered.size - np.arange(ordered.size))  # c if it lies between neighbours
-    return np.minimum(counts, int(cap[np.argmax(ordered >= cap)]))
-
-
-def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
-                 rates: list[float], g_local: float, max_samples: int) -> tuple[Observations, np.ndarray, int] | None:
-    """The samples of the fitted table segments at the determined ``rates``
-    (in the order given), sorted by rate then time, each static sample's step
-    number (-1 during rotation), and how many samples there were in all.
-
-    Beyond ``max_samples`` each long segment is thinned to evenly spaced
-    samples (``kept_per_segment``): the model stays exact, the noise of its
-    estimates grows as the square root of the thinning, and memory stays
-    bounded on captures of millions of samples. The model's rotation runs
-    at ``phase_rate_hz`` where the samples have it (angles reconstructed
-    from a fitted phase, ``reconstructed``), at ``rate_hz`` otherwise.
-    """
-    fitted = (fits["status"] == "ok").fill_null(False).to_numpy() & np.isin(fits["rate_hz"].to_numpy(), rates)
-    ok = np.unique(fits["segment"].to_numpy()[fitted]).tolist()
-    wanted = set(ok)  # each one's kind and start (null where ``segments`` lacks it):
-    described = {s: (kind, start) for s, kind, start in zip(*(segments[c].to_list() for c in ("segment", "kind", "t_start_ns")))
-                 if s in wanted}
-    if not described:
-        return None
-    rows = segment_rows(samples)
-    first, count = (np.array([rows[k][i] for k in ok], dtype=np.int64) for i in (0, 1))
-    kept = kept_per_segment(count, max_samples)
-    index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
-    kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok))
-    static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
-                                                              np.array(start_ns, dtype=float) / 1e9))
-    motion_rate = "phase_rate_hz" if "phase_rate_hz" in samples.columns else "rate_hz"
-    # each float column as an array (no copy without nulls; NaN for null), the kept rows taken once; the labels taken first
-    column = {c: samples[c].to_numpy() for c in ("t_ns", "rate_hz", "angle_deg", "temperature_c", motion_rate, *CHANNELS)}
-    segment, axis = (samples.select(pl.col("segment"), pl.col("axis").cast(pl.Enum(AXES)).to_physical())[index]
-                     .get_column(c).to_numpy() for c in ("segment", "axis"))
-    t_ns, rate, angle = (column[c][index] for c in ("t_ns", "rate_hz", "angle_deg"))
-    rate_idx = np.zeros(index.size, dtype=np.int64)
-    for i, r in enumerate(rates):
-        rate_idx[rate == r] = i
-    # a static step: a run of one segment at one angle, numbered in time order (NaN equals NaN within a run)
-    same = (segment[1:] == segment[:-1]) & ((angle[1:] == angle[:-1]) | (np.isnan(angle[1:]) & np.isnan(angle[:-1])))
-    step = np.where(static, np.r_[0, np.cumsum(~same)], -1)
-    # rates in contiguous blocks (each segment stays contiguous): the per-rate normal equations then work on views
-    order = np.lexsort((t_ns, rate_idx))
-    taken = index[order]
-    temperature = column["temperature_c"][taken].astype(float)  # NaN where not logged
-    motion = Motion(
-        t_s=t_ns[order] / 1e9,
-        axis_idx=axis[order].astype(np.int64),
-        rotating=rotating[order],
-        theta_cmd_deg=angle[order],
-        t_start_s=start_s[order],
-        rate_hz=column[motion_rate][taken],
-        t0_s=int(column["t_ns"].min()) / 1e9,
-        # the DUT temperature where every sample has one and it varies (a constant one carries no evidence)
-        temperature_c=temperature if temperature.size and np.ptp(temperature) > 0 else None,
-    )
-    y = np.asfortranarray(np.column_stack([column[c][taken] for c in CHANNELS]))  # the layout of a frame's to_numpy
-    obs = Observations(motion, y, rate_idx[order], np.array(rates), segment[order], g_local)
-    return obs, step[order], int(count.sum())
 
 
 def _start(layout: Layout, results: list[IntrinsicResult]) -> np.ndarray:
@@ -164,9 +93,9 @@ def _clip_mask(fit: ModelFit, clip: tuple[float | None, float | None], margin_si
     use = np.ones_like(obs.y, bool)
     low, high = clip
     if high is not None:
-        use &= (obs.y < high) & (pred < high - margin_sigma * fit.sigma[None, :])
+        use &= (obs.y < high) & (pred < high - margin_sigma * obs.sample_noise(fit.sigma))
     if low is not None:
-        use &= (obs.y > low) & (pred > low + margin_sigma * fit.sigma[None, :])
+        use &= (obs.y > low) & (pred > low + margin_sigma * obs.sample_noise(fit.sigma))
     return use
 
 
@@ -319,6 +248,28 @@ def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tu
     return tuple(out)
 
 
+def _modelled(obs: Observations, layout: Layout, results: list[IntrinsicResult], cands: tuple[Candidate, ...],
+              alpha: float) -> tuple[ModelFit, tuple[float | None, float | None], list, float]:
+    """The selected model, from the baseline ``results``, with its output
+    limits, their evidence and the output quantum: a pile at an extreme set
+    aside first; after the selection, the censoring test against the
+    selected model, and the selection redone without what it found."""
+    fit = fit_model(obs, layout, _start(layout, results), (), (None, None), Structure(), np.ones_like(obs.y, bool))
+    q = quantum(obs.y)
+    evidence = stuck_values(obs.y, q)   # the binomial count, which needs no model
+    clip = clip_limits(evidence, alpha)
+    final = _select(_clipped(fit, clip), cands, alpha)
+    if all(v is None for v in clip):   # the censoring test, against the selected model (``clipping``)
+        noise = np.minimum(final.sigma, successive_noise(obs.whitened(obs.y - final.ev.pred), obs.segment))
+        evidence = stuck_values(obs.y, q, (final.ev.pred, obs.sample_noise(noise)))
+        clip = clip_limits(evidence, alpha)
+        if any(v is not None for v in clip):
+            final = _select(_clipped(final, clip), cands, alpha)
+    if any(v is not None for v in clip):
+        final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
+    return final, clip, evidence, q
+
+
 def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
              results: tuple[IntrinsicResult, ...], dataset: str, output_unit: str,
              g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig,
@@ -349,20 +300,11 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     cands = tuple(c for c in extensions(rotating_axes, all_axes, angles_measured, logged) if c.effect not in absorbed)
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
-    fit = fit_model(obs, layout, _start(layout, list(results)), (), (None, None), Structure(),
-                    np.ones_like(obs.y, bool))
-    q = quantum(obs.y)
-    evidence = stuck_values(obs.y, q)   # the binomial count, which needs no model
-    clip = clip_limits(evidence, alpha)
-    final = _select(_clipped(fit, clip), cands, alpha)
-    if all(v is None for v in clip):   # the censoring test, against the selected model (``clipping``)
-        evidence = stuck_values(obs.y, q, (final.ev.pred, np.minimum(final.sigma, successive_noise(
-            obs.y - final.ev.pred, obs.segment))))
-        clip = clip_limits(evidence, alpha)
-        if any(v is not None for v in clip):
-            final = _select(_clipped(final, clip), cands, alpha)
-    if any(v is not None for v in clip):
-        final = fit_model(obs, layout, final.beta, final.active, clip, final.structure, _clip_mask(final, clip))
+    final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
+    factor = whitening(obs, final.residuals, final.use, alpha)
+    if factor is not None:   # the noise differs between rates or axes: everything again, weighted (``noise``)
+        obs = replace(obs, whitening=factor)
+        final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())
 
@@ -379,13 +321,13 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
             row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit,
                                                effect.name in absorbed)
             if reduced is not None:
-                before[effect.name] = reduced.ev.resid
+                before[effect.name] = reduced.residuals
         rows.append(row)
         params += par
     step = step_row(final, dataset, output_unit)
     if step is not None:
         rows.append(step[0])
-        before["unexplained: offset step"] = step[1].ev.resid
+        before["unexplained: offset step"] = step[1].residuals
     res = _residuals(final, output_unit)
     a_u = config.unexplained_false_alarm
     for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(res, a_u)

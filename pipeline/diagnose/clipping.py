@@ -84,8 +84,9 @@ def successive_noise(resid: np.ndarray, segment: np.ndarray) -> np.ndarray:
 
 def stuck_values(y: np.ndarray, q: float, model: tuple[np.ndarray, np.ndarray] | None = None) -> list[StuckValue]:
     """Per channel and side, the extreme value with its evidence; ``model``:
-    the predictions (n, 3) and noise (3,) for the censoring test."""
+    the predictions (n, 3) and noise (3,) or (n, 3) for the censoring test."""
     out = []
+    noise = None if model is None else np.broadcast_to(model[1], y.shape)
     for r, channel in enumerate(CHANNELS):
         col = y[:, r]
         for side, value, inner in (("high", col.max(), -q), ("low", col.min(), q)):
@@ -94,10 +95,9 @@ def stuck_values(y: np.ndarray, q: float, model: tuple[np.ndarray, np.ndarray] |
             lo, hi = sorted((value + inner, value))
             neighbour = int(np.count_nonzero((col >= lo) & (col <= hi))) - count
             p = float(betainc(count, neighbour + 1, 0.5))  # binom.sf(count - 1, count + neighbour, 1/2), the same bits
-            if model is not None and q >= COARSE * model[1][r]:
+            if model is not None and noise is not None and q >= COARSE * noise[at, r].max():
                 sign = 1.0 if side == "high" else -1.0   # the low side mirrored
-                pred, sigma = model
-                p = min(p, float(np.exp(-censoring_gain(sign * pred[at, r], sigma[r], sign * value, q).sum())))
+                p = min(p, float(np.exp(-censoring_gain(sign * model[0][at, r], noise[at, r], sign * value, q).sum())))
             out.append(StuckValue(channel, side, float(value), count, neighbour, min(1.0, 2 * p)))
     return out
 

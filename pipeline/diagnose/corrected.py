@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.diagnose import Diagnosis, observations
+from rotcal.diagnose import Diagnosis
 from rotcal.diagnose.model import Structure, predict
+from rotcal.diagnose.observed import observations
 from rotcal.diagnose.reconstructed import with_reconstructed_angles
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import CHANNELS

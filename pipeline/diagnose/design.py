@@ -64,6 +64,13 @@ class ChannelDesign:
     ext: np.ndarray        # (k,) parameter numbers
     groups: np.ndarray     # (GROUPS + 1,) extension group g is ext[groups[g]:groups[g + 1]]
     runs: list[Run]        # the used samples' runs of one rate and axis
+    weight: np.ndarray | None = None   # (n_used,) the rows' whitening (``Observations.whitening``)
+
+    def rows_of(self, columns: np.ndarray) -> np.ndarray:
+        """Further columns (n, q) of every sample as this design's rows:
+        its used samples', whitened as its own."""
+        E = columns[self.rows]
+        return E if self.weight is None else E * self.weight[:, None]
 
     @property
     def lead(self) -> int:
@@ -163,7 +170,7 @@ def with_columns(ev: Evaluation, extra: list[tuple[np.ndarray, np.ndarray]]) -> 
     numbers, columns (n, q)) of channel r, e.g. an offset step's indicator."""
     gram, rhs = ev.gram.copy(), ev.rhs.copy()
     for r, (d, (params, columns)) in enumerate(zip(ev.designs, extra)):
-        E = columns[d.rows]
+        E = d.rows_of(columns)
         own = np.concatenate([d.base.ravel(), d.ext])
         keep = ~np.isin(own, params)  # the design holds these columns as zeros
         cross = d.transposed_times(E)[keep]

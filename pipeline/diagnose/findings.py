@@ -79,8 +79,8 @@ def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alph
     the limits, on every sample."""
     obs = final.obs
     k = sum(v is not None for v in clip)
-    clipped = obs.y - final.ev.pred
-    unclipped = (obs.y - predict(obs, final.beta, final.layout, final.active, (None, None), final.structure)
+    clipped = obs.whitened(obs.y - final.ev.pred)
+    unclipped = (obs.whitened(obs.y - predict(obs, final.beta, final.layout, final.active, (None, None), final.structure))
                  if k else clipped)
     n = np.full(3, obs.n)
     rss_before, rss_after = (unclipped**2).sum(axis=0), (clipped**2).sum(axis=0)

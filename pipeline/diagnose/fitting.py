@@ -62,6 +62,11 @@ class ModelFit:
         return bic(self.ev.rss, self.ev.n_used, self.n_params, self.n_total, self.obs.noise_floor)
 
     @property
+    def residuals(self) -> np.ndarray:
+        """The used samples' residuals (n, 3) in the output unit, not whitened."""
+        return self.ev.resid if self.obs.whitening is None else self.ev.resid / self.obs.whitening
+
+    @property
     def rms(self) -> float:
         return float(np.sqrt(self.ev.rss.sum() / self.n_total))
 

@@ -42,12 +42,24 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
+    # (n, 3) each sample's factor on its residual and Jacobian row where the
+    # noise differs between groups (``noise.whitening``); None where it is equal
+    whitening: np.ndarray | None = None
     # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), design arrays
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
     def n(self) -> int:
         return self.y.shape[0]
+
+    def whitened(self, resid: np.ndarray) -> np.ndarray:
+        """Residuals (n, 3) as the weighted fit sees them."""
+        return resid if self.whitening is None else resid * self.whitening
+
+    def sample_noise(self, sigma: np.ndarray) -> np.ndarray:
+        """Each sample's noise (n, 3), or (3,) where not whitened, from the
+        channels' noise ``sigma`` in the whitened fit."""
+        return sigma if self.whitening is None else sigma[None, :] / self.whitening
 
     @cached_property
     def noise_floor(self) -> np.ndarray:

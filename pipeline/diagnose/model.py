@@ -183,7 +183,7 @@ class Linearisation:
         self.states = channel_states(obs, layout.responsivity(beta), effects)
         self.pred = _outputs(obs, beta, layout, active, effects, self.states, structure)
         self.factors = _Factors(obs, effects, structure)
-        self.resid = np.where(use, obs.y - self.pred, 0.0)
+        self.resid = np.where(use, obs.whitened(obs.y - self.pred), 0.0)
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
@@ -247,9 +247,13 @@ class Linearisation:
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             # every sample used: a strided copy of the residuals' column instead of a gather (same values)
+            weight = None if obs.whitening is None else obs.whitening[rows, r]
             d = ChannelDesign(columns, obs.rate_idx if every else obs.rate_idx[rows], rows,
                               np.ascontiguousarray(self.resid[:, r]) if every else self.resid[rows, r], base, ext,
-                              groups, runs)
+                              groups, runs, weight)
+            if weight is not None:   # the rows each run reads, whitened as the residuals
+                for blk in d.blocks:
+                    columns[:blk.width, blk.samples] *= weight[blk.samples]
             G, b = normal_equations(d, p, m)
             designs.append(d)
             grams.append(G)

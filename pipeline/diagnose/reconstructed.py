@@ -79,7 +79,7 @@ def with_phases_free(fit: ModelFit, segments: np.ndarray, step_deg: float = 1e-3
     info = np.zeros((len(segments), len(segments)))
     for r, d in enumerate(fit.ev.designs):
         w = 1.0 / fit.sigma[r] ** 2
-        e = jac[d.rows, r, :]
+        e = d.rows_of(jac[:, r, :])
         info += w * e.T @ e
         cross[np.concatenate([d.base.ravel(), d.ext])] += w * d.transposed_times(e)
     return replace(fit, G=fit.G - cross @ np.linalg.solve(info, cross.T))

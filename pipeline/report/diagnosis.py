@@ -58,7 +58,7 @@ def residual_figure(diag: Diagnosis, name: str, path: Path, output_unit: str) ->
     """Residuals before and after modelling ``name`` in the segment where
     modelling it changed them most; returns that segment's description."""
     obs, final = diag.final.obs, diag.final
-    before, after = diag.before[name], final.ev.resid
+    before, after = diag.before[name], final.residuals
     use = final.use
     gain = np.zeros(int(obs.segment.max()) + 1)
     np.add.at(gain, obs.segment, ((before**2 - after**2) * use).sum(axis=1))

@@ -262,7 +262,7 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
 
 
 def _diagnosed(fits: pl.DataFrame, results: tuple[IntrinsicResult, ...]) -> frozenset[int]:
-    """The segments ``diagnose.observations`` models: the ok fits at the diagnosed rates."""
+    """The segments ``diagnose.observed.observations`` models: the ok fits at the diagnosed rates."""
     rates = [r.rate_hz for r in results]
     return frozenset(fits.filter((pl.col("status") == "ok") & pl.col("rate_hz").is_in(rates))["segment"].to_list())
 
@@ -270,7 +270,7 @@ def _diagnosed(fits: pl.DataFrame, results: tuple[IntrinsicResult, ...]) -> froz
 def _diagnosed_samples(streamed: StreamedSegments, fits: pl.DataFrame, results: tuple[IntrinsicResult, ...],
                        config: RunConfig) -> pl.DataFrame:
     """A streamed capture's samples the diagnosis models: the rows
-    ``diagnose.observations`` thins its segments to, gathered (within
+    ``diagnose.observed.observations`` thins its segments to, gathered (within
     ``[diagnosis] max_samples`` it keeps them all) with the capture's first
     sample (the model's time origin)."""
     return streamed.diagnosed_samples(_diagnosed(fits, results), config.diagnosis.max_samples)

@@ -139,8 +139,8 @@ def corrected_blocks(streamed: StreamedSegments, segments: pl.DataFrame, fits: p
     table. Each block's samples of the diagnosed segments are modelled with
     what the model takes from outside the block: the capture's first sample
     (the time origin) and each segment's first (its start angle)."""
-    from rotcal.diagnose import observations
     from rotcal.diagnose.model import Structure, predict
+    from rotcal.diagnose.observed import observations
 
     final = diagnosis.final
     diagnosed = np.unique(final.obs.segment)

@@ -155,9 +155,9 @@ def with_segments(frame: pl.DataFrame, sizes: dict[int, tuple[int, int]]) -> pl.
 def thinned_rows(first: np.ndarray, count: np.ndarray, max_samples: int) -> np.ndarray:
     """The sample numbers the diagnosis models of segments starting at
     ``first`` with ``count`` samples: each thinned evenly to its share
-    (``diagnose.kept_per_segment``), ``first + floor(i n / k)``, the rows
-    ``diagnose.observations`` takes in memory."""
-    from rotcal.diagnose import kept_per_segment  # the diagnosis's modules load when diagnosing
+    (``diagnose.observed.kept_per_segment``), ``first + floor(i n / k)``, the rows
+    ``diagnose.observed.observations`` takes in memory."""
+    from rotcal.diagnose.observed import kept_per_segment  # the diagnosis's modules load when diagnosing
 
     kept = kept_per_segment(count, max_samples)
     return np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)]
@@ -198,7 +198,7 @@ class StreamedSegments:
         return sum(self.sizes[s][1] for s in segments)
 
     def diagnosed_samples(self, segments: frozenset[int], max_samples: int) -> pl.DataFrame:
-        """The capture's first sample and the rows ``diagnose.observations``
+        """The capture's first sample and the rows ``diagnose.observed.observations``
         thins ``segments`` to: those gathered in the second pass, or, when
         the diagnosed segments are not those fitted then, a third pass."""
         first, count = (np.array([self.sizes[s][i] for s in sorted(segments)], np.int64) for i in (0, 1))
