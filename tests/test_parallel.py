@@ -70,7 +70,7 @@ def test_fit_stage_threads_on_the_cores_given(monkeypatch, four_cores, workers, 
     _Pool.sizes = []
     n = 1000
     theta = np.tile(np.linspace(0, 360, n, endpoint=False), 6)
-    samples = pl.DataFrame({"segment": np.repeat(np.arange(6), n), "angle_deg": theta,
+    samples = pl.DataFrame({"segment": np.repeat(np.arange(6), n), "t_ns": np.arange(6 * n) * 60_000_000, "angle_deg": theta,
                             **{c: np.sin(np.radians(theta)) for c in ("u", "v", "w")}})
     table = pl.DataFrame({"segment": range(6), "kind": ["rotation"] * 6, "rate_hz": [0.5] * 6, "angle_source": ["commanded"] * 6})
     fits = segments.fit_segments(samples, table, FitConfig(), workers)

@@ -18,7 +18,8 @@ import rotcal.run.stages as stages
 import rotcal.run.streamed as streamed
 from rotcal.config import FitConfig, RunConfig, with_options
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
-from rotcal.fit.segments import fit_segments, fits_frame, sincos_deg, sine3_fit
+from rotcal.fit.segments import fit_segments, fits_frame
+from rotcal.fit.sines import sincos_deg, sine3_fit
 from rotcal.ingest.dataset import load_dataset
 from rotcal.run import run_dataset
 from rotcal.run.streaming import stream_segments
@@ -98,9 +99,26 @@ def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
     """Segments and fits from the capture's samples read in blocks (4999
     samples: every segment cut by block boundaries, twice a pass) equal
     those of the whole table in memory, to 1e-9 relative."""
-    ds = long_capture
-    samples = ds.samples
-    assert samples.height == 300_000
+    assert long_capture.samples.height == 300_000
+    _assert_streamed_fits_equal(long_capture, long_capture.samples, block)
+
+
+def test_fits_widened_for_correlated_noise_streamed_equal_in_memory(long_capture):
+    """With correlated noise (a first-order autoregression, lag-1 0.6, 10
+    counts sd, added) the widened covariances (``fit.correlated``: from
+    lag-1 and lag-2 sums carried across blocks) are the same both ways."""
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(9)
+    n = long_capture.samples.height
+    noisy = long_capture.samples.with_columns(
+        pl.col(c) + np.round(lfilter([1.0], [1.0, -0.6], rng.normal(0, 8.0, n))) for c in ("u", "v", "w"))
+    labelled, segments = segment_by_labels(noisy, long_capture.name, long_capture.meta.angle_source)
+    assert all(f.lag1.min() > 0.2 for f in fit_segments(labelled, segments, FitConfig()))   # widened, every segment
+    _assert_streamed_fits_equal(long_capture, noisy, 4999)
+
+
+def _assert_streamed_fits_equal(ds, samples: pl.DataFrame, block: int) -> None:
     config = FitConfig()
     labelled, segments = segment_by_labels(repair_timebase(samples, ds.name).samples, ds.name, ds.meta.angle_source)
     fits = fits_frame(fit_segments(labelled, segments.filter(pl.col("angle_source") != "none"), config), segments, ds.name)

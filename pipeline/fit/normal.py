@@ -55,12 +55,14 @@ class NormalSums:
 
 class ResidualSums:
     """The residuals' statistics at fixed coefficients: R^T R (upper
-    triangle), each channel's largest magnitude and its lag-1 product sum."""
+    triangle), each channel's largest magnitude and its lag-1 and lag-2
+    product sums (the last two residuals carried into the next block)."""
 
     def __init__(self, coef: np.ndarray):
         k = coef.shape[0]
         self.coef = coef
-        self.rtr, self.max_abs, self.lag, self.last = np.zeros((k, k)), np.zeros(k), np.zeros(k), np.zeros(k)
+        self.rtr, self.max_abs, self.lag, self.lag2 = np.zeros((k, k)), np.zeros(k), np.zeros(k), np.zeros(k)
+        self.tail = [np.zeros(0)] * k
 
     def add(self, s: np.ndarray, c: np.ndarray, channels: Sequence[np.ndarray]) -> None:
         """The next block of the segment, in sample order."""
@@ -70,8 +72,12 @@ class ResidualSums:
             r -= self.coef[j, 1] * s
             r -= self.coef[j, 2] * c
             self.max_abs[j] = max(self.max_abs[j], r.max(), -r.min())
-            self.lag[j] += r[1:] @ r[:-1] + self.last[j] * r[0]
-            self.last[j] = r[-1]
+            tail = self.tail[j]
+            self.lag[j] += r[1:] @ r[:-1] + (tail[-1] * r[0] if tail.size else 0.0)
+            # lag 2 across the boundary: the block's first two samples with the two before them
+            head, lo = np.concatenate((tail, r[:2])), max(tail.size, 2)
+            self.lag2[j] += r[2:] @ r[:-2] + head[lo:] @ head[lo - 2 : head.size - 2]
+            self.tail[j] = r[-2:] if r.size >= 2 else head[-2:]
             resid.append(r)
             for i in range(j + 1):
                 self.rtr[i, j] += resid[i] @ r

@@ -16,16 +16,17 @@ Cov = Sigma (x) (X^T X)^-1 with Sigma the residual covariance matrix.
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
-from rotcal.fit.normal import NormalSums, ResidualSums, SineSums, coefficient_covariance
+from rotcal.fit.correlated import noise_scales
+from rotcal.fit.normal import SineSums, coefficient_covariance
 from rotcal.fit.sinefit4 import four_parameter_fit
+from rotcal.fit.sines import sine3_sums
 from rotcal.model.physics import CHANNELS
 from rotcal.parallel import cores
 from rotcal.tables import conform, schema
@@ -52,6 +53,7 @@ class SegmentFit:
     rate_fit_hz: float
     u_rate_fit_hz: float = 0.0
     sums: SineSums | None = None  # a three-parameter fit's sums, for the simultaneous solution
+    lag2: np.ndarray | None = None  # each channel's residual lag-2 autocorrelation (``fit.correlated``)
 
     @property
     def dof(self) -> int:
@@ -82,11 +84,11 @@ def linear_fit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return coef, np.kron(sigma2, xtx_inv), resid
 
 
-def residual_stats(resid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """RMS, largest magnitude and lag-1 autocorrelation of each column."""
+def residual_stats(resid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """RMS, largest magnitude and lag-1 and lag-2 autocorrelations of each column."""
     ss = np.einsum("ij,ij->j", resid, resid)
-    lag1 = np.einsum("ij,ij->j", resid[1:], resid[:-1]) / np.where(ss > 0, ss, 1.0)
-    return np.sqrt(ss / resid.shape[0]), np.abs(resid).max(axis=0), lag1
+    lag1, lag2 = (np.einsum("ij,ij->j", resid[k:], resid[:-k]) / np.where(ss > 0, ss, 1.0) for k in (1, 2))
+    return np.sqrt(ss / resid.shape[0]), np.abs(resid).max(axis=0), lag1, lag2
 
 
 def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConfig) -> str | None:
@@ -193,28 +195,44 @@ def _fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: 
         four = four_parameter_fit(theta_deg, y, residual.coef)
         if four is None:
             return SegmentFit.failed(segment, n, "four-parameter sine fit did not converge to a rate within 5 % of the commanded one", rate_hz)
-        rms, max_abs, lag1 = residual_stats(four.resid)
+        rms, max_abs, lag1, lag2 = residual_stats(four.resid)
         sigma = np.sqrt(np.einsum("ij,ij->j", four.resid, four.resid) / (n - 3))
         return SegmentFit(segment, "ok", None, n, four.coef, four.cov, sigma, rms, max_abs, lag1,
-                          rate_hz * four.scale, abs(rate_hz) * four.u_scale)
+                          rate_hz * four.scale, abs(rate_hz) * four.u_scale, lag2=lag2)
     rtr = residual.products()
     return sine3_result(segment, rate_hz, n, residual.coef, coefficient_covariance(rtr, xtx_inv, n), rtr,
-                        residual.max_abs, residual.lag,
+                        residual.max_abs, residual.lag, residual.lag2,
                         SineSums(normal.gram, normal.xty, residual.coef, rtr, float(np.max(np.abs(np.r_[low, high])))))
 
 
 def sine3_result(segment: int, rate_hz: float, n: int, coef: np.ndarray, cov: np.ndarray, rtr: np.ndarray,
-                 max_abs: np.ndarray, lag: np.ndarray, sums: SineSums | None = None) -> SegmentFit:
-    """The fit record of the three-parameter fit (``sine3_fit``'s outputs, and the sums it came from)."""
+                 max_abs: np.ndarray, lag: np.ndarray, lag2: np.ndarray, sums: SineSums | None = None) -> SegmentFit:
+    """The fit record of the three-parameter fit (``sine3_fit``'s outputs:
+    the lag-1 and lag-2 product sums; and the sums it came from)."""
     ss = np.diag(rtr).copy()
-    lag1 = lag / np.where(ss > 0, ss, 1.0)
-    return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag1, rate_hz,
-                      sums=sums)
+    norm = np.where(ss > 0, ss, 1.0)
+    return SegmentFit(segment, "ok", None, n, coef, cov, np.sqrt(ss / (n - 3)), np.sqrt(ss / n), max_abs, lag / norm,
+                      rate_hz, sums=sums, lag2=lag2 / norm)
 
 
 # Starting a thread pool costs about 0.5 ms, what one core takes to fit some
 # 20,000 samples: below this many samples in all, threads cost more than they save.
 THREADED_MIN_SAMPLES = 100_000
+
+
+def widened(fit: SegmentFit, step_rad: float) -> SegmentFit:
+    """``fit`` with its covariance and rate uncertainty widened for noise
+    correlated from sample to sample (``fit.correlated``); ``step_rad`` the
+    angle step per sample."""
+    scales = noise_scales(fit.lag1, fit.lag2, fit.n_samples, step_rad) if fit.status == "ok" else None
+    if scales is None:
+        return fit
+    return replace(fit, cov=fit.cov * np.outer(scales[0], scales[0]), u_rate_fit_hz=fit.u_rate_fit_hz * scales[1])
+
+
+def angle_step(rate_hz: float, t_first_ns: int, t_last_ns: int, n: int) -> float:
+    """The angle a rotation turns from one sample to the next, 2 pi rate dt (radians)."""
+    return 2 * np.pi * rate_hz * (t_last_ns - t_first_ns) / 1e9 / max(n - 1, 1)
 
 
 def segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
@@ -242,7 +260,8 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         angle = part["angle_deg"]
         theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
-        return _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
+        fit = _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
+        return widened(fit, angle_step(row["rate_hz"], part["t_ns"][0], part["t_ns"][-1], part.height))
 
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(cores(workers), max(len(todo_rows), 1))
@@ -281,110 +300,3 @@ def fits_frame(fits: list[SegmentFit], segments: pl.DataFrame, dataset: str) -> 
         "rms": per_channel["rms"], "max_abs_residual": per_channel["max_abs"], "lag1_autocorr": per_channel["lag1"],
     }
     return conform(pl.DataFrame(columns, schema_overrides=schema("fits").polars_schema, strict=False), "fits")
-
-# --- The three-parameter fit, batched --------------------------------------
-# Normal equations of all three channels in one pass over the samples, a
-# second pass for the residual statistics; both walk blocks of
-# BLOCK_SAMPLES contiguous samples, so every operation is a 1-D numpy call
-# on data in the core's cache. (``run_dataset`` keeps BLAS on one thread;
-# a threaded dot product here would compete with the segment workers.)
-
-BLOCK_SAMPLES = 32768
-PROGRESSION_TOLERANCE_DEG = 1e-9  # far below any table encoder's resolution
-_TABLE_SIZE = 4096
-_TABLE_STEP_DEG = 360.0 / _TABLE_SIZE  # 0.087890625, exact in binary
-_TABLE_SIN = np.sin(2 * np.pi * np.arange(_TABLE_SIZE) / _TABLE_SIZE)
-_TABLE_COS = np.cos(2 * np.pi * np.arange(_TABLE_SIZE) / _TABLE_SIZE)
-_INNER = 64  # inner length of the two-level progression bases
-
-
-def sincos_deg(theta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """sin and cos of angles in degrees, to a few ulp, by angle addition:
-    theta = k h + d with h = 360/4096 deg and |d| <= h/2, so
-
-        sin(theta) = sin(k h) cos(d) + cos(k h) sin(d),
-        cos(theta) = cos(k h) cos(d) - sin(k h) sin(d),
-
-    with sin(k h), cos(k h) from a 4096-entry table and sin(d), cos(d) from
-    their Taylor series to d^7 and d^6 (|d| < 7.7e-4 rad: truncation below
-    1e-28). ``theta - k h`` is exact, so large angles (many turns) lose
-    nothing to range reduction.
-    """
-    k = np.rint(theta_deg * (1.0 / _TABLE_STEP_DEG))
-    d = np.deg2rad(theta_deg - k * _TABLE_STEP_DEG)
-    index = k.astype(np.int64) & (_TABLE_SIZE - 1)
-    d2 = d * d
-    sin_d = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)))
-    cos_d = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0))
-    sin_k, cos_k = _TABLE_SIN[index], _TABLE_COS[index]
-    return sin_k * cos_d + cos_k * sin_d, cos_k * cos_d - sin_k * sin_d
-
-
-def _progression_bases(step_deg: float, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """sin and cos of i step for i < n, as sin((64 q + r) step) by angle
-    addition of n/64 + 64 sines."""
-    outer = np.deg2rad(_INNER * step_deg * np.arange(-(-n // _INNER)))[:, None]
-    inner = np.deg2rad(step_deg * np.arange(_INNER))
-    sin_a, cos_a, sin_b, cos_b = np.sin(outer), np.cos(outer), np.sin(inner), np.cos(inner)
-    return (sin_a * cos_b + cos_a * sin_b).ravel()[:n], (cos_a * cos_b - sin_a * sin_b).ravel()[:n]
-
-
-class _Sines:
-    """sin and cos of a segment's angles block by block. Along a constant
-    rotation sampled at a constant rate theta_i = theta_0 + i step, and a
-    block starting at angle a gets sin(a + i step) = sin a cos(i step) +
-    cos a sin(i step) from bases shared by all blocks; a block off the
-    progression (by more than PROGRESSION_TOLERANCE_DEG) uses ``sincos_deg``."""
-
-    def __init__(self, theta_deg: np.ndarray):
-        n = theta_deg.size
-        self.theta0 = float(theta_deg[0])
-        self.step = (float(theta_deg[-1]) - self.theta0) / max(n - 1, 1)
-        # the bases only where the first interval is the mean one (never for static steps)
-        progression = self.step and n > _INNER and abs(theta_deg[1] - theta_deg[0] - self.step) <= PROGRESSION_TOLERANCE_DEG
-        self.bases = _progression_bases(self.step, min(n, BLOCK_SAMPLES)) if progression else None
-        self.offsets = self.step * np.arange(min(n, BLOCK_SAMPLES))
-
-    def __call__(self, theta_deg: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray]:
-        m = theta_deg.size
-        if self.bases is not None:
-            first = self.theta0 + self.step * start
-            off = theta_deg - self.offsets[:m]
-            off -= first
-            if max(off.max(), -off.min()) <= PROGRESSION_TOLERANCE_DEG:
-                sin_a, cos_a = math.sin(math.radians(first)), math.cos(math.radians(first))
-                sin_b, cos_b = self.bases[0][:m], self.bases[1][:m]
-                return sin_a * cos_b + cos_a * sin_b, cos_a * cos_b - sin_a * sin_b
-        return sincos_deg(theta_deg)
-
-
-def sine3_fit(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
-    """Least squares of each channel on ``C + A sin(theta) + B cos(theta)``
-    (Gaitan 2021 Eq. 17), all channels at once, by normal equations.
-
-    Returns coef (channels x (C, A, B)), the channel-major covariance
-    Sigma (x) (X^T X)^-1 with Sigma = R^T R / (n - 3), R^T R (channel x
-    channel residual products), and each channel's largest residual
-    magnitude and lag-1 residual product sum.
-    """
-    normal, residual, xtx_inv = sine3_sums(theta_deg, channels)
-    rtr = residual.products()
-    return residual.coef, coefficient_covariance(rtr, xtx_inv, theta_deg.size), rtr, residual.max_abs, residual.lag
-
-
-def sine3_sums(theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]) -> tuple[NormalSums, ResidualSums, np.ndarray]:
-    """``sine3_fit``'s two passes: the normal sums, the residual sums at the
-    solved coefficients, and (X^T X)^-1."""
-    n = theta_deg.size
-    sines = _Sines(theta_deg)
-    spans = [(a, min(a + BLOCK_SAMPLES, n)) for a in range(0, n, BLOCK_SAMPLES)]
-    normal, bases = NormalSums(len(channels)), []
-    for a, b in spans:
-        s, c = sines(theta_deg[a:b], a)
-        normal.add(s, c, [y[a:b] for y in channels])
-        bases.append((s, c))
-    coef, xtx_inv = normal.solve()
-    residual = ResidualSums(coef)
-    for (a, b), (s, c) in zip(spans, bases):
-        residual.add(s, c, [y[a:b] for y in channels])
-    return normal, residual, xtx_inv

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotcal.fit.segments import SegmentFit, design, linear_fit, residual_stats
+from rotcal.fit.segments import SegmentFit, angle_step, design, linear_fit, residual_stats, widened
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +132,8 @@ def fit_sine(t_ns: np.ndarray, y: np.ndarray, rate_guess_hz: float, search: bool
     info[9, :9] = info[:9, 9]
     info[9, 9] = float(np.einsum("ir,rs,is->", d, info_inv, d))
     cov = np.linalg.inv(info)
-    rms, max_abs, lag1 = residual_stats(resid)
-    fit = SegmentFit(-1, "ok", None, n, coef, cov[:9, :9], np.sqrt(np.diag(sigma2)), rms, max_abs, lag1, rate)
-    return SineFit(rate, float(np.sqrt(cov[9, 9])), t_ref, fit)
+    rms, max_abs, lag1, lag2 = residual_stats(resid)
+    fit = SegmentFit(-1, "ok", None, n, coef, cov[:9, :9], np.sqrt(np.diag(sigma2)), rms, max_abs, lag1, rate,
+                     float(np.sqrt(cov[9, 9])), lag2=lag2)
+    fit = widened(fit, angle_step(rate, int(t_ns[0]), int(t_ns[-1]), n))  # for noise correlated between samples
+    return SineFit(rate, fit.u_rate_fit_hz, t_ref, fit)

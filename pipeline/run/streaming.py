@@ -28,7 +28,8 @@ import polars as pl
 
 from rotcal.config import FitConfig
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
-from rotcal.fit.segments import BLOCK_SAMPLES, SegmentFit, arc_bounds, arc_from, finite, refusal_from, sincos_deg, sine3_result, stuck_from
+from rotcal.fit.segments import SegmentFit, angle_step, arc_bounds, arc_from, finite, refusal_from, sine3_result, stuck_from, widened
+from rotcal.fit.sines import BLOCK_SAMPLES, sincos_deg
 from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.segment.labelled import segments_frame
@@ -244,8 +245,9 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
         coef, xtx_inv = r.normal.solve()
         res = residuals[r.segment]
         rtr = res.products()
-        fits.append(finite(sine3_result(r.segment, r.rate_hz, r.n, coef, coefficient_covariance(rtr, xtx_inv, r.n), rtr,
-                                        res.max_abs, res.lag), r.rate_hz))
+        fit = finite(sine3_result(r.segment, r.rate_hz, r.n, coef, coefficient_covariance(rtr, xtx_inv, r.n), rtr,
+                                  res.max_abs, res.lag, res.lag2), r.rate_hz)
+        fits.append(widened(fit, angle_step(r.rate_hz, r.t_start_ns, r.t_end_ns, r.n)))
         sums[r.segment] = SegmentSums(r.segment, AXES[r.axis], r.n, r.normal.gram, r.normal.xty.T.copy(), coef, rtr,
                                       float(np.max(np.abs(np.r_[r.low, r.high]))))
     sizes = {r.segment: (r.first, r.n) for r in runs}
