@@ -122,9 +122,12 @@ def test_real_static_recordings_show_nothing_and_say_how_small(tmp_path):
 @pytest.mark.parametrize("sensor", range(5))
 def test_mikoff_mpu9150_sessions_show_nothing_within_their_limits(sensor, tmp_path):
     """The five MPU-9150 hand-pose sessions (tests/data/corpus): no finding;
-    drift limits 3e-4 to 6e-4 m/s^2 per s, k3 limits 2.5e-3 to 6.5e-3."""
+    drift limits 3e-4 to 7.5e-4 m/s^2 per s, k3 limits 2.5e-3 to 7.5e-3
+    (3.1e-4 to 6.5e-4 and 2.6e-3 to 7.3e-3 measured; the upper ends were 6e-4
+    and 6.5e-3 before the pose means whose samples are correlated, seven of
+    23 in imu0, lag-1 up to 0.68, were widened: ``fit.correlated``)."""
     outcome = run_dataset(MIKOFF / f"imu{sensor}.log", tmp_path, REPO / "configs" / "mikoff_mpu9150.toml")
     assert _found(outcome) == []
     drift, k3 = _limits(outcome, "drift"), _limits(outcome, "k3")
     print(drift, k3)
-    assert np.all((3e-4 < drift) & (drift < 6e-4)) and np.all((2.5e-3 < k3) & (k3 < 6.5e-3))
+    assert np.all((3e-4 < drift) & (drift < 7.5e-4)) and np.all((2.5e-3 < k3) & (k3 < 7.5e-3))

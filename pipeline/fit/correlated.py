@@ -32,24 +32,28 @@ import numpy as np
 CORRELATION_Z = 4.0
 
 
-def noise_scales(lag1: np.ndarray, lag2: np.ndarray | None, n: int, step_rad: float) -> tuple[np.ndarray, float] | None:
-    """The factors on the standard deviations of a fit's nine coefficients
-    (channel-major C, A, B) and of its rate, from each channel's residual
-    lag-1 and lag-2 autocorrelations over ``n`` samples (lag 2 None: a plain
-    autoregression) and the angle step ``step_rad`` per sample (2 pi rate
-    dt, 0 for a static segment); None where no channel's lag-1 is
-    significant and positive."""
+def density_ratio(lag1: np.ndarray, lag2: np.ndarray | None, n: np.ndarray | int, omega: float) -> np.ndarray:
+    """F(omega), elementwise, from lag-1 and lag-2 autocorrelations over
+    ``n`` samples each (lag 2 None: a plain autoregression); 1 where lag 1
+    is not significant and positive, n at most."""
     rho = np.nan_to_num(np.asarray(lag1, float))
-    on = rho > CORRELATION_Z / np.sqrt(max(n, 1))
-    if not on.any():
-        return None
+    on = rho > CORRELATION_Z / np.sqrt(np.maximum(n, 1))
     rho = np.where(on, np.minimum(rho, 0.999), 0.0)
     second = rho**2 if lag2 is None else np.nan_to_num(np.asarray(lag2, float))
     phi = np.clip(np.divide(second, rho, out=np.zeros_like(rho), where=on), rho, 0.999)
+    c = np.cos(omega)
+    # at most n: n samples' mean varies no more than one sample does, however correlated
+    return np.clip(1 + 2 * rho * (c - phi) / (1 - 2 * phi * c + phi**2), 1.0, np.maximum(n, 1))
 
-    def density(omega: float) -> np.ndarray:
-        c = np.cos(omega)
-        return np.maximum(1 + 2 * rho * (c - phi) / (1 - 2 * phi * c + phi**2), 1.0)
 
-    at_zero, at_rate = density(0.0), density(step_rad)
+def noise_scales(lag1: np.ndarray, lag2: np.ndarray | None, n: int, step_rad: float) -> tuple[np.ndarray, float] | None:
+    """The factors on the standard deviations of a fit's nine coefficients
+    (channel-major C, A, B) and of its rate, from each channel's residual
+    lag-1 and lag-2 autocorrelations over ``n`` samples and the angle step
+    ``step_rad`` per sample (2 pi rate dt, 0 for a static segment); None
+    where no channel's lag 1 is significant and positive."""
+    at_zero = density_ratio(lag1, lag2, n, 0.0)
+    if np.all(at_zero == 1.0):
+        return None
+    at_rate = density_ratio(lag1, lag2, n, step_rad)
     return np.sqrt(np.column_stack([at_zero, at_rate, at_rate])).ravel(), float(np.sqrt(at_rate.max()))
