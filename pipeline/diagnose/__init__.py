@@ -331,7 +331,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     res = _residuals(final, output_unit)
     a_u = config.unexplained_false_alarm
     for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(res, a_u)
-                  + static_step_scan(res, step_id, a_u) + rate_dependence(final, a_u, output_unit)):
+                  + static_step_scan(replace(res, resid=final.residuals), step_id, a_u)   # of the noise as recorded
+                  + rate_dependence(final, a_u, output_unit)):
         rows.append(scan_row(final, found, dataset))
     modelled = bool(final.active) or any(v is not None for v in clip)
     refined = refined_results(final, g_local, g_uncertainty) if modelled else ()

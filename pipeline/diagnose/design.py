@@ -19,7 +19,7 @@ from itertools import groupby
 
 import numpy as np
 
-from rotcal.diagnose.geometry import Run
+from rotcal.diagnose.geometry import Run, filtered
 from rotcal.model.effects.base import Support
 
 GROUPS = 7  # of ``support_group``
@@ -64,13 +64,13 @@ class ChannelDesign:
     ext: np.ndarray        # (k,) parameter numbers
     groups: np.ndarray     # (GROUPS + 1,) extension group g is ext[groups[g]:groups[g + 1]]
     runs: list[Run]        # the used samples' runs of one rate and axis
-    weight: np.ndarray | None = None   # (n_used,) the rows' whitening (``Observations.whitening``)
+    weight: tuple[np.ndarray, np.ndarray] | None = None   # the rows' whitening (scale, phi; ``Whitening.rows``)
 
     def rows_of(self, columns: np.ndarray) -> np.ndarray:
         """Further columns (n, q) of every sample as this design's rows:
         its used samples', whitened as its own."""
         E = columns[self.rows]
-        return E if self.weight is None else E * self.weight[:, None]
+        return E if self.weight is None else filtered(E, self.weight[0][:, None], self.weight[1][:, None])
 
     @property
     def lead(self) -> int:

@@ -64,7 +64,7 @@ class ModelFit:
     @property
     def residuals(self) -> np.ndarray:
         """The used samples' residuals (n, 3) in the output unit, not whitened."""
-        return self.ev.resid if self.obs.whitening is None else self.ev.resid / self.obs.whitening
+        return self.ev.resid if self.obs.whitening is None else np.where(self.use, self.obs.y - self.ev.pred, 0.0)
 
     @property
     def rms(self) -> float:

@@ -33,6 +33,38 @@ _NO_MOTION_EFFECT = pickle.dumps([])
 
 
 @dataclass(frozen=True, eq=False)
+class Whitening:
+    """Each sample's transform of its residual and Jacobian row,
+
+        x*_i = scale_i (x_i - phi_i x_i-1) / sqrt(1 - phi_i^2),
+
+    per channel (n, 3): ``phi`` a first-order autoregression's coefficient
+    (0 at each segment's first sample), ``scale`` the pooled noise over its
+    group's (``noise.whitening``)."""
+
+    scale: np.ndarray
+    phi: np.ndarray
+
+    def rows(self, rows: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """(scale, phi) of channel r's used ``rows`` (ascending), phi 0 where
+        the row before is not the sample before."""
+        follows = np.r_[False, np.diff(rows) == 1]
+        return self.scale[rows, r], np.where(follows, self.phi[rows, r], 0.0)
+
+
+def filtered(x: np.ndarray, scale: np.ndarray, phi: np.ndarray, axis: int = 0) -> np.ndarray:
+    """``Whitening``'s transform of ``x`` along ``axis`` (a new array);
+    ``scale`` and ``phi`` broadcast against ``x``."""
+    before = np.zeros_like(x)
+    inner = [slice(None)] * x.ndim
+    inner[axis] = slice(1, None)
+    outer = list(inner)
+    outer[axis] = slice(None, -1)
+    before[tuple(inner)] = x[tuple(outer)]
+    return (x - phi * before) * (scale / np.sqrt(1 - phi**2))
+
+
+@dataclass(frozen=True, eq=False)
 class Observations:
     """The samples of a dataset's fitted table segments, as arrays."""
 
@@ -42,9 +74,9 @@ class Observations:
     rates: np.ndarray       # (m,) rates in Hz, 0 for static
     segment: np.ndarray     # (n,) segment ids
     g_local: float
-    # (n, 3) each sample's factor on its residual and Jacobian row where the
-    # noise differs between groups (``noise.whitening``); None where it is equal
-    whitening: np.ndarray | None = None
+    # the transform of residuals and Jacobian rows that makes the noise white
+    # and equal (``noise.whitening``); None where it is so already
+    whitening: Whitening | None = None
     # the geometries and column factors of motions evaluated (``geometry.motion_reuse``), design arrays
     reuse: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -52,14 +84,18 @@ class Observations:
     def n(self) -> int:
         return self.y.shape[0]
 
-    def whitened(self, resid: np.ndarray) -> np.ndarray:
-        """Residuals (n, 3) as the weighted fit sees them."""
-        return resid if self.whitening is None else resid * self.whitening
+    def whitened(self, resid: np.ndarray, use: np.ndarray | None = None) -> np.ndarray:
+        """Residuals (n, 3) as the whitened fit sees them (the samples not
+        in ``use`` left out of their successors' filter)."""
+        if self.whitening is None:
+            return resid
+        phi = self.whitening.phi if use is None else self.whitening.phi * np.r_[np.zeros((1, 3), bool), use[:-1]]
+        return filtered(resid, self.whitening.scale, phi)
 
     def sample_noise(self, sigma: np.ndarray) -> np.ndarray:
         """Each sample's noise (n, 3), or (3,) where not whitened, from the
         channels' noise ``sigma`` in the whitened fit."""
-        return sigma if self.whitening is None else sigma[None, :] / self.whitening
+        return sigma if self.whitening is None else sigma[None, :] / self.whitening.scale
 
     @cached_property
     def noise_floor(self) -> np.ndarray:

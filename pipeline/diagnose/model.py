@@ -25,7 +25,7 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 
 from rotcal.diagnose.candidates import STEP, effects_from
 from rotcal.diagnose.design import GROUPS, ChannelDesign, Evaluation, normal_equations, support_group
-from rotcal.diagnose.geometry import Observations, design_buffer, motion_reuse, runs_of, sample_runs
+from rotcal.diagnose.geometry import Observations, design_buffer, filtered, motion_reuse, runs_of, sample_runs
 from rotcal.diagnose.states import ChannelState, channel_states
 from rotcal.model.effects import GainEffect, ScaleEffect, catalogue, effect_named
 from rotcal.model.effects.base import EVERYWHERE, Candidate, Channel, Support
@@ -183,7 +183,7 @@ class Linearisation:
         self.states = channel_states(obs, layout.responsivity(beta), effects)
         self.pred = _outputs(obs, beta, layout, active, effects, self.states, structure)
         self.factors = _Factors(obs, effects, structure)
-        self.resid = np.where(use, obs.whitened(obs.y - self.pred), 0.0)
+        self.resid = np.where(use, obs.whitened(obs.y - self.pred, use), 0.0)
         self.by_name = {n: c for c in layout.candidates for n in c.names}
         self.built: dict[tuple[int, int], np.ndarray] = {}
 
@@ -247,13 +247,14 @@ class Linearisation:
             base = np.array([[layout.index[f"O.{f}.{r}"]] + [layout.index[f"R.{f}.{r}.{c}"] for c in range(3)]
                              for f in range(m)])
             # every sample used: a strided copy of the residuals' column instead of a gather (same values)
-            weight = None if obs.whitening is None else obs.whitening[rows, r]
+            weight = None if obs.whitening is None else obs.whitening.rows(rows, r)
             d = ChannelDesign(columns, obs.rate_idx if every else obs.rate_idx[rows], rows,
                               np.ascontiguousarray(self.resid[:, r]) if every else self.resid[rows, r], base, ext,
                               groups, runs, weight)
-            if weight is not None:   # the rows each run reads, whitened as the residuals
+            if weight is not None:   # the rows each run reads, whitened as the residuals (each block starts a segment)
                 for blk in d.blocks:
-                    columns[:blk.width, blk.samples] *= weight[blk.samples]
+                    at = blk.samples
+                    columns[:blk.width, at] = filtered(columns[:blk.width, at], weight[0][at], weight[1][at], axis=1)
             G, b = normal_equations(d, p, m)
             designs.append(d)
             grams.append(G)

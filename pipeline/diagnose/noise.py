@@ -1,15 +1,19 @@
-"""Whether the noise differs between a dataset's parts, and the whitening
-that makes it equal.
+"""Whether the noise differs between a dataset's parts or is correlated
+from sample to sample, and the whitening that makes it white and equal.
 
-Every test of the diagnosis takes one noise level per channel. A table that
-vibrates more at its higher rates breaks that: the noisy segments' residuals
-then look like misfits, tones and steps (docs/method.md, "Tests and their
+Every test of the diagnosis takes one white noise level per channel. A
+table that vibrates more at its higher rates breaks that, and so does a
+sensor whose filter correlates successive samples: the residuals then look
+like misfits, tones, harmonics and steps (docs/method.md, "Tests and their
 false-alarm rates"). So each channel's noise is estimated in every group of
-one rate and one table axis, from the differences of successive residuals of
-the selected model (von Neumann 1941; a slow misfit, such as a concealed
-effect, cancels in them), and where Bartlett's test rejects equal variances
-each sample's residual and Jacobian row are scaled by the pooled noise over
-its group's: weighted least squares, whose tests are those of equal noise.
+one rate and one table axis from the selected model's residuals: its level
+from the differences of successive residuals (von Neumann 1941; a slow
+misfit, such as a concealed effect, cancels in them), its correlation from
+their lag-1 and lag-2 autocorrelations. Where the correlation is
+significant, residuals and Jacobian rows are filtered (first order, white
+at zero frequency); where Bartlett's test rejects equal levels, they are
+scaled by the pooled noise over their group's: generalised least squares,
+whose tests are those of white, equal noise.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.diagnose.fitting import chi2_sf
-from rotcal.diagnose.geometry import Observations, sample_runs
+from rotcal.diagnose.geometry import Observations, Whitening, sample_runs
+from rotcal.fit.correlated import density_ratio
 
 
 def group_noise(obs: Observations, resid: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,21 +57,44 @@ def bartlett(variance: np.ndarray, dof: np.ndarray) -> float:
     return chi2_sf(stat, s2.size - 1)
 
 
-def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: float) -> np.ndarray | None:
-    """Each sample's factor (n, 3), the pooled noise over its group's, in
-    the channels whose groups' noise differs (Bartlett at ``alpha``,
-    Bonferroni over channels; 1 in the others); None where no channel's
-    does, or where the noise is at the numerical floor (noise-free data)."""
+def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: float) -> Whitening | None:
+    """The transform that makes the residuals' noise white and equal
+    (``geometry.Whitening``): in each group of one rate and axis whose
+    residuals are correlated from sample to sample (``fit.correlated``: lag
+    1 positive beyond 4 standard errors; the noise density's ratio F(0) to
+    white at zero frequency from lags 1 and 2), the first-order filter whose
+    output is white at zero frequency, where the signals are: phi =
+    (F(0) - 1) / (F(0) + 1) (rho for a plain autoregression), at most 0.95;
+    in the channels whose groups' noise differs (Bartlett at ``alpha``,
+    Bonferroni over channels, on the marginal variances: the differences'
+    over 1 - rho where filtered), each sample scaled by the pooled noise
+    over its group's.
+    None where neither applies, or where the noise is at the numerical floor
+    (noise-free data)."""
     group, variance, dof = group_noise(obs, resid, use)
+    g = variance.shape[0]
+    square = np.stack([np.bincount(group, np.where(use[:, r], resid[:, r] ** 2, 0.0), g) for r in range(3)], axis=1)
+    rho = []
+    for k in (1, 2):
+        pair = ((obs.segment[k:] == obs.segment[:-k]) & (group[k:] == group[:-k]))[:, None] & use[k:] & use[:-k]
+        lag = np.stack([np.bincount(group[k:], np.where(pair[:, r], resid[k:, r] * resid[:-k, r], 0.0), g)
+                        for r in range(3)], axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho.append(np.nan_to_num(lag / square))
+    # the filter whose output is white at zero frequency, where the signals are: (1 - phi) / (1 + phi) = 1 / F(0)
+    ratio = density_ratio(rho[0], rho[1], np.maximum(dof, 1), 0.0)
+    filtering = (dof > 0) & (ratio > 1.0)
+    phi = np.where(filtering, np.minimum((ratio - 1) / (ratio + 1), 0.95), 0.0)
+    variance = np.where(filtering, variance / (1 - rho[0]), variance)
     floor = obs.noise_floor**2
-    factor = np.ones_like(obs.y)
-    whitened = False
+    scale = np.ones_like(obs.y)
     for r in range(3):
         on = dof[:, r] > 0
         if not np.all(variance[on, r] > floor[r]) or bartlett(variance[:, r], dof[:, r]) >= alpha / 3:
             continue
         pooled = (dof[on, r] * variance[on, r]).sum() / dof[on, r].sum()
-        scale = np.where(on, np.sqrt(pooled / np.where(on, variance[:, r], 1.0)), 1.0)
-        factor[:, r] = scale[group]
-        whitened = True
-    return factor if whitened else None
+        scale[:, r] = np.where(on, np.sqrt(pooled / np.where(on, variance[:, r], 1.0)), 1.0)[group]
+    if not filtering.any() and np.all(scale == 1.0):
+        return None
+    starts = np.r_[True, obs.segment[1:] != obs.segment[:-1]]
+    return Whitening(scale, np.where(starts[:, None], 0.0, phi[group]))
