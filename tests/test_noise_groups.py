@@ -107,3 +107,22 @@ def test_a_concealed_effect_is_measured_in_correlated_noise(tmp_path):
     assert named == ["centripetal"]
     radius = params.filter(pl.col("parameter") == "radius_m").row(0, named=True)
     assert abs(radius["value"] - 0.1) < 3 * radius["std_uncertainty"]
+
+
+def test_whitening_filters_each_segment_from_its_first_sample():
+    """x*_i = scale_i (x_i - phi_i x_i-1) / sqrt(1 - phi_i^2), phi 0 at a
+    segment's first sample, on the whole observations and on a design's
+    used rows (a row whose predecessor is not used starts afresh); an
+    AR(1) series so filtered is white with the series' variance."""
+    from rotcal.diagnose.geometry import Whitening, filtered
+
+    rng = np.random.default_rng(4)
+    n, phi = 200_000, 0.7
+    x = lfilter([1.0], [1.0, -phi], rng.normal(0, np.sqrt(1 - phi**2), (n, 3)), axis=0)
+    out = filtered(x, np.ones((n, 3)), np.full((n, 3), phi))
+    assert abs(np.mean(out[1:, 0] * out[:-1, 0])) < 0.01 and abs(out.var() - 1) < 0.02
+    explicit = (x[1:] - phi * x[:-1]) / np.sqrt(1 - phi**2)
+    np.testing.assert_allclose(out[1:], explicit, rtol=1e-12)
+    w = Whitening(np.full((6, 3), 2.0), np.where(np.arange(6)[:, None] == 3, 0.0, 0.5) * np.ones((1, 3)))
+    scale, phis = w.rows(np.array([0, 1, 2, 4, 5]), 1)
+    assert scale.tolist() == [2.0] * 5 and phis.tolist() == [0.0, 0.5, 0.5, 0.0, 0.5]
