@@ -66,6 +66,26 @@ def test_an_effect_under_jittery_stamps_is_still_named_and_measured(tmp_path):
     assert abs(row["value"][0] - 0.0008) <= 3 * row["std_uncertainty"][0], row.row(0)
 
 
+def test_jittery_mcap_with_the_controllers_table_stamps_raises_no_finding(tmp_path):
+    """``rotcal simulate``'s MCAP with 2 ms of DUT stamp jitter: the table's
+    messages carry the controller's own stamps, a segment's or step's first
+    half a sample before its first sample, so no sample's labels depend on
+    its jitter; no finding. When each message was stamped as the sample it
+    coincided with, the messages were picked by the jittered stamps, the
+    samples between them had a mean jitter of -0.44 ms at 0.5 Hz, and the
+    diagnosis found a 130 us channel_delay and a rate_error (seed 7)."""
+    sim = simulate(JITTERY, 7)
+    first = sim.samples.filter(pl.col("plan_segment") == 4)   # the x axis's 0.5 Hz rotation, stamps jittered
+    clean = simulate(SimulationSpec(), 7).samples.filter(pl.col("plan_segment") == 4)
+    message = sim.table.filter(pl.col("t_ns") < clean["t_ns"][0]).row(-1, named=True)
+    assert message["t_ns"] == clean["t_ns"][0] - 30_000_000 != first["t_ns"][0]
+    assert message["angle_deg"] == pytest.approx(clean["angle_deg"][0] - 360 * 0.5 * 0.03, abs=1e-9)
+    data = write_dataset(sim, JITTERY, tmp_path / "data", "mcap-cdr")
+    run_dataset(data, tmp_path / "out", config=ONE_WORKER)
+    findings = pl.read_parquet(tmp_path / "out" / "diagnosis.parquet")
+    assert not findings["detected"].any(), findings.filter(pl.col("detected"))
+
+
 EFFECTS = [
     ("centripetal", "centripetal:axis=y,radius_m=0.04", {"radius_m": 0.04}),
     ("cubic_nonlinearity", "cubic_nonlinearity:k3_u=-4e-4", {"k3_u": -4e-4}),

@@ -36,6 +36,7 @@ from rotcal.model.physics import (
 from rotcal.simulate.spec import DutSpec, Plan, Simulation, SimulationSpec
 from rotcal.simulate.timebase_sim import apply_defects
 from rotcal.simulate.transitions import schedule_continuous, timeline
+from rotcal.simulate.writers import table_messages
 
 
 def draw_dut(spec: DutSpec, rng: np.random.Generator) -> tuple[Dut, dict]:
@@ -145,11 +146,13 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
     samples = labels.with_columns(
         *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS)), *logged
     ).select("t_ns", *CHANNELS, "axis", "rate_hz", "angle_deg", "plan_segment", *(s.name for s in logged))
+    table = table_messages(samples.filter(pl.col("plan_segment").is_not_null()))
+    table = table.with_columns(t_ns=pl.Series(np.round(table["t_ns"].to_numpy() * spec.timebase.clock_factor).astype(np.int64)))
     samples, logger = apply_defects(samples, spec.timebase, logger_rng)
     truth = truth_record(spec, seed, dut, mount, described, foreign, logger)
     if phases is not None:
         truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
-    return Simulation(samples, truth, dut, effects)
+    return Simulation(samples, truth, dut, effects, table)
 
 
 def truth_record(spec: SimulationSpec, seed: int, dut: Dut, mount: dict, described: list[dict], foreign: list,

@@ -137,6 +137,10 @@ class Simulation:
     truth: dict
     dut: Dut
     effects: Effects
+    # what a table controller publishes (``writers.table_messages``), stamped
+    # by its own clock at the instants of the samples before the logger's
+    # defects: a controller's stamps owe nothing to the DUT's jitter
+    table: pl.DataFrame
 
 
 def key_values(base, text: str, table: str):

@@ -59,7 +59,9 @@ def _table_blocks(part: dict, block: int) -> Iterator[pl.DataFrame]:
     for a in range(0, n, block):
         b = min(a + block, n)
         index = np.unique(np.r_[0, np.arange(max(a - 1, 0), b), n - 1])
-        yield table_messages(_labels(part, index)).filter(pl.col("t_ns").is_between(int(t_ns[a]), int(t_ns[b - 1])))
+        # from the segment's first message on (half a sample before its first sample, ``table_messages``)
+        low = int(t_ns[a]) if a else np.iinfo(np.int64).min
+        yield table_messages(_labels(part, index)).filter(pl.col("t_ns").is_between(low, int(t_ns[b - 1])))
 
 
 def _blocks(parts: Iterator[dict], dut: Dut, effects: Effects, g_local: float, noise_rng: np.random.Generator,

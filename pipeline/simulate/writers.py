@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 
 from rotcal.errors import ConfigError
@@ -58,11 +59,20 @@ def write_csv_single(sim: Simulation, path: Path, columns: tuple[str, ...] = ("t
 
 def table_messages(samples: pl.DataFrame, period_s: float = 0.1) -> pl.DataFrame:
     """What a table controller publishes: at each segment's and step's start
-    and last sample, and every ``period_s`` during rotation."""
+    and last sample, and every ``period_s`` during rotation. The start's
+    message comes half a sample interval before the first sample (the
+    table is there before the DUT next samples; at time 0, at it), with the
+    commanded angle of that instant: a controller's ticks are not the DUT's
+    sampling instants, and a sample whose stamp jitters earlier still
+    follows its segment's first message."""
+    lead_ns = int(np.median(np.diff(samples["t_ns"].to_numpy()))) // 2 if samples.height > 1 else 0
     frame = samples.with_columns(
         step=pl.struct("plan_segment", pl.when(pl.col("rate_hz") == 0).then(pl.col("angle_deg"))).rle_id()
     )
-    edges = frame.filter(pl.col("step").is_first_distinct() | pl.col("step").is_last_distinct())
+    first = pl.col("step").is_first_distinct()
+    lead = pl.when(first & (pl.col("t_ns") >= lead_ns)).then(lead_ns).otherwise(0)
+    edges = frame.filter(first | pl.col("step").is_last_distinct()).with_columns(
+        t_ns=pl.col("t_ns") - lead, angle_deg=pl.col("angle_deg") - 360.0 * pl.col("rate_hz") * lead / 1e9)
     tick = ((pl.col("t_ns") - pl.col("t_ns").first().over("plan_segment")) // int(period_s * 1e9))
     ticks = frame.filter((pl.col("rate_hz") != 0) & tick.is_first_distinct().over("plan_segment"))
     return pl.concat([edges, ticks]).unique("t_ns", keep="first").sort("t_ns").select("t_ns", "axis", "rate_hz", "angle_deg")
@@ -81,9 +91,7 @@ def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: st
     segments are found from the signals, as in ``csv-unlabelled``."""
     from rotcal.simulate.mcap_writer import write_capture
 
-    table = table_messages(sim.samples.filter(pl.col("plan_segment").is_not_null()))
-    if sim.truth["plan"]["continuous"]:
-        table = table.clear()
+    table = sim.table.clear() if sim.truth["plan"]["continuous"] else sim.table
     return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)
 
 
