@@ -85,7 +85,7 @@ def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: floa
     ratio = density_ratio(rho[0], rho[1], np.maximum(dof, 1), 0.0)
     filtering = (dof > 0) & (ratio > 1.0)
     phi = np.where(filtering, np.minimum((ratio - 1) / (ratio + 1), 0.95), 0.0)
-    variance = np.where(filtering, variance / (1 - rho[0]), variance)
+    variance = np.where(filtering, variance / (1 - np.minimum(rho[0], 0.999)), variance)
     floor = obs.noise_floor**2
     scale = np.ones_like(obs.y)
     for r in range(3):
