@@ -10,7 +10,7 @@ lag-1 product sum) need the coefficients, so they take a second pass,
 again additive block by block, the lag-1 product carried across a block
 boundary by the block's last residual (``ResidualSums``).
 
-``segments.sine3_fit`` walks a segment in memory block by block through
+``sines.sine3_fit`` walks a segment in memory block by block through
 these two classes; a streaming run feeds them the blocks of a capture read
 chunk by chunk, whatever the chunk boundaries, and gets the same fit to
 rounding.
