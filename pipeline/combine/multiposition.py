@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.fit.correlated import density_ratio
+from rotcal.fit.correlated import density_ratio, grouped_autocorrelation
 from rotcal.fit.lsq import excess_is_significant, nonlinear
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
@@ -102,11 +102,8 @@ def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[n
                         for i in range(3) for j in range(3)], axis=1).reshape(n_groups, 3, 3)
     with np.errstate(divide="ignore", invalid="ignore"):  # a one-sample group: NaN, refused by reduce_static
         cov = scatter / ((counts - 1.0) * counts)[:, None, None]
-        # noise correlated from sample to sample: a mean's variance is the noise density at zero frequency
-        square = np.einsum("kii->ki", scatter)
-        lags = [np.column_stack([np.bincount(g[k:], weights=np.where(g[k:] == g[:-k], centred[k:, r] * centred[:-k, r], 0.0),
-                                             minlength=n_groups) for r in range(3)]) / square for k in (1, 2)]
-    widen = np.sqrt(density_ratio(lags[0], lags[1], counts[:, None], 0.0))
+    # noise correlated from sample to sample: a mean's variance is the noise density at zero frequency
+    widen = np.sqrt(density_ratio(*grouped_autocorrelation(centred, g, n_groups, g), counts[:, None], 0.0))
     cov = cov * widen[:, :, None] * widen[:, None, :]
     if yy.size and np.all(yy == np.round(yy)):
         diag = np.einsum("kii->ki", cov)

@@ -301,9 +301,9 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     layout = Layout(len(results), cands + (STEP,))
     alpha = config.false_alarm
     final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
-    factor = whitening(obs, final.residuals, final.use, alpha)
-    if factor is not None:   # the noise differs between rates or axes: everything again, weighted (``noise``)
-        obs = replace(obs, whitening=factor)
+    white = whitening(obs, final.residuals, final.use, alpha)
+    if white is not None:   # the noise differs between rates or axes, or is correlated: everything again, whitened
+        obs = replace(obs, whitening=white)
         final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())

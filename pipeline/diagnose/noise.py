@@ -22,7 +22,7 @@ import numpy as np
 
 from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.geometry import Observations, Whitening, sample_runs
-from rotcal.fit.correlated import density_ratio
+from rotcal.fit.correlated import density_ratio, grouped_autocorrelation
 
 
 def group_noise(obs: Observations, resid: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -72,20 +72,13 @@ def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: floa
     None where neither applies, or where the noise is at the numerical floor
     (noise-free data)."""
     group, variance, dof = group_noise(obs, resid, use)
-    g = variance.shape[0]
-    square = np.stack([np.bincount(group, np.where(use[:, r], resid[:, r] ** 2, 0.0), g) for r in range(3)], axis=1)
-    rho = []
-    for k in (1, 2):
-        pair = ((obs.segment[k:] == obs.segment[:-k]) & (group[k:] == group[:-k]))[:, None] & use[k:] & use[:-k]
-        lag = np.stack([np.bincount(group[k:], np.where(pair[:, r], resid[k:, r] * resid[:-k, r], 0.0), g)
-                        for r in range(3)], axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho.append(np.nan_to_num(lag / square))
+    # a segment lies in one group of rate and axis: pairs within a segment are within its group
+    lag1, lag2 = grouped_autocorrelation(resid, group, variance.shape[0], obs.segment, use)
     # the filter whose output is white at zero frequency, where the signals are: (1 - phi) / (1 + phi) = 1 / F(0)
-    ratio = density_ratio(rho[0], rho[1], np.maximum(dof, 1), 0.0)
+    ratio = density_ratio(lag1, lag2, np.maximum(dof, 1), 0.0)
     filtering = (dof > 0) & (ratio > 1.0)
     phi = np.where(filtering, np.minimum((ratio - 1) / (ratio + 1), 0.95), 0.0)
-    variance = np.where(filtering, variance / (1 - np.minimum(rho[0], 0.999)), variance)
+    variance = np.where(filtering, variance / (1 - np.minimum(np.nan_to_num(lag1), 0.999)), variance)
     floor = obs.noise_floor**2
     scale = np.ones_like(obs.y)
     for r in range(3):

@@ -32,6 +32,26 @@ import numpy as np
 CORRELATION_Z = 4.0
 
 
+def grouped_autocorrelation(x: np.ndarray, group: np.ndarray, n_groups: int, run: np.ndarray,
+                            use: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The lag-1 and lag-2 autocorrelations (n_groups, columns) of the
+    columns of ``x`` (residuals, or samples about their group's mean) in
+    each group: the products of samples k apart within one ``run`` (a
+    segment, a pose), both in ``use``, over the group's sum of squares
+    (NaN where that is 0)."""
+    used = np.ones(x.shape, bool) if use is None else use
+    columns = range(x.shape[1])
+    square = np.stack([np.bincount(group, np.where(used[:, r], x[:, r] ** 2, 0.0), n_groups) for r in columns], axis=1)
+    lags = []
+    for k in (1, 2):
+        pair = (run[k:] == run[:-k])[:, None] & used[k:] & used[:-k]
+        products = np.stack([np.bincount(group[k:], np.where(pair[:, r], x[k:, r] * x[:-k, r], 0.0), n_groups)
+                             for r in columns], axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lags.append(products / square)
+    return lags[0], lags[1]
+
+
 def density_ratio(lag1: np.ndarray, lag2: np.ndarray | None, n: np.ndarray | int, omega: float) -> np.ndarray:
     """F(omega), elementwise, from lag-1 and lag-2 autocorrelations over
     ``n`` samples each (lag 2 None: a plain autoregression); 1 where lag 1
