@@ -1,5 +1,5 @@
 """Does the wheel hold exactly what the checkout ships? Every module under
-pipeline/ as rotcal/..., the schemas as rotcal_schemas/ and the configs as
+pipeline/rotcal/ as rotcal/..., the schemas as rotcal_schemas/ and the configs as
 rotcal_configs/; nothing missing (issue 12: a subpackage left out broke
 every installed `rotcal demo`) and nothing stale.
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 # installed package -> (folder in the checkout, the files it ships)
-SHIPPED = {"rotcal": ("pipeline", ["*.py", "*.html"]), "rotcal_schemas": ("schemas", ["*.py", "*.json"]),
+SHIPPED = {"rotcal": ("pipeline/rotcal", ["*.py", "*.html"]), "rotcal_schemas": ("schemas", ["*.py", "*.json"]),
            "rotcal_configs": ("configs", ["*.py", "*.toml"])}
 
 

@@ -8,7 +8,7 @@ segment fits) are timed with ``time.process_time`` (CPU, so a shared machine
 disturbs it little), under cProfile when ``--profile`` is given (its
 overhead inflates the totals; the per-function shares, CPU seconds as well, are what it is for).
 ``--reference DIR`` runs the same measurement with another rotcal source
-tree (DIR/pipeline, DIR/schemas, DIR/configs: e.g. ``git archive main``
+tree (DIR/pipeline/rotcal, DIR/schemas, DIR/configs: e.g. ``git archive main``
 unpacked) in a subprocess of the same interpreter, alternating with this
 tree dataset kind by kind, and prints the ratio, with both outputs' diagnosis
 tables compared.
@@ -88,10 +88,12 @@ def _tree_env(tree: Path, scratch: Path) -> dict[str, str]:
     """An environment whose ``import rotcal`` is ``tree``'s source (PYTHONPATH
     precedes the editable install's finder)."""
     scratch.mkdir(parents=True, exist_ok=True)
-    for name, sub in (("rotcal", "pipeline"), ("rotcal_schemas", "schemas"), ("rotcal_configs", "configs")):
+    package = tree / "pipeline" / "rotcal"
+    package = package if package.is_dir() else tree / "pipeline"  # trees before the src-style layout
+    for name, source in (("rotcal", package), ("rotcal_schemas", tree / "schemas"), ("rotcal_configs", tree / "configs")):
         link = scratch / name
         if not link.exists():
-            link.symlink_to(tree / sub)
+            link.symlink_to(source)
     return {**os.environ, "PYTHONPATH": str(scratch)}
 
 

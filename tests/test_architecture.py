@@ -8,7 +8,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PIPELINE = Path(__file__).resolve().parents[1] / "pipeline"
+PIPELINE = Path(__file__).resolve().parents[1] / "pipeline" / "rotcal"
 STAGES = {"ingest", "timebase", "segment", "fit", "combine", "metrology", "diagnose", "report", "batch", "simulate", "model"}
 
 

@@ -200,7 +200,7 @@ def toml_text(config: RunConfig = RunConfig()) -> str:
     """``config`` as a TOML file, every key with its description
     (``configs/defaults.toml`` for the defaults)."""
     lines = ["# rotcal's run configuration: the defaults (written by `python -m rotcal.config`",
-             "# from pipeline/config.py; do not edit). A file given with --config overrides any",
+             "# from pipeline/rotcal/config.py; do not edit). A file given with --config overrides any",
              "# of these keys; unknown keys are refused."]
     for table in dataclasses.fields(RunConfig):
         section = getattr(config, table.name)
