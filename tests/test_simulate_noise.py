@@ -62,7 +62,7 @@ def test_autoregression_and_low_pass():
     x = draw(spec, 200_000, FS, np.random.default_rng(4))
     assert x.std() == pytest.approx(4.0, rel=0.03)
     assert np.corrcoef(x[1:], x[:-1])[0, 1] == pytest.approx(0.9, abs=0.005)
-    assert noise_terms(spec, FS)["white_density"] == pytest.approx(4 * math.sqrt(1 - 0.81) / 0.1 / 10)
+    assert noise_terms(spec, FS)["gauss_markov"] == [[pytest.approx(-0.01 / math.log(0.9)), 4.0]]
     spec = NoiseSpec(white_sd=8.0, lowpass_order=2, lowpass_cutoff=0.1)
     x = draw(spec, 200_000, FS, np.random.default_rng(5))
     np.testing.assert_allclose(_adev(x, [1, 10]) * np.sqrt([1, 10]), 0.8, rtol=0.05)

@@ -28,6 +28,7 @@ from rotcal.run.outputs import (
     calibration_output,
     certificate_output,
     diagnosis_outputs,
+    noise_outputs,
     publish,
     result_tables,
 )
@@ -103,11 +104,13 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
     calibration = calibration_document(chosen, ds, config, known)
-    outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
+    noise, noise_notes = noise_outputs(seg, ds, config)
+    outputs = [*noise, *_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
                calibration_output(calibration), certificate_output(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
-                      seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
+                      seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes
+                      + noise_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)
 
 

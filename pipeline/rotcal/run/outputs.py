@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 
     from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.static import StaticDiagnosis
+    from rotcal.run.stages import Segmented
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,7 +44,8 @@ class Figure:
 PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
                  "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
                  "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
-                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
+                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "noise", "noise_allan_png",
+                 "certificate")
 
 
 # the tables that describe the input rather than a result: published even when no rate can be determined
@@ -91,6 +93,26 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
 
         outputs.append(Figure("diagnosis_report", draw))
     return outputs
+
+
+def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
+    """The ``noise`` table and the Allan-deviation figure (``noise_allan.png``,
+    with figures) of a recording held in memory; a streamed capture's
+    samples are not kept, so its noise is not identified (a note says so)."""
+    if seg.streamed is not None:
+        return [], ("noise model not identified: the capture was read block by block (its samples are not kept)",)
+    from rotcal.noise import identify_noise, noise_frame
+
+    model = identify_noise(seg.samples, seg.fits, seg.dwells, ds.meta.output_unit)
+    outputs: list[Table | Figure] = [Table("noise", noise_frame(model, ds.name))]
+    if config.report.figures:
+        def draw(out: Path) -> Path | None:
+            from rotcal.report.noise_figure import allan_png
+
+            return allan_png(model, out / "noise_allan.png", f"{ds.name}: Allan deviation of the residuals and the noise model")
+
+        outputs.append(Figure("noise_allan_png", draw))
+    return outputs, ()
 
 
 @dataclass(frozen=True, eq=False)

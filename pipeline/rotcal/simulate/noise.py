@@ -177,18 +177,22 @@ def quantized(x: np.ndarray, step: float) -> np.ndarray:
 
 
 def noise_terms(spec: NoiseSpec, fs_hz: float) -> dict:
-    """The drawn noise's IEEE Std 952 terms (counts, seconds): the white
-    density N of everything white below the low-pass (the white part and the
-    autoregression's density at 0 Hz, sigma_e / (1 - sum a)), B, K, the
-    Gauss-Markov terms, the quantization step; what the noise
-    identification should find."""
-    sigma_e = ar_innovation_sd(spec.ar, spec.ar_sd)
-    density_ar = sigma_e / (1 - sum(spec.ar)) if spec.ar else sigma_e
-    step_white = spec.quantization / math.sqrt(12)  # a step well below the noise adds white noise of step/sqrt(12)
+    """The drawn noise's IEEE Std 952 terms (counts, seconds), what the
+    noise identification should find: the white density N (of the white
+    part, of an autoregression of order 2 or more at 0 Hz, sigma_e / (1 -
+    sum a), and of a fine quantization step, step / sqrt(12)), B, K, the
+    Gauss-Markov terms (an AR(1) of coefficient a is one: T_c = -dt / ln a,
+    its stationary sd), the quantization step."""
+    gauss_markov = [list(t) for t in spec.gauss_markov]
+    density2 = spec.white_sd**2 + spec.quantization**2 / 12
+    if len(spec.ar) == 1 and 0 < spec.ar[0] < 1 and spec.ar_sd:
+        gauss_markov.append([-1 / (fs_hz * math.log(spec.ar[0])), spec.ar_sd])
+    elif spec.ar_sd:
+        density2 += (ar_innovation_sd(spec.ar, spec.ar_sd) / (1 - sum(spec.ar))) ** 2
     return {
-        "white_density": math.sqrt((spec.white_sd**2 + density_ar**2 + step_white**2) / fs_hz),
+        "white_density": math.sqrt(density2 / fs_hz),
         "bias_instability": spec.flicker_b,
         "random_walk": spec.random_walk_k,
-        "gauss_markov": [list(t) for t in spec.gauss_markov],
+        "gauss_markov": sorted(gauss_markov),
         "quantization": spec.quantization,
     }

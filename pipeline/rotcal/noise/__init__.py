@@ -1,0 +1,48 @@
+"""The noise stage: each channel's noise model identified from the
+residuals of the fitted model (``residuals``), by its Allan variance
+(``allan``) fitted with the IEEE Std 952 / 1293 terms (``model``); the
+``noise`` table (schemas/noise.json)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import polars as pl
+
+from rotcal.model.physics import CHANNELS
+from rotcal.noise.allan import AllanVariance, pooled_avar
+from rotcal.noise.model import ChannelNoise, Term, identify_channel
+from rotcal.noise.residuals import residual_pieces, sample_interval_s
+
+__all__ = ["AllanVariance", "ChannelNoise", "NoiseModel", "Term", "identify_noise", "noise_frame", "pooled_avar"]
+
+
+@dataclass(frozen=True, eq=False)
+class NoiseModel:
+    """The recording's noise: per channel its Allan variance and model, the
+    sample interval (s) and the output unit."""
+
+    channels: tuple[ChannelNoise, ...]
+    dt_s: float
+    output_unit: str
+
+
+def identify_noise(samples: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame, output_unit: str) -> NoiseModel:
+    """Each channel's noise model from the residuals of the fitted model."""
+    dt = sample_interval_s(samples)
+    if dt <= 0:
+        return NoiseModel((), 0.0, output_unit)
+    pieces = residual_pieces(samples, fits, dwells, dt)
+    return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit)
+                            for r, c in enumerate(CHANNELS)), dt, output_unit)
+
+
+def noise_frame(model: NoiseModel, dataset: str) -> pl.DataFrame:
+    """The ``noise`` table: one row per channel and term (schemas/noise.json)."""
+    rows = [{"dataset": dataset, "channel": ch.channel, "term": t.term, "index": t.index, "value": t.value, "u": t.u,
+             "dof": t.dof, "unit": t.unit, "chi2_reduced": ch.chi2_reduced, "sample_interval_s": model.dt_s}
+            for ch in model.channels for t in ch.terms]
+    schema = {"dataset": pl.String, "channel": pl.String, "term": pl.String, "index": pl.Int32, "value": pl.Float64,
+              "u": pl.Float64, "dof": pl.Float64, "unit": pl.String, "chi2_reduced": pl.Float64,
+              "sample_interval_s": pl.Float64}
+    return pl.DataFrame(rows, schema=schema)

@@ -1,0 +1,230 @@
+"""A channel's noise model fitted to its Allan variance: the terms of
+IEEE Std 952-1997 Annex C and IEEE Std 1293-2018 Annex A,
+
+    sigma^2(tau) = 3 Q^2 / tau^2 + N^2 / tau + (2 ln 2 / pi) B^2 + K^2 tau / 3
+                   + sum_j GM(tau; q_j, T_j),
+
+GM the Allan variance of a first-order Gauss-Markov term of stationary sd q
+and correlation time T (from its autocovariance q^2 exp(-|t| / T)):
+(q T / tau)^2 (2 u - 3 + 4 exp(-u) - exp(-2 u)), u = tau / T.
+
+Fitted by weighted least squares on the octave Allan variances, each
+weighted by its own variance 2 sigma^4 / edf (the Allan variance estimate
+is chi-square with edf degrees of freedom, NIST SP 1065 5.3), the edf for
+the power-law type the model has at that tau, iterated with the model's
+variances (so a low estimate does not weigh more than a high one). The
+coefficients enter as variances (Q^2, N^2, B^2, K^2, q_j^2; non-negative),
+the correlation times as log T. The number of Gauss-Markov terms (0 to 2)
+is chosen by Akaike's criterion. Uncertainties: the covariance (J^T W J)^-1
+scaled by the reduced chi-square where above 1 (a misfit widens, never
+narrows); neighbouring octave estimates are correlated, which the scaling
+and the tests (docs/noise.md) bound.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from rotcal.noise.allan import AllanVariance, pooled_avar
+
+FLICKER = 2 * math.log(2) / math.pi  # Allan variance of flicker over B^2 (IEEE Std 952 C.6)
+POWER_TERMS = ("quantization", "white_density", "bias_instability", "random_walk")
+MAX_GAUSS_MARKOV = 2
+
+
+@dataclass(frozen=True)
+class Term:
+    """One identified term: its name (with the Gauss-Markov term's number),
+    value, standard uncertainty and effective degrees of freedom, in the
+    channel's unit (``unit`` says how: e.g. output unit sqrt(s))."""
+
+    term: str
+    index: int
+    value: float
+    u: float
+    dof: float
+    unit: str
+
+
+@dataclass(frozen=True, eq=False)
+class ChannelNoise:
+    """A channel's Allan variance, its fitted model's terms and the fit's
+    reduced chi-square; ``reason`` where no model could be fitted."""
+
+    channel: str
+    allan: AllanVariance
+    terms: tuple[Term, ...]
+    chi2_reduced: float
+    dt: float = 1.0
+    band_limit: float = 0.0  # the fitted coefficient of 3 / tau^2: Q^2, or negative where the output is band-limited
+    reason: str | None = None
+
+    def model_avar(self, tau_s: np.ndarray) -> np.ndarray:
+        """The fitted model's Allan variance at ``tau_s`` (the quantization
+        term with its fitted sign: a band-limited output's is negative)."""
+        v = {(t.term, t.index): t.value for t in self.terms}
+        p = np.array([v.get((name, 0), 0.0) ** 2 for name in POWER_TERMS])
+        p[0] = self.band_limit
+        gm = [(v[("gauss_markov_sd", j)], v[("gauss_markov_tau_s", j)]) for j in range(MAX_GAUSS_MARKOV)
+              if ("gauss_markov_sd", j) in v]
+        return _model(np.asarray(tau_s, float), p, gm, self.dt)
+
+
+def gauss_markov_avar(tau: np.ndarray, q: float, t: float, dt: float) -> np.ndarray:
+    """The Allan variance of a Gauss-Markov term sampled every ``dt``
+    (autocovariance q^2 a^|k|, a = exp(-dt / T)): with S the sum of m
+    samples, (Var S - Cov(S_1, S_2)) / m^2,
+
+        Var S = q^2 (m + 2 a (m (1 - a) - (1 - a^m)) / (1 - a)^2),
+        Cov   = q^2 a (1 - a^m)^2 / (1 - a)^2;
+
+    for T above 1000 dt, where that cancels, the continuous form of the
+    module docstring (the two differ there by less than 1e-3)."""
+    m = np.maximum(np.round(tau / dt), 1.0)
+    if t > 1000 * dt:
+        u = tau / t
+        small = u < 1e-3
+        bracket = np.where(small, 2 * u**3 / 3 - u**4 / 2, 2 * u - 3 + 4 * np.exp(-u) - np.exp(-2 * u))
+        return (q * t / tau) ** 2 * bracket
+    a = math.exp(-dt / t)
+    am = a**m
+    var_s = m + 2 * a * (m * (1 - a) - (1 - am)) / (1 - a) ** 2
+    cov_s = a * (1 - am) ** 2 / (1 - a) ** 2
+    return q**2 * (var_s - cov_s) / m**2
+
+
+def _basis(tau: np.ndarray) -> np.ndarray:
+    """The power-law terms' Allan variance per unit variance coefficient (n, 4)."""
+    return np.column_stack([3 / tau**2, 1 / tau, np.full(tau.size, FLICKER), tau / 3])
+
+
+def _model(tau: np.ndarray, power: np.ndarray, gm: list[tuple[float, float]], dt: float) -> np.ndarray:
+    out = _basis(tau) @ power
+    for q, t in gm:
+        out = out + gauss_markov_avar(tau, q, t, dt)
+    return out
+
+
+def _alphas(tau: np.ndarray, avar: np.ndarray) -> np.ndarray:
+    """The power-law noise type at each tau from the local slope of the
+    Allan variance (-1 white, 0 flicker, +1 random walk; alpha = -1 - slope)."""
+    if tau.size < 2:
+        return np.zeros(tau.size, int)
+    slope = np.gradient(np.log(np.maximum(avar, 1e-300)), np.log(tau))
+    return np.clip(np.round(-1 - slope), -2, 0).astype(int)
+
+
+def _fit(av: AllanVariance, weights_from: np.ndarray, n_gm: int, start_t: tuple[float, ...], dt: float):
+    """One weighted least-squares fit with ``n_gm`` Gauss-Markov terms
+    started at correlation times ``start_t``; (parameters, chi-square,
+    Jacobian of the weighted residuals)."""
+    tau, a = av.tau_s, av.avar
+    scale = weights_from * np.sqrt(2 / av.edf)  # sd of each estimate
+    n0 = a[0] * tau[0]
+    x0 = np.r_[0.0, n0, 0.0, 0.0, [a.max() * 0.1] * n_gm, np.log(start_t)]
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        gm = [(math.sqrt(max(x[4 + j], 0.0)), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
+        return (_model(tau, x[:4], gm, dt) - a) / scale
+
+    # the 3 / tau^2 coefficient may be negative: a low-pass takes from the shortest averaging times what
+    # quantization adds (band-limited white noise: N^2 / tau minus a tau^-2 term beyond the filter's memory)
+    lo = np.r_[-np.inf, [0.0] * (3 + n_gm), [math.log(tau[0] / 4)] * n_gm]
+    hi = np.r_[[np.inf] * (4 + n_gm), [math.log(tau[-1] * 4)] * n_gm]
+    fit = least_squares(resid, np.clip(x0, lo, hi), bounds=(lo, hi), x_scale="jac", method="trf",
+                        xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=300)
+    return fit.x, float(fit.fun @ fit.fun), fit.jac
+
+
+def _select(av: AllanVariance, dt: float):
+    """The model with the fewest Akaike-penalised chi-square over 0, 1, 2
+    Gauss-Markov terms (a second tried only when a first helped), each from
+    a few starting correlation times: (aic, n_gm, x, chi2, jac)."""
+    best = None
+    for n_gm in range(MAX_GAUSS_MARKOV + 1):
+        if av.tau_s.size - (4 + 2 * n_gm) < 1 or (best is not None and best[1] < n_gm - 1):
+            break
+        grid = np.exp(np.linspace(np.log(av.tau_s[0]), np.log(av.tau_s[-1]), 3 + n_gm))
+        starts = [()] if n_gm == 0 else [tuple(grid[i:i + n_gm]) for i in range(1, 3)]
+        for start in starts:
+            weights_from = av.avar
+            for _ in range(2):  # weights from the model's variances (iterated once)
+                x, chi2, jac = _fit(av, weights_from, n_gm, start, dt)
+                gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
+                weights_from = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300)
+            aic = chi2 + 2 * (4 + 2 * n_gm)
+            if best is None or aic < best[0] - 1e-9:
+                best = (aic, n_gm, x, chi2, jac)
+    return best
+
+
+def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> ChannelNoise:
+    """The channel's model (module docstring), or its reason when the Allan
+    variance has too few averaging times (fewer than 5). A sensor's
+    low-pass lowers the shortest averaging times below any of the terms:
+    where the fit from the shortest tau misfits (reduced chi-square above
+    3), the shortest one or two octaves are left out when that fits better."""
+    if av.tau_s.size < 5 or not np.all(av.avar > 0):
+        return ChannelNoise(channel, av, (), 0.0, dt, 0.0, "fewer than 5 averaging times with an Allan variance: "
+                                                   "the residual pieces are too short for a noise model")
+    best, kept = None, av
+    for skip in range(3):
+        part = AllanVariance(av.tau_s[skip:], av.avar[skip:], av.n_terms[skip:], av.edf[skip:])
+        if part.tau_s.size < 5:
+            break
+        found = _select(part, dt)
+        if found is None:
+            break
+        red = found[3] / max(part.tau_s.size - (4 + 2 * found[1]), 1)
+        if best is None or red < best[0]:
+            best, kept = (red, found), part
+        if red <= 3.0:
+            break
+    assert best is not None
+    _, (_, n_gm, x, chi2, jac) = best
+    chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
+    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0)
+    return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
+
+
+def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, ...]:
+    """Amplitudes from the fitted variances: value sqrt(v), u = u(v) / (2
+    sqrt(v)) where v exceeds 2 u(v), else sqrt(v + u(v)) (an upper bound
+    for a term the data do not show); dof 2 (v / u(v))^2 / 4 = the chi-square
+    dof of a variance estimate of that relative uncertainty, halved for the
+    square root (at least 1)."""
+    units = {"quantization": f"{unit} s", "white_density": f"{unit} sqrt(s)", "bias_instability": unit,
+             "random_walk": f"{unit} / sqrt(s)", "gauss_markov_sd": unit, "gauss_markov_tau_s": "s"}
+    out = []
+
+    def amplitude(name: str, index: int, k: int) -> None:
+        v, uv = float(x[k]), float(math.sqrt(max(cov[k, k], 0.0)))
+        if uv > 0 and v > 2 * uv:
+            value, u = math.sqrt(v), uv / (2 * math.sqrt(v))
+        else:
+            value, u = math.sqrt(max(v, 0.0)), math.sqrt(max(v, 0.0) + uv)
+        dof = max(2 * (v / uv) ** 2 / 4, 1.0) if uv > 0 else 1.0
+        out.append(Term(name, index, value, u, min(dof, 1e6), units[name]))
+
+    for k, name in enumerate(POWER_TERMS):
+        amplitude(name, 0, k)
+    order = np.argsort(x[4 + n_gm:4 + 2 * n_gm]) if n_gm else []
+    for j, g in enumerate(order):
+        amplitude("gauss_markov_sd", j, 4 + int(g))
+        k = 4 + n_gm + int(g)
+        t, ut = math.exp(x[k]), math.exp(x[k]) * math.sqrt(max(cov[k, k], 0.0))
+        out.append(Term("gauss_markov_tau_s", j, t, ut, min(max(0.5 * (t / ut) ** 2, 1.0), 1e6) if ut > 0 else 1.0,
+                        units["gauss_markov_tau_s"]))
+    return tuple(out)
+
+
+def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str) -> ChannelNoise:
+    """The Allan variance of a channel's residual pieces (edf for the noise
+    type of a first estimate's slope) and its fitted model."""
+    first = pooled_avar(pieces, fs_hz)
+    factors = np.round(first.tau_s * fs_hz).astype(int)
+    return fit_channel(channel, pooled_avar(pieces, fs_hz, factors, _alphas(first.tau_s, first.avar)), 1 / fs_hz, unit)
