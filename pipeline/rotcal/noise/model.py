@@ -17,8 +17,8 @@ coefficients enter as variances (Q^2, N^2, B^2, K^2, q_j^2; non-negative),
 the correlation times as log T. The number of Gauss-Markov terms (0 to 2)
 is chosen by Akaike's criterion. Uncertainties: the covariance (J^T W J)^-1
 scaled by the reduced chi-square where above 1 (a misfit widens, never
-narrows); neighbouring octave estimates are correlated, which the scaling
-and the tests (docs/noise.md) bound.
+narrows) and by OCTAVE_CORRELATION^2 for the correlation of neighbouring
+octave estimates (measured on seeded draws, docs/noise.md).
 """
 
 from __future__ import annotations
@@ -34,6 +34,10 @@ from rotcal.noise.allan import AllanVariance, pooled_avar
 FLICKER = 2 * math.log(2) / math.pi  # Allan variance of flicker over B^2 (IEEE Std 952 C.6)
 POWER_TERMS = ("quantization", "white_density", "bias_instability", "random_walk")
 MAX_GAUSS_MARKOV = 2
+# the octave estimates share their samples, so weighted least squares that takes them as independent
+# counts the same information several times: the uncertainties are widened by this factor, measured on
+# seeded draws (docs/noise.md: without it 10 % of white-noise densities fell beyond 3 u)
+OCTAVE_CORRELATION = 2.0
 
 
 @dataclass(frozen=True)
@@ -133,7 +137,7 @@ def _fit(av: AllanVariance, weights_from: np.ndarray, n_gm: int, start_t: tuple[
 
     # the 3 / tau^2 coefficient may be negative: a low-pass takes from the shortest averaging times what
     # quantization adds (band-limited white noise: N^2 / tau minus a tau^-2 term beyond the filter's memory)
-    lo = np.r_[-np.inf, [0.0] * (3 + n_gm), [math.log(tau[0] / 4)] * n_gm]
+    lo = np.r_[-np.inf, [0.0] * (3 + n_gm), [math.log(max(tau[0] / 4, 1.5 * dt))] * n_gm]  # shorter: white
     hi = np.r_[[np.inf] * (4 + n_gm), [math.log(tau[-1] * 4)] * n_gm]
     fit = least_squares(resid, np.clip(x0, lo, hi), bounds=(lo, hi), x_scale="jac", method="trf",
                         xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=300)
@@ -187,7 +191,7 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
     assert best is not None
     _, (_, n_gm, x, chi2, jac) = best
     chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
-    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0)
+    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0) * OCTAVE_CORRELATION**2
     return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
 
 
@@ -212,7 +216,7 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
 
     for k, name in enumerate(POWER_TERMS):
         amplitude(name, 0, k)
-    order = np.argsort(x[4 + n_gm:4 + 2 * n_gm]) if n_gm else []
+    order: list[int] = [int(k) for k in np.argsort(x[4 + n_gm:4 + 2 * n_gm])] if n_gm else []
     for j, g in enumerate(order):
         amplitude("gauss_markov_sd", j, 4 + int(g))
         k = 4 + n_gm + int(g)
