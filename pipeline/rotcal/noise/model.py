@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import lsq_linear, minimize
 
 from rotcal.noise.allan import AllanVariance, pooled_avar
 
@@ -122,47 +122,75 @@ def _alphas(tau: np.ndarray, avar: np.ndarray) -> np.ndarray:
     return np.clip(np.round(-1 - slope), -2, 0).astype(int)
 
 
-def _fit(av: AllanVariance, weights_from: np.ndarray, n_gm: int, start_t: tuple[float, ...], dt: float):
-    """One weighted least-squares fit with ``n_gm`` Gauss-Markov terms
-    started at correlation times ``start_t``; (parameters, chi-square,
-    Jacobian of the weighted residuals)."""
-    tau, a = av.tau_s, av.avar
-    scale = weights_from * np.sqrt(2 / av.edf)  # sd of each estimate
-    n0 = a[0] * tau[0]
-    x0 = np.r_[0.0, n0, 0.0, 0.0, [a.max() * 0.1] * n_gm, np.log(start_t)]
-
-    def resid(x: np.ndarray) -> np.ndarray:
-        gm = [(math.sqrt(max(x[4 + j], 0.0)), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
-        return (_model(tau, x[:4], gm, dt) - a) / scale
-
+def _linear(tau: np.ndarray, a: np.ndarray, sd: np.ndarray, taus_c: tuple[float, ...],
+            dt: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """The coefficients linear in the Allan variance (c_Q, N^2, B^2, K^2,
+    q_j^2) for fixed correlation times, by bounded weighted least squares
+    (``lsq_linear``, columns scaled to unit norm): (coefficients, chi-square,
+    the weighted design)."""
+    design = np.column_stack([_basis(tau), *(gauss_markov_avar(tau, 1.0, t, dt) for t in taus_c)]) / sd[:, None]
+    norm = np.linalg.norm(design, axis=0)
+    norm[norm == 0] = 1.0
     # the 3 / tau^2 coefficient may be negative: a low-pass takes from the shortest averaging times what
     # quantization adds (band-limited white noise: N^2 / tau minus a tau^-2 term beyond the filter's memory)
-    lo = np.r_[-np.inf, [0.0] * (3 + n_gm), [math.log(max(tau[0] / 4, 1.5 * dt))] * n_gm]  # shorter: white
-    hi = np.r_[[np.inf] * (4 + n_gm), [math.log(tau[-1] * 4)] * n_gm]
-    fit = least_squares(resid, np.clip(x0, lo, hi), bounds=(lo, hi), x_scale="jac", method="trf",
-                        xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=300)
-    return fit.x, float(fit.fun @ fit.fun), fit.jac
+    lo = np.r_[-np.inf, np.zeros(3 + len(taus_c))]
+    fit = lsq_linear(design / norm, a / sd, bounds=(lo, np.inf), method="bvls")
+    coef = fit.x / norm
+    coef[1:] = np.maximum(coef[1:], 0.0)  # bvls may leave a bound by rounding
+    r = design @ coef - a / sd
+    return coef, float(r @ r), design
+
+
+def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float,
+         first: float | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+    """The weighted least-squares fit with ``n_gm`` Gauss-Markov terms by
+    variable projection: the linear coefficients solved for each set of
+    correlation times, the times searched on a grid (three per octave; a
+    second term's beside ``first``, the one-term fit's log T) and refined
+    by Nelder-Mead on log T. (parameters c_Q, N^2, B^2, K^2, q_j^2, log T_j; chi-square;
+    Jacobian of the weighted residuals, the log T columns by central differences)."""
+    tau, a = av.tau_s, av.avar
+    low, high = math.log(max(tau[0] / 4, 1.5 * dt)), math.log(tau[-1] * 4)  # shorter times are white noise
+
+    def chi2(log_t: np.ndarray) -> float:
+        if np.any(log_t < low) or np.any(log_t > high):
+            return np.inf
+        return _linear(tau, a, sd, tuple(np.exp(np.sort(log_t))), dt)[1]
+
+    log_t = np.empty(0)
+    if n_gm:
+        grid = np.arange(low, high + 1e-9, math.log(2) / 3)
+        candidates = ([np.array([g]) for g in grid] if n_gm == 1 or first is None
+                      else [np.array([first, g]) for g in grid if abs(g - first) > 0.3]) or [np.array([low, high])[:n_gm]]
+        log_t = min(candidates, key=chi2)
+        log_t = np.sort(minimize(chi2, log_t, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4}).x)
+    coef, value, design = _linear(tau, a, sd, tuple(np.exp(log_t)), dt)
+    columns = [design]
+    for j in range(n_gm):  # d residual / d log T_j = q_j^2 d GM(tau; 1, T_j) / d log T_j
+        step = 1e-5
+        up, down = (gauss_markov_avar(tau, 1.0, math.exp(log_t[j] + h), dt) for h in (step, -step))
+        columns.append((coef[4 + j] * (up - down) / (2 * step) / sd)[:, None])
+    return np.r_[coef, log_t], value, np.hstack(columns)
 
 
 def _select(av: AllanVariance, dt: float):
     """The model with the fewest Akaike-penalised chi-square over 0, 1, 2
-    Gauss-Markov terms (a second tried only when a first helped), each from
-    a few starting correlation times: (aic, n_gm, x, chi2, jac)."""
+    Gauss-Markov terms (a second tried only when a first helped), each fit's
+    weights from its own model's Allan variance (iterated once from the
+    estimates'): (aic, n_gm, x, chi2, jac)."""
     best = None
     for n_gm in range(MAX_GAUSS_MARKOV + 1):
         if av.tau_s.size - (4 + 2 * n_gm) < 1 or (best is not None and best[1] < n_gm - 1):
             break
-        grid = np.exp(np.linspace(np.log(av.tau_s[0]), np.log(av.tau_s[-1]), 3 + n_gm))
-        starts = [()] if n_gm == 0 else [tuple(grid[i:i + n_gm]) for i in range(1, 3)]
-        for start in starts:
-            weights_from = av.avar
-            for _ in range(2):  # weights from the model's variances (iterated once)
-                x, chi2, jac = _fit(av, weights_from, n_gm, start, dt)
-                gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
-                weights_from = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300)
-            aic = chi2 + 2 * (4 + 2 * n_gm)
-            if best is None or aic < best[0] - 1e-9:
-                best = (aic, n_gm, x, chi2, jac)
+        sd = av.avar * np.sqrt(2 / av.edf)
+        first = float(best[2][5]) if best is not None and best[1] == 1 else None
+        for _ in range(2):
+            x, chi2, jac = _fit(av, sd, n_gm, dt, first)
+            gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
+            sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300) * np.sqrt(2 / av.edf)
+        aic = chi2 + 2 * (4 + 2 * n_gm)
+        if best is None or aic < best[0] - 1e-9:
+            best = (aic, n_gm, x, chi2, jac)
     return best
 
 
@@ -208,10 +236,9 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
     def amplitude(name: str, index: int, k: int) -> None:
         v, uv = float(x[k]), float(math.sqrt(max(cov[k, k], 0.0)))
         if uv > 0 and v > 2 * uv:
-            value, u = math.sqrt(v), uv / (2 * math.sqrt(v))
-        else:
-            value, u = math.sqrt(max(v, 0.0)), math.sqrt(max(v, 0.0) + uv)
-        dof = max(2 * (v / uv) ** 2 / 4, 1.0) if uv > 0 else 1.0
+            value, u, dof = math.sqrt(v), uv / (2 * math.sqrt(v)), max(2 * (v / uv) ** 2 / 4, 1.0)
+        else:  # not shown by the data: an upper bound, with the least dof
+            value, u, dof = math.sqrt(max(v, 0.0)), math.sqrt(max(v, 0.0) + uv), 1.0
         out.append(Term(name, index, value, u, min(dof, 1e6), units[name]))
 
     for k, name in enumerate(POWER_TERMS):
