@@ -261,6 +261,7 @@ class Calibration:
     rotcal_version: str
     created_utc: str
     rates: tuple[RateCalibration, ...]
+    noise: dict[str, Any] | None = None  # the noise model (``rotcal.noise.calibration_noise``), when identified
 
     def rate(self, rate_hz: float | None) -> RateCalibration:
         """The entry of ``rate_hz`` (None: DC when there is one, else the only rate)."""
@@ -283,7 +284,8 @@ class Calibration:
                             "source": self.g_local_source},
                 "coverage_probability": EXPANDED_COVERAGE, "inputs": list(self.inputs),
                 "configuration": self.configuration, "rotcal_version": self.rotcal_version,
-                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates]}
+                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates],
+                **({"noise": self.noise} if self.noise is not None else {})}
 
     def write(self, path: Path) -> Path:
         """Write the document (validated first: a bug, not the user's input, if it fails)."""
@@ -316,7 +318,7 @@ class Calibration:
         g = doc["g_local"]
         return cls(doc["dataset"], doc["device"], doc["output_unit"], float(g["value"]), float(g["std_uncertainty"]),
                    g["source"], tuple(doc["inputs"]), doc["configuration"], doc["rotcal_version"], doc["created_utc"],
-                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
+                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]), doc.get("noise"))
 
 
 def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],

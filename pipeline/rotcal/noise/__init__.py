@@ -14,7 +14,11 @@ from rotcal.noise.allan import AllanVariance, pooled_avar
 from rotcal.noise.model import ChannelNoise, Term, identify_channel
 from rotcal.noise.residuals import residual_pieces, sample_interval_s
 
-__all__ = ["AllanVariance", "ChannelNoise", "NoiseModel", "Term", "identify_noise", "noise_frame", "pooled_avar"]
+__all__ = ["AllanVariance", "ChannelNoise", "NoiseModel", "Term", "calibration_noise", "identify_noise", "noise_frame",
+           "pooled_avar"]
+
+METHOD = ("overlapping Allan variance of the fitted model's residuals at octave averaging times, fitted with the "
+          "IEEE Std 952 / 1293 terms by weighted least squares (each tau weighted by its equivalent degrees of freedom)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,3 +50,13 @@ def noise_frame(model: NoiseModel, dataset: str) -> pl.DataFrame:
               "u": pl.Float64, "dof": pl.Float64, "unit": pl.String, "chi2_reduced": pl.Float64,
               "sample_interval_s": pl.Float64}
     return pl.DataFrame(rows, schema=schema)
+
+
+def calibration_noise(model: NoiseModel) -> dict | None:
+    """The noise model as ``calibration.json`` holds it (schemas/calibration.json ``noise``); None without channels."""
+    if not model.channels:
+        return None
+    return {"method": METHOD, "sample_interval_s": model.dt_s, "channels": [
+        {"channel": ch.channel, "chi2_reduced": ch.chi2_reduced, **({"reason": ch.reason} if ch.reason else {}),
+         "terms": [{"term": t.term, "index": t.index, "value": t.value, "std_uncertainty": t.u, "dof": t.dof,
+                    "unit": t.unit} for t in ch.terms]} for ch in model.channels]}

@@ -104,7 +104,7 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
     calibration = calibration_document(chosen, ds, config, known)
-    noise, noise_notes = noise_outputs(seg, ds, config)
+    noise, calibration, noise_notes = noise_outputs(seg, ds, config, calibration)
     outputs = [*noise, *_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
                calibration_output(calibration), certificate_output(config, calibration)]

@@ -6,7 +6,7 @@ the one writer, ``publish``, in ``PUBLISH_ORDER``."""
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -95,13 +95,16 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
     return outputs
 
 
-def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig) -> tuple[list[Table | Figure], tuple[str, ...]]:
-    """The ``noise`` table and the Allan-deviation figure (``noise_allan.png``,
-    with figures) of a recording held in memory; a streamed capture's
-    samples are not kept, so its noise is not identified (a note says so)."""
+def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig,
+                  calibration: Calibration) -> tuple[list[Table | Figure], Calibration, tuple[str, ...]]:
+    """The ``noise`` table, the Allan-deviation figure (``noise_allan.png``,
+    with figures) and ``calibration`` with the noise model, of a recording
+    held in memory; a streamed capture's samples are not kept, so its noise
+    is not identified (a note says so)."""
     if seg.streamed is not None:
-        return [], ("noise model not identified: the capture was read block by block (its samples are not kept)",)
-    from rotcal.noise import identify_noise, noise_frame
+        return [], calibration, ("noise model not identified: the capture was read block by block (its samples are "
+                                 "not kept)",)
+    from rotcal.noise import calibration_noise, identify_noise, noise_frame
 
     model = identify_noise(seg.samples, seg.fits, seg.dwells, ds.meta.output_unit)
     outputs: list[Table | Figure] = [Table("noise", noise_frame(model, ds.name))]
@@ -112,7 +115,7 @@ def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig) -> tuple[list[
             return allan_png(model, out / "noise_allan.png", f"{ds.name}: Allan deviation of the residuals and the noise model")
 
         outputs.append(Figure("noise_allan_png", draw))
-    return outputs, ()
+    return outputs, replace(calibration, noise=calibration_noise(model)), ()
 
 
 @dataclass(frozen=True, eq=False)
