@@ -30,38 +30,35 @@ class AllanVariance:
         return np.sqrt(self.avar)
 
 
-def _second_difference_sums(piece: np.ndarray, m: int) -> tuple[float, int]:
-    """(sum of squared second differences of the phase at lag m, their
-    count) of one contiguous piece of frequency data: x = cumsum(y), so
-    x_{i+2m} - 2 x_{i+m} + x_i = m (ybar_2 - ybar_1) (NIST SP 1065 eq. 11)."""
-    if piece.size < 2 * m:
-        return 0.0, 0
-    x = np.concatenate([[0.0], np.cumsum(piece)])
-    d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
-    return float(d @ d), d.size
-
-
 def octave_factors(longest: int) -> np.ndarray:
     """m = 1, 2, 4, ... while two averages fit in the longest piece."""
     return 2 ** np.arange(int(np.floor(np.log2(max(longest // 2, 1)))) + 1)
 
 
-def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None,
-                alphas: np.ndarray | None = None) -> AllanVariance:
+def _edf(sizes: list[int], m: int, alpha: int) -> float:
+    """The summed equivalent degrees of freedom of the pieces long enough for m."""
+    return sum(float(allantools.edf_simple(n, m, alpha)) for n in sizes if n >= 2 * m)
+
+
+def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None) -> AllanVariance:
     """The overlapping Allan variance at tau = m / fs of the pieces pooled:
-    the sum of every piece's squared second differences over 2 m^2 times
-    their count; one piece gives allantools' ``oadev`` squared. The edf are
-    summed over the pieces (independent), ``alphas`` the power-law noise
-    type per factor (0 white, -1 flicker, -2 random walk; default white);
-    averaging times with fewer than MIN_EDF are left out."""
-    longest = max((p.size for p in pieces), default=0)
-    factors = octave_factors(longest) if factors is None else np.asarray(factors)
-    alphas = np.zeros(factors.size, int) if alphas is None else np.asarray(alphas, int)
+    the sum of every piece's squared second differences of the phase
+    x = cumsum(y) at lag m (x_{i+2m} - 2 x_{i+m} + x_i = m (ybar_2 - ybar_1),
+    NIST SP 1065 eq. 11) over 2 m^2 times their count; one piece gives
+    allantools' ``oadev`` squared. The edf are those of white noise summed
+    over the pieces (``with_edf`` for another noise type); averaging times
+    with fewer than MIN_EDF are left out."""
+    sizes = [p.size for p in pieces]
+    factors = octave_factors(max(sizes, default=0)) if factors is None else np.asarray(factors)
+    phases = [np.concatenate([[0.0], np.cumsum(p)]) for p in pieces]
     tau, avar, count, edf = [], [], [], []
-    for m, alpha in zip(factors, alphas):
-        sums = [_second_difference_sums(p, int(m)) for p in pieces]
-        total, n = sum(s for s, _ in sums), sum(k for _, k in sums)
-        dof = sum(float(allantools.edf_simple(p.size, int(m), int(alpha))) for p, (_, k) in zip(pieces, sums) if k > 0)
+    for m in (int(k) for k in factors):
+        total, n = 0.0, 0
+        for x in phases:
+            if x.size - 1 >= 2 * m:
+                d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+                total, n = total + float(d @ d), n + d.size
+        dof = _edf(sizes, m, 0)
         if n == 0 or dof < MIN_EDF:
             continue
         tau.append(m / fs_hz)
@@ -69,3 +66,13 @@ def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | No
         count.append(n)
         edf.append(dof)
     return AllanVariance(np.array(tau), np.array(avar), np.array(count, dtype=np.int64), np.array(edf))
+
+
+def with_edf(av: AllanVariance, pieces: list[np.ndarray], alphas: np.ndarray, fs_hz: float) -> AllanVariance:
+    """``av`` with each tau's edf for its power-law noise type ``alphas``
+    (0 white, -1 flicker, -2 random walk; NIST SP 1065 Table 8's simple
+    forms); averaging times left with fewer than MIN_EDF are dropped."""
+    sizes = [p.size for p in pieces]
+    edf = np.array([_edf(sizes, int(round(t * fs_hz)), int(a)) for t, a in zip(av.tau_s, alphas)])
+    keep = edf >= MIN_EDF
+    return AllanVariance(av.tau_s[keep], av.avar[keep], av.n_terms[keep], edf[keep])

@@ -27,9 +27,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import lsq_linear, minimize
+from scipy.optimize import minimize, nnls
 
-from rotcal.noise.allan import AllanVariance, pooled_avar
+from rotcal.noise.allan import AllanVariance, pooled_avar, with_edf
 
 FLICKER = 2 * math.log(2) / math.pi  # Allan variance of flicker over B^2 (IEEE Std 952 C.6)
 POWER_TERMS = ("quantization", "white_density", "bias_instability", "random_walk")
@@ -126,17 +126,17 @@ def _linear(tau: np.ndarray, a: np.ndarray, sd: np.ndarray, taus_c: tuple[float,
             dt: float) -> tuple[np.ndarray, float, np.ndarray]:
     """The coefficients linear in the Allan variance (c_Q, N^2, B^2, K^2,
     q_j^2) for fixed correlation times, by bounded weighted least squares
-    (``lsq_linear``, columns scaled to unit norm): (coefficients, chi-square,
+    (``nnls``, columns scaled to unit norm): (coefficients, chi-square,
     the weighted design)."""
     design = np.column_stack([_basis(tau), *(gauss_markov_avar(tau, 1.0, t, dt) for t in taus_c)]) / sd[:, None]
     norm = np.linalg.norm(design, axis=0)
     norm[norm == 0] = 1.0
     # the 3 / tau^2 coefficient may be negative: a low-pass takes from the shortest averaging times what
-    # quantization adds (band-limited white noise: N^2 / tau minus a tau^-2 term beyond the filter's memory)
-    lo = np.r_[-np.inf, np.zeros(3 + len(taus_c))]
-    fit = lsq_linear(design / norm, a / sd, bounds=(lo, np.inf), method="bvls")
-    coef = fit.x / norm
-    coef[1:] = np.maximum(coef[1:], 0.0)  # bvls may leave a bound by rounding
+    # quantization adds (band-limited white noise: N^2 / tau minus a tau^-2 term beyond the filter's memory);
+    # as the difference of two non-negative coefficients, the whole is a non-negative least-squares problem
+    scaled = design / norm
+    solution, _ = nnls(np.column_stack([scaled, -scaled[:, 0]]), a / sd, maxiter=50 * design.shape[1])
+    coef = np.r_[solution[0] - solution[-1], solution[1:-1]] / norm
     r = design @ coef - a / sd
     return coef, float(r @ r), design
 
@@ -145,7 +145,7 @@ def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float,
          first: float | None = None) -> tuple[np.ndarray, float, np.ndarray]:
     """The weighted least-squares fit with ``n_gm`` Gauss-Markov terms by
     variable projection: the linear coefficients solved for each set of
-    correlation times, the times searched on a grid (three per octave; a
+    correlation times, the times searched on a grid (two per octave; a
     second term's beside ``first``, the one-term fit's log T) and refined
     by Nelder-Mead on log T. (parameters c_Q, N^2, B^2, K^2, q_j^2, log T_j; chi-square;
     Jacobian of the weighted residuals, the log T columns by central differences)."""
@@ -159,7 +159,7 @@ def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float,
 
     log_t = np.empty(0)
     if n_gm:
-        grid = np.arange(low, high + 1e-9, math.log(2) / 3)
+        grid = np.arange(low, high + 1e-9, math.log(2) / 2)
         candidates = ([np.array([g]) for g in grid] if n_gm == 1 or first is None
                       else [np.array([first, g]) for g in grid if abs(g - first) > 0.3]) or [np.array([low, high])[:n_gm]]
         log_t = min(candidates, key=chi2)
@@ -255,7 +255,6 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
 
 def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str) -> ChannelNoise:
     """The Allan variance of a channel's residual pieces (edf for the noise
-    type of a first estimate's slope) and its fitted model."""
+    type of its own local slope) and its fitted model."""
     first = pooled_avar(pieces, fs_hz)
-    factors = np.round(first.tau_s * fs_hz).astype(int)
-    return fit_channel(channel, pooled_avar(pieces, fs_hz, factors, _alphas(first.tau_s, first.avar)), 1 / fs_hz, unit)
+    return fit_channel(channel, with_edf(first, pieces, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)
