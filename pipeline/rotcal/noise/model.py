@@ -177,7 +177,10 @@ def _select(av: AllanVariance, dt: float):
     """The model with the fewest Akaike-penalised chi-square over 0, 1, 2
     Gauss-Markov terms (a second tried only when a first helped), each fit's
     weights from its own model's Allan variance (iterated once from the
-    estimates'): (aic, n_gm, x, chi2, jac)."""
+    estimates'); a model whose Gauss-Markov terms the data do not show (a
+    variance q^2 below its u) is not taken, whatever its chi-square: a
+    term of a correlation time near the sample interval otherwise shares
+    the white noise with N. (aic, n_gm, x, chi2, jac)."""
     best = None
     for n_gm in range(MAX_GAUSS_MARKOV + 1):
         if av.tau_s.size - (4 + 2 * n_gm) < 1 or (best is not None and best[1] < n_gm - 1):
@@ -189,9 +192,23 @@ def _select(av: AllanVariance, dt: float):
             gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
             sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300) * np.sqrt(2 / av.edf)
         aic = chi2 + 2 * (4 + 2 * n_gm)
+        if n_gm and not _shown(x, jac, chi2, av.tau_s.size, n_gm):
+            continue
         if best is None or aic < best[0] - 1e-9:
             best = (aic, n_gm, x, chi2, jac)
     return best
+
+
+def _covariance(jac: np.ndarray, chi2: float, n_tau: int, n_gm: int) -> np.ndarray:
+    """The parameters' covariance (module docstring)."""
+    chi2_red = chi2 / max(n_tau - (4 + 2 * n_gm), 1)
+    return np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0) * OCTAVE_CORRELATION**2
+
+
+def _shown(x: np.ndarray, jac: np.ndarray, chi2: float, n_tau: int, n_gm: int) -> bool:
+    """Whether every Gauss-Markov variance exceeds its standard uncertainty."""
+    cov = _covariance(jac, chi2, n_tau, n_gm)
+    return all(x[4 + j] > math.sqrt(max(cov[4 + j, 4 + j], 0.0)) for j in range(n_gm))
 
 
 def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> ChannelNoise:
@@ -219,7 +236,7 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
     assert best is not None
     _, (_, n_gm, x, chi2, jac) = best
     chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
-    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0) * OCTAVE_CORRELATION**2
+    cov = _covariance(jac, chi2, kept.tau_s.size, n_gm)
     return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
 
 
