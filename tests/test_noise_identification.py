@@ -83,3 +83,29 @@ def test_noise_table_of_a_simulated_run():
     assert frame.height == 18 and frame.select(pl.col("value", "u", "dof").is_finite().all()).row(0) == (True,) * 3
     white = frame.filter(term="white_density")
     assert np.all(np.abs(white["value"].to_numpy() - 6 / math.sqrt(FS)) <= 3 * white["u"].to_numpy())
+
+
+def test_a_run_publishes_the_noise(tmp_path):
+    """rotcal run on a simulated recording with a Gauss-Markov wander:
+    noise.parquet (schema noise), noise_allan.png, and calibration.json's
+    noise holding the same terms as the table."""
+    import json
+
+    import pyarrow.parquet as pq
+    from typer.testing import CliRunner
+
+    from rotcal.cli import app
+
+    runner = CliRunner()
+    assert runner.invoke(app, ["simulate", str(tmp_path / "d"), "--noise", "white_sd=6,gauss_markov=20:3"]).exit_code == 0
+    result = runner.invoke(app, ["run", str(tmp_path / "d"), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    table = pq.read_table(tmp_path / "o" / "noise.parquet")
+    assert table.schema.metadata[b"rotcal.schema"] == b"noise"
+    frame = pl.from_arrow(table)
+    assert set(frame["channel"]) == {"u", "v", "w"} and (tmp_path / "o" / "noise_allan.png").stat().st_size > 10_000
+    doc = json.loads((tmp_path / "o" / "calibration.json").read_text())
+    in_doc = {(c["channel"], t["term"], t["index"]): t["value"] for c in doc["noise"]["channels"] for t in c["terms"]}
+    assert in_doc == {(r["channel"], r["term"], r["index"]): r["value"] for r in frame.iter_rows(named=True)}
+    white = frame.filter(term="white_density")
+    assert np.all(np.abs(white["value"].to_numpy() - 6 / math.sqrt(FS)) <= 3 * white["u"].to_numpy())
