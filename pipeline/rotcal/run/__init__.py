@@ -20,10 +20,10 @@ from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
 from rotcal.run.outputs import (
-    INPUT_TABLES,
     calibration_document,
     calibration_output,
     certificate_output,
