@@ -77,6 +77,7 @@ class Segmented:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
+    clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``Inference``)
     sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
 
     @cached_property
@@ -147,7 +148,8 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + (inferred.warnings if table else ()),
-                     ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None})
+                     ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None},
+                     clock_factor=inferred.clock_factor if table else 1.0)
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
@@ -162,7 +164,8 @@ def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
                           findings_frame(list(inferred.findings))])
     return Segmented(inferred.samples, inferred.segments, fits, inferred.own_phase, inferred.dwells, True,
                      (Table("segments", inferred.segments), Table("fits", fits), Table("timebase", findings)),
-                     tuple(ds.timebase.warnings) + inferred.warnings, ds.notes + inferred.notes, streamed)
+                     tuple(ds.timebase.warnings) + inferred.warnings, ds.notes + inferred.notes, streamed,
+                     clock_factor=inferred.clock_factor)
 
 
 def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
@@ -207,13 +210,6 @@ def determined(reductions: Reductions | Failure, seg: Segmented, path: Path
     return tuple(r for r, _ in framed), tuple(f for _, f in framed), warnings
 
 
-def _clock_factor(seg: Segmented) -> float:
-    """What the fitted rates were multiplied by to be on the table's clock (1 unless a clock drift was corrected)."""
-    timebase = next(t.data for t in seg.tables if t.name == "timebase")
-    drift = timebase.filter((pl.col("check") == "clock_drift") & pl.col("detected"))
-    return 1.0 + float(drift["value"][0]) * 1e-6 if drift.height else 1.0
-
-
 def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[IntrinsicResult, ...], ds: Dataset,
                    config: RunConfig) -> tuple[Diagnosis | StaticDiagnosis | None, tuple[str, ...]]:
     """The diagnosis of a recording, with its notes: a static one's from its
@@ -234,7 +230,7 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         notes.append("diagnosis without the static dwells of unknown orientation (their result is not in the table frame)")
     phases = None
     if reductions.unreferenced_rates & in_table:
-        g, u_g, clock = ds.meta.g_local, ds.meta.g_local_uncertainty, _clock_factor(seg)
+        g, u_g, clock = ds.meta.g_local, ds.meta.g_local_uncertainty, seg.clock_factor
         phases = segment_phases(seg.fits, seg.segments, seg.own_phase, g, u_g, clock)
         notes.append(f"diagnosis on table angles reconstructed from the solved phases of {phases.height} rotation "
                      "segment(s) without one; rate_error not tested (the fitted rates absorb it)")
