@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import pose_table
+from rotcal.fit.means import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
