@@ -138,3 +138,62 @@ def test_the_direction_check_finds_a_backward_arrow():
     graph = {"rotcal.segment.x": {"rotcal.combine.y", "rotcal.fit.z"}, "rotcal.combine.y": {"rotcal.segment.x"},
              "rotcal.fit.z": set(), "rotcal.noise.w": set()}
     assert backward_arrows(graph) == [("?", "noise"), ("rotcal.segment.x", "rotcal.combine.y")]
+
+
+RUN = PIPELINE / "run" / "__init__.py"
+DRAWING = PIPELINE.parents[1] / "docs" / "architecture.md"
+
+
+def run_sequence(source: str, function: str = "_run") -> list[str]:
+    """The calls of ``function`` to functions imported from rotcal, as
+    ``module.name`` (less ``rotcal.``), in the order they run: statements in
+    order, a call's arguments before the call (a ``try``'s handlers after
+    its body)."""
+    tree = ast.parse(source)
+    imported = {a.asname or a.name: f"{node.module.removeprefix('rotcal.')}.{a.name}"
+                for node in tree.body if isinstance(node, ast.ImportFrom) and node.module
+                and node.module.startswith("rotcal.") for a in node.names}
+    body = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function)
+    calls: list[str] = []
+
+    def visit(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in imported:
+            calls.append(imported[node.func.id])
+
+    for statement in body.body:
+        visit(statement)
+    return calls
+
+
+def drawn_sequence(text: str) -> list[str]:
+    """The numbered calls of the drawing in docs/architecture.md: ``(1) run.streamed.load``, ..."""
+    import re
+
+    steps = [(int(n), name) for n, name in re.findall(r"\((\d+)\) ([a-z_]+(?:\.[a-z_]+)+)", text)]
+    assert [n for n, _ in steps] == list(range(1, len(steps) + 1)), steps
+    return [name for _, name in steps]
+
+
+def test_the_drawing_lists_the_runs_stage_calls_in_order():
+    sequence = run_sequence(RUN.read_text())
+    assert sequence[:4] == ["run.streamed.load", "run.stages.segment_and_fit", "run.stages.reduce", "run.stages.determined"]
+    assert drawn_sequence(DRAWING.read_text()) == sequence
+
+
+def test_the_sequence_is_read_in_the_order_the_calls_run():
+    source = ("from rotcal.a import f, g\nfrom rotcal.b.c import h as k\n"
+              "def _run(x):\n    y = f(x)\n    try:\n        g(y)\n    except E:\n        k(1)\n    return f(g(y), k(2))\n")
+    assert run_sequence(source) == ["a.f", "a.g", "b.c.h", "a.g", "b.c.h", "a.f"]
+    assert drawn_sequence("x (1) run.a.b y\n (2) c.d") == ["run.a.b", "c.d"]
+
+
+def test_no_history_in_the_package():
+    """Docstrings and comments say what the code does and why; which issue
+    asked for it lives in git."""
+    import re
+
+    cited = {str(p.relative_to(PIPELINE)): m.group(0) for p in PIPELINE.rglob("*.py")
+             if (m := re.search(r"\bissues? \d+", p.read_text(), re.IGNORECASE))}
+    assert cited == {}

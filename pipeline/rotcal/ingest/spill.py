@@ -1,5 +1,4 @@
-"""Decoded columns kept on disk between the passes of a streamed run
-(issue 16, item 1).
+"""Decoded columns kept on disk between the passes of a streamed run.
 
 A streamed run reads a capture several times (the time base, the segment
 sums, the residual statistics, the refits). Decompressing the chunks and

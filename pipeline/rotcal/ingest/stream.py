@@ -1,5 +1,5 @@
-"""A capture read chunk by chunk, in memory bounded by a block of samples
-(issue 16, item 1): ``open_stream`` gives a ``StreamedCapture`` whose
+"""A capture read chunk by chunk, in memory bounded by a block of samples:
+``open_stream`` gives a ``StreamedCapture`` whose
 ``blocks()`` yields the capture's canonical sample columns in time order,
 a block at a time, with exactly the values ``load_dataset`` and
 ``repair_timebase`` give that capture in memory.

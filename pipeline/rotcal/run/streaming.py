@@ -1,5 +1,5 @@
 """Segments and segment fits of a labelled capture read block by block, in
-memory bounded by the block, not by the capture (issue 16, item 1).
+memory bounded by the block, not by the capture.
 
 The segments are the label runs of ``segment.segment_by_labels`` (a run
 is consecutive samples of one table axis and rate; a run starts where
