@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 
@@ -199,7 +199,7 @@ class Effect:
     # quantity, against the channel's output otherwise). ``at_rest_steps``: the central-difference
     # step of its internal parameters there, by name prefix (a parameter's typical size), and
     # ``not_at_rest`` why static poses leave it untested when ``at_rest`` is None.
-    at_rest: ClassVar[str | None] = None
+    at_rest: ClassVar[Literal["pose", "time", "temperature"] | None] = None
     at_rest_steps: ClassVar[Mapping[str, float]] = {}
     not_at_rest: ClassVar[str] = "static poses do not show it (it needs rotation, a table angle or time stamps)"
     # A rotation fitted against its own phase absorbs it (the fitted rate is the true one,
