@@ -26,9 +26,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
+import numpy.typing as npt
 import polars as pl
 
 MARGIN_BYTES = 256 * 1024 * 1024  # free disk left to others beyond what the spill needs
@@ -43,7 +44,7 @@ class Spill:
     """Columns of fixed types (``dtypes``: name to type) appended batch by
     batch and read back in pieces of rows, in the order written."""
 
-    def __init__(self, dtypes: dict[str, np.dtype]):
+    def __init__(self, dtypes: Mapping[str, npt.DTypeLike]):
         self.dtypes = {name: np.dtype(d) for name, d in dtypes.items()}
         self.files = {name: tempfile.TemporaryFile(buffering=0) for name in self.dtypes}
         self.rows = 0
