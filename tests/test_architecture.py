@@ -10,7 +10,8 @@ import ast
 from pathlib import Path
 
 PIPELINE = Path(__file__).resolve().parents[1] / "pipeline" / "rotcal"
-STAGES = {"ingest", "timebase", "segment", "fit", "combine", "metrology", "diagnose", "report", "batch", "simulate", "model"}
+STAGES = {"ingest", "timebase", "segment", "fit", "combine", "metrology", "diagnose", "report", "batch", "simulate", "model",
+          "noise"}
 
 
 def _module_name(path: Path) -> str:
@@ -104,10 +105,10 @@ def test_the_cycle_finder_finds_a_cycle():
 # The packages from the bottom up: each may import those before it, never one after it. The
 # bottom holds what every stage reads (the version, errors, JSON text, cores, the configuration,
 # the table contracts, the model); then the stages in the order a run calls them (ingest,
-# time base, the segment fits' least-squares core, segmentation, the reductions, the diagnosis,
+# time base, the noise model of the residuals, the segment fits' least-squares core, segmentation, the reductions, the diagnosis,
 # metrology, the report), the run, and the commands built on it.
 LAYERS = ("rotcal", "errors", "jsontext", "parallel", "config", "tables", "model",
-          "ingest", "timebase", "fit", "segment", "combine", "diagnose", "metrology", "report",
+          "ingest", "timebase", "noise", "fit", "segment", "combine", "diagnose", "metrology", "report",
           "run", "batch", "simulate", "apply", "cli", "__main__")
 # arrows that another change removes: the block reader of ingest reads the time base block by block
 # until the streamed path has its one home
@@ -136,8 +137,8 @@ def test_no_import_from_a_later_stage():
 
 def test_the_direction_check_finds_a_backward_arrow():
     graph = {"rotcal.segment.x": {"rotcal.combine.y", "rotcal.fit.z"}, "rotcal.combine.y": {"rotcal.segment.x"},
-             "rotcal.fit.z": set(), "rotcal.noise.w": set()}
-    assert backward_arrows(graph) == [("?", "noise"), ("rotcal.segment.x", "rotcal.combine.y")]
+             "rotcal.fit.z": set(), "rotcal.unplaced.w": set()}
+    assert backward_arrows(graph) == [("?", "unplaced"), ("rotcal.segment.x", "rotcal.combine.y")]
 
 
 RUN = PIPELINE / "run" / "__init__.py"

@@ -84,8 +84,9 @@ def test_simulation_with_noise_and_its_truth():
     the default simulation's (white noise_std)."""
     spec = SimulationSpec().with_noise("white_sd=6,ar=0.5,ar_sd=4,gauss_markov=10:1;1000:2")
     sim = simulate(spec, 4)
-    assert sim.truth["noise"]["terms"]["white_density"] == pytest.approx(
-        math.sqrt((36 + (4 * math.sqrt(0.75) / 0.5) ** 2) * 0.06))
+    terms = sim.truth["noise"]["terms"]
+    assert terms["white_density"] == pytest.approx(6 * math.sqrt(0.06))  # the AR(1) is a Gauss-Markov term
+    assert terms["gauss_markov"] == [[pytest.approx(-0.06 / math.log(0.5)), 4.0], [10.0, 1.0], [1000.0, 2.0]]
     assert sim.truth["dut"]["noise_std"] == [6.0] * 3
     first_step = sim.samples.filter(plan_segment=0, angle_deg=0.0)["u"].to_numpy()
     assert 5.5 < np.diff(first_step).std() / math.sqrt(2) < 8.5
