@@ -89,7 +89,7 @@ def _table_model(shape: str, seed: int, work: Path) -> tuple[NoiseModel, dict]:
     path = write_dataset(sim, spec, work / f"{shape}_{seed}", "csv")
     ds = load(path, None, RunConfig())
     seg = segment_and_fit(ds, RunConfig())
-    return identify_noise(seg.samples, seg.fits, seg.dwells, ds.meta.output_unit), sim.truth["noise"]["terms"]
+    return identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, ds.meta.output_unit), sim.truth["noise"]["terms"]
 
 
 def one(shape: str, seed: int, work: Path, poses: bool) -> list[dict]:

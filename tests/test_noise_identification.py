@@ -78,7 +78,7 @@ def test_noise_table_of_a_simulated_run():
         for r, c in enumerate("uvw"):
             rows.append({"segment": int(seg), "channel": c, "status": "ok", "rate_hz": float(samples["rate_hz"][int(np.argmax(mask))]),
                          "rate_fit_hz": float(samples["rate_hz"][int(np.argmax(mask))]), "C": coef[0, r], "A": coef[1, r], "B": coef[2, r]})
-    model = identify_noise(samples, pl.DataFrame(rows), pl.DataFrame({"segment": [], "t_start_ns": [], "t_end_ns": []}), "bit")
+    model = identify_noise(samples, pl.DataFrame({"segment": [], "kind": []}), pl.DataFrame(rows), pl.DataFrame({"segment": [], "t_start_ns": [], "t_end_ns": []}), "bit")
     frame = noise_frame(model, "sim")
     assert frame.height == 18 and frame.select(pl.col("value", "u", "dof").is_finite().all()).row(0) == (True,) * 3
     white = frame.filter(term="white_density")

@@ -31,12 +31,13 @@ class NoiseModel:
     output_unit: str
 
 
-def identify_noise(samples: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame, output_unit: str) -> NoiseModel:
+def identify_noise(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
+                   output_unit: str) -> NoiseModel:
     """Each channel's noise model from the residuals of the fitted model."""
     dt = sample_interval_s(samples)
     if dt <= 0:
         return NoiseModel((), 0.0, output_unit)
-    pieces = residual_pieces(samples, fits, dwells, dt)
+    pieces = residual_pieces(samples, segments, fits, dwells, dt)
     return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit)
                             for r, c in enumerate(CHANNELS)), dt, output_unit)
 

@@ -1,7 +1,7 @@
 """The residuals of the fitted model, per channel, in contiguous pieces: a
 static step sequence's and a rotation's samples minus their segment's sine
-fit (C + A sin theta + B cos theta at the fitted rate), each dwell's samples
-minus their mean. A piece ends where the logger paused (a gap of more than
+fit (C + A sin theta + B cos theta at the fitted rate), a labelled pose's
+and each other dwell's samples minus their mean. A piece ends where the logger paused (a gap of more than
 1.5 sample intervals), so the Allan variance never averages across a pause."""
 
 from __future__ import annotations
@@ -28,10 +28,13 @@ def _split(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]
     return [p for p in np.split(resid, cuts) if p.shape[0] >= 2]
 
 
-def residual_pieces(samples: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
+def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
                     dt_s: float) -> list[np.ndarray]:
     """Every contiguous piece (n_i, 3) of residuals of u, v, w: the fitted
-    static and rotation segments, then the dwells outside them."""
+    static and rotation segments and the labelled poses; where there are
+    none, the dwells the stillness detector found (a dwell inside a hand
+    move carries the hand's motion, so it serves only an unlabelled
+    recording)."""
     pieces: list[np.ndarray] = []
     ok = fits.filter(pl.col("status") == "ok")
     done: set[int] = set()
@@ -49,7 +52,13 @@ def residual_pieces(samples: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFr
         y = part.select(CHANNELS).to_numpy()
         pieces += _split(part["t_ns"].to_numpy(), y - z @ coef.T, dt_s)
         done.add(int(segment))
-    for row in dwells.iter_rows(named=True):
+    for segment in segments.filter(pl.col("kind") == "pose")["segment"]:
+        part = samples.filter(pl.col("segment") == segment)
+        y = part.select(CHANNELS).to_numpy()
+        if y.shape[0] >= 2:
+            pieces += _split(part["t_ns"].to_numpy(), y - y.mean(axis=0), dt_s)
+            done.add(int(segment))
+    for row in dwells.iter_rows(named=True) if not pieces else ():
         if row["segment"] in done:
             continue
         part = samples.filter(pl.col("t_ns").is_between(row["t_start_ns"], row["t_end_ns"]))

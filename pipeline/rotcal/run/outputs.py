@@ -100,7 +100,7 @@ def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig,
                                  "not kept)",)
     from rotcal.noise import calibration_noise, identify_noise, noise_frame
 
-    model = identify_noise(seg.samples, seg.fits, seg.dwells, ds.meta.output_unit)
+    model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, ds.meta.output_unit)
     outputs: list[Table | Figure] = [Table("noise", noise_frame(model, ds.name))]
     if config.report.figures:
         def draw(out: Path) -> Path | None:
