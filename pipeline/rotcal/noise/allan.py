@@ -36,8 +36,10 @@ def octave_factors(longest: int) -> np.ndarray:
 
 
 def _edf(sizes: list[int], m: int, alpha: int) -> float:
-    """The summed equivalent degrees of freedom of the pieces long enough for m."""
-    return sum(float(allantools.edf_simple(n, m, alpha)) for n in sizes if n >= 2 * m)
+    """The summed equivalent degrees of freedom of the pieces long enough for
+    m (each distinct length computed once: a plan's pieces share a few)."""
+    lengths, counts = np.unique(np.asarray(sizes, dtype=np.int64), return_counts=True)
+    return sum(int(k) * float(allantools.edf_simple(int(n), m, alpha)) for n, k in zip(lengths, counts) if n >= 2 * m)
 
 
 def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None) -> AllanVariance:

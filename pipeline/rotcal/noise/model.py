@@ -141,13 +141,13 @@ def _linear(tau: np.ndarray, a: np.ndarray, sd: np.ndarray, taus_c: tuple[float,
     return coef, float(r @ r), design
 
 
-def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float,
-         first: float | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float, first: float | None = None,
+         start: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray]:
     """The weighted least-squares fit with ``n_gm`` Gauss-Markov terms by
     variable projection: the linear coefficients solved for each set of
-    correlation times, the times searched on a grid (two per octave; a
-    second term's beside ``first``, the one-term fit's log T) and refined
-    by Nelder-Mead on log T. (parameters c_Q, N^2, B^2, K^2, q_j^2, log T_j; chi-square;
+    correlation times, the times searched on a grid (one per octave; a
+    second term's beside ``first``, the one-term fit's log T), or started
+    at ``start``, and refined by Nelder-Mead on log T. (parameters c_Q, N^2, B^2, K^2, q_j^2, log T_j; chi-square;
     Jacobian of the weighted residuals, the log T columns by central differences)."""
     tau, a = av.tau_s, av.avar
     low, high = math.log(max(tau[0] / 4, 1.5 * dt)), math.log(tau[-1] * 4)  # shorter times are white noise
@@ -158,12 +158,15 @@ def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float,
         return _linear(tau, a, sd, tuple(np.exp(np.sort(log_t))), dt)[1]
 
     log_t = np.empty(0)
-    if n_gm:
-        grid = np.arange(low, high + 1e-9, math.log(2) / 2)
+    if n_gm and start is not None:
+        log_t = start
+    elif n_gm:
+        grid = np.arange(low, high + 1e-9, math.log(2))
         candidates = ([np.array([g]) for g in grid] if n_gm == 1 or first is None
                       else [np.array([first, g]) for g in grid if abs(g - first) > 0.3]) or [np.array([low, high])[:n_gm]]
         log_t = min(candidates, key=chi2)
-        log_t = np.sort(minimize(chi2, log_t, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4}).x)
+    if n_gm:
+        log_t = np.sort(minimize(chi2, log_t, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-3}).x)
     coef, value, design = _linear(tau, a, sd, tuple(np.exp(log_t)), dt)
     columns = [design]
     for j in range(n_gm):  # d residual / d log T_j = q_j^2 d GM(tau; 1, T_j) / d log T_j
@@ -187,8 +190,10 @@ def _select(av: AllanVariance, dt: float):
             break
         sd = av.avar * np.sqrt(2 / av.edf)
         first = float(best[2][5]) if best is not None and best[1] == 1 else None
+        start = None
         for _ in range(2):
-            x, chi2, jac = _fit(av, sd, n_gm, dt, first)
+            x, chi2, jac = _fit(av, sd, n_gm, dt, first, start)
+            start = x[4 + n_gm:]  # the reweighted fit starts where the first ended
             gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
             sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300) * np.sqrt(2 / av.edf)
         aic = chi2 + 2 * (4 + 2 * n_gm)

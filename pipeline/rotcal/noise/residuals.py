@@ -16,10 +16,18 @@ GAP_FACTOR = 1.5
 
 def sample_interval_s(samples: pl.DataFrame) -> float:
     """The recording's sample interval: the median of the stamps' steps."""
-    t = samples["t_ns"].to_numpy()
-    steps = np.diff(t)
-    steps = steps[steps > 0]
-    return float(np.median(steps)) / 1e9 if steps.size else 0.0
+    steps = samples["t_ns"].diff()
+    median = steps.filter(steps > 0).median()
+    return float(median) / 1e9 if median is not None else 0.0  # type: ignore[arg-type]
+
+
+def _segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
+    """(first row, row count) of every segment: its samples are one contiguous
+    run (the fit stage's reading; kept here so that the noise stage imports no stage)."""
+    runs = samples.select(pl.col("segment").rle()).unnest("segment")
+    lengths = runs["len"].to_numpy()
+    starts = np.cumsum(lengths) - lengths
+    return {int(seg): (int(a), int(k)) for seg, a, k in zip(runs["value"], starts, lengths) if seg is not None}
 
 
 def _split(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]:
@@ -36,33 +44,44 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
     move carries the hand's motion, so it serves only an unlabelled
     recording)."""
     pieces: list[np.ndarray] = []
-    ok = fits.filter(pl.col("status") == "ok")
+    rows_of = _segment_rows(samples)
+    t_ns = samples["t_ns"].to_numpy()
+    y_all = samples.select(CHANNELS).to_numpy()
+    angle = samples["angle_deg"].to_numpy() if "angle_deg" in samples.columns else None
+    order = {c: i for i, c in enumerate(CHANNELS)}
+    coefs: dict[int, np.ndarray] = {}
+    rates: dict[int, tuple[float, float | None]] = {}
+    for seg, channel, rate, fitted, c, a, b in fits.filter(pl.col("status") == "ok").select(
+            "segment", "channel", "rate_hz", "rate_fit_hz", "C", "A", "B").iter_rows():
+        coefs.setdefault(int(seg), np.full((len(CHANNELS), 3), np.nan))[order[channel]] = (c, a, b)
+        rates[int(seg)] = (rate, fitted)
     done: set[int] = set()
-    for (segment,), rows in ok.group_by(["segment"], maintain_order=True):
-        part = samples.filter(pl.col("segment") == segment)
-        if part.height < 2 or rows.height != len(CHANNELS) or part["angle_deg"].null_count():
+    for segment, coef in coefs.items():
+        if segment not in rows_of or angle is None or not np.isfinite(coef).all():
             continue
-        rows = rows.sort(pl.col("channel").replace_strict({c: i for i, c in enumerate(CHANNELS)}))
-        theta = np.deg2rad(part["angle_deg"].to_numpy())
-        rate, fitted = rows["rate_hz"][0], rows["rate_fit_hz"][0]
+        first, count = rows_of[segment]
+        theta = np.deg2rad(angle[first:first + count])
+        if count < 2 or not np.isfinite(theta).all():
+            continue
+        rate, fitted = rates[segment]
         if rate and fitted is not None and np.isfinite(fitted):  # the four-parameter fit's rate
             theta = theta[0] + fitted / rate * (np.unwrap(theta) - theta[0])
         z = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
-        coef = rows.select("C", "A", "B").to_numpy()  # (channel, C A B)
-        y = part.select(CHANNELS).to_numpy()
-        pieces += _split(part["t_ns"].to_numpy(), y - z @ coef.T, dt_s)
-        done.add(int(segment))
+        pieces += _split(t_ns[first:first + count], y_all[first:first + count] - z @ coef.T, dt_s)
+        done.add(segment)
     for segment in segments.filter(pl.col("kind") == "pose")["segment"]:
-        part = samples.filter(pl.col("segment") == segment)
-        y = part.select(CHANNELS).to_numpy()
-        if y.shape[0] >= 2:
-            pieces += _split(part["t_ns"].to_numpy(), y - y.mean(axis=0), dt_s)
+        if segment not in rows_of:
+            continue
+        first, count = rows_of[segment]
+        y = y_all[first:first + count]
+        if count >= 2:
+            pieces += _split(t_ns[first:first + count], y - y.mean(axis=0), dt_s)
             done.add(int(segment))
     for row in dwells.iter_rows(named=True) if not pieces else ():
         if row["segment"] in done:
             continue
-        part = samples.filter(pl.col("t_ns").is_between(row["t_start_ns"], row["t_end_ns"]))
-        y = part.select(CHANNELS).to_numpy()
+        inside = (t_ns >= row["t_start_ns"]) & (t_ns <= row["t_end_ns"])
+        y = y_all[inside]
         if y.shape[0] >= 2:
-            pieces += _split(part["t_ns"].to_numpy(), y - y.mean(axis=0), dt_s)
+            pieces += _split(t_ns[inside], y - y.mean(axis=0), dt_s)
     return pieces
