@@ -32,6 +32,18 @@ def test_allan_deviation_equals_allantools():
     assert pooled.avar[0] == pytest.approx(sum(v @ v for v in d) / (2 * 16 * sum(v.size for v in d)), rel=1e-12)
 
 
+def test_edf_equals_allantools():
+    """rotcal's equivalent degrees of freedom (NIST SP 1065 Table 5) are
+    allantools' edf_simple for white, flicker and random-walk noise."""
+    from rotcal.noise.allan import edf_simple
+
+    for n in (5, 50, 4200, 100_000):
+        for m in (1, 2, 4, 64, 1024):
+            if n >= 2 * m:
+                for alpha in (0, -1, -2):
+                    assert edf_simple(n, m, alpha) == pytest.approx(allantools.edf_simple(n, m, alpha), rel=1e-12)
+
+
 CASES = {
     "white": NoiseSpec(white_sd=8.0),
     "random_walk": NoiseSpec(white_sd=8.0, random_walk_k=0.3),

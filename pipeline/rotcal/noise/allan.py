@@ -2,13 +2,12 @@
 contiguous pieces of a recording (segments, steps, poses: the logger pauses
 between them), at octave averaging times (IEEE Std 1293-2018 Annex A;
 NIST SP 1065 eq. 11), with the equivalent degrees of freedom of each
-(NIST SP 1065 5.3, ``allantools.edf_simple``)."""
+(NIST SP 1065 5.3, Table 5)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import allantools
 import numpy as np
 
 MIN_EDF = 2.0  # an averaging time estimated with fewer degrees of freedom says nothing
@@ -35,11 +34,29 @@ def octave_factors(longest: int) -> np.ndarray:
     return 2 ** np.arange(int(np.floor(np.log2(max(longest // 2, 1)))) + 1)
 
 
+def edf_simple(n: int, m: int, alpha: int) -> float:
+    """The equivalent degrees of freedom of the overlapping Allan variance of
+    ``n`` samples at averaging factor m, by the simple formulas of NIST SP
+    1065 Table 5 (Stein 1985) for white (alpha 0), flicker (-1) and random
+    walk (-2) frequency noise; allantools' ``edf_simple`` to rounding
+    (``tests/test_noise_identification.py``), written out here because
+    importing allantools (and scipy.stats with it) costs a run's process
+    half a second. A piece too short for the formula gives 0."""
+    n_f, m_f = float(n), float(m)
+    if alpha == -2:
+        if n <= 3:
+            return 0.0
+        return (n_f - 2) / (m_f * (n_f - 3) ** 2) * ((n_f - 1) ** 2 - 3 * m_f * (n_f - 1) + 4 * m_f**2)
+    if alpha == -1:
+        return 2 * (n_f - 2) / (2.3 * n_f - 4.9) if m == 1 else 5 * n_f**2 / (4 * m_f * (n_f + 3 * m_f))
+    return (3 * (n_f - 1) / (2 * m_f) - 2 * (n_f - 2) / n_f) * (4 * m_f**2 / (4 * m_f**2 + 5))
+
+
 def _edf(sizes: list[int], m: int, alpha: int) -> float:
     """The summed equivalent degrees of freedom of the pieces long enough for
     m (each distinct length computed once: a plan's pieces share a few)."""
     lengths, counts = np.unique(np.asarray(sizes, dtype=np.int64), return_counts=True)
-    return sum(int(k) * float(allantools.edf_simple(int(n), m, alpha)) for n, k in zip(lengths, counts) if n >= 2 * m)
+    return sum(int(k) * max(edf_simple(int(n), m, alpha), 0.0) for n, k in zip(lengths, counts) if n >= 2 * m)
 
 
 def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None) -> AllanVariance:
