@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import polars as pl
 
 from rotcal.model.physics import CHANNELS
-from rotcal.noise.allan import AllanVariance, pooled_avar
+from rotcal.noise.allan import AllanVariance, pooled_avar, pooled_avars
 from rotcal.noise.model import ChannelNoise, Term, identify_channel
 from rotcal.noise.residuals import residual_pieces, sample_interval_s
 
@@ -38,7 +38,8 @@ def identify_noise(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataF
     if dt <= 0:
         return NoiseModel((), 0.0, output_unit)
     pieces = residual_pieces(samples, segments, fits, dwells, dt)
-    return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit)
+    allan = pooled_avars(pieces, 1 / dt) if pieces else [None] * len(CHANNELS)
+    return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit, allan[r])
                             for r, c in enumerate(CHANNELS)), dt, output_unit)
 
 

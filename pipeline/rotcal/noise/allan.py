@@ -67,16 +67,22 @@ def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | No
     allantools' ``oadev`` squared. The edf are those of white noise summed
     over the pieces (``with_edf`` for another noise type); averaging times
     with fewer than MIN_EDF are left out."""
-    sizes = [p.size for p in pieces]
+    return pooled_avars([p[:, None] for p in pieces], fs_hz, factors)[0]
+
+
+def pooled_avars(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None) -> list[AllanVariance]:
+    """``pooled_avar`` of every column of the pieces (n_i, channels) at once."""
+    sizes = [p.shape[0] for p in pieces]
+    channels = pieces[0].shape[1] if pieces else 1
     factors = octave_factors(max(sizes, default=0)) if factors is None else np.asarray(factors)
-    phases = [np.concatenate([[0.0], np.cumsum(p)]) for p in pieces]
+    phases = [np.concatenate([np.zeros((1, p.shape[1])), np.cumsum(p, axis=0)]) for p in pieces]
     tau, avar, count, edf = [], [], [], []
     for m in (int(k) for k in factors):
-        total, n = 0.0, 0
+        total, n = np.zeros(channels), 0
         for x in phases:
-            if x.size - 1 >= 2 * m:
+            if x.shape[0] - 1 >= 2 * m:
                 d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
-                total, n = total + float(d @ d), n + d.size
+                total, n = total + np.einsum("ij,ij->j", d, d), n + d.shape[0]
         dof = _edf(sizes, m, 0)
         if n == 0 or dof < MIN_EDF:
             continue
@@ -84,12 +90,14 @@ def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | No
         avar.append(total / (2.0 * m * m * n))
         count.append(n)
         edf.append(dof)
-    return AllanVariance(np.array(tau), np.array(avar), np.array(count, dtype=np.int64), np.array(edf))
+    values = np.array(avar).reshape(len(tau), channels)
+    return [AllanVariance(np.array(tau), values[:, c], np.array(count, dtype=np.int64), np.array(edf))
+            for c in range(channels)]
 
 
 def with_edf(av: AllanVariance, pieces: list[np.ndarray], alphas: np.ndarray, fs_hz: float) -> AllanVariance:
     """``av`` with each tau's edf for its power-law noise type ``alphas``
-    (0 white, -1 flicker, -2 random walk; NIST SP 1065 Table 8's simple
+    (0 white, -1 flicker, -2 random walk; NIST SP 1065 Table 5.s simple
     forms); averaging times left with fewer than MIN_EDF are dropped."""
     sizes = [p.size for p in pieces]
     edf = np.array([_edf(sizes, int(round(t * fs_hz)), int(a)) for t, a in zip(av.tau_s, alphas)])

@@ -287,8 +287,10 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
     return tuple(out)
 
 
-def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str) -> ChannelNoise:
-    """The Allan variance of a channel's residual pieces (edf for the noise
-    type of its own local slope) and its fitted model."""
-    first = pooled_avar(pieces, fs_hz)
+def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str,
+                     first: AllanVariance | None = None) -> ChannelNoise:
+    """The Allan variance of a channel's residual pieces (``first``, when
+    already computed: ``allan.pooled_avars``), its edf for the noise type of
+    its own local slope, and its fitted model."""
+    first = pooled_avar(pieces, fs_hz) if first is None else first
     return fit_channel(channel, with_edf(first, pieces, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)
