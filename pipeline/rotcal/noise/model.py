@@ -188,8 +188,6 @@ def _select(av: AllanVariance, dt: float):
     for n_gm in range(MAX_GAUSS_MARKOV + 1):
         if av.tau_s.size - (4 + 2 * n_gm) < 1 or (best is not None and best[1] < n_gm - 1):
             break
-        if best is not None and best[3] <= av.tau_s.size - (4 + 2 * best[1]):
-            break  # the simpler model fits to its chi-square's expectation: nothing left for another term
         sd = av.avar * np.sqrt(2 / av.edf)
         first = float(best[2][5]) if best is not None and best[1] == 1 else None
         start = None
@@ -223,8 +221,7 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
     variance has too few averaging times (fewer than 5). A sensor's
     low-pass lowers the shortest averaging times below any of the terms:
     where the fit from the shortest tau misfits (reduced chi-square above
-    3) with the shortest tau more than 3 sd below the model, the shortest
-    one or two octaves are left out when that fits better."""
+    3), the shortest one or two octaves are left out when that fits better."""
     if av.tau_s.size < 5 or not np.all(av.avar > 0):
         return ChannelNoise(channel, av, (), 0.0, dt, 0.0, "fewer than 5 averaging times with an Allan variance: "
                                                    "the residual pieces are too short for a noise model")
@@ -239,22 +236,13 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
         red = found[3] / max(part.tau_s.size - (4 + 2 * found[1]), 1)
         if best is None or red < best[0]:
             best, kept = (red, found), part
-        if red <= 3.0 or not _below_at_first(part, found[2], found[1], dt):
+        if red <= 3.0:
             break
     assert best is not None
     _, (_, n_gm, x, chi2, jac) = best
     chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
     cov = _covariance(jac, chi2, kept.tau_s.size, n_gm)
     return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
-
-
-def _below_at_first(av: AllanVariance, x: np.ndarray, n_gm: int, dt: float) -> bool:
-    """Whether the first averaging time's estimate lies more than 3 of its sd
-    below the model: the mark of a low-pass (any other misfit is not mended
-    by leaving short times out)."""
-    gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
-    model = float(_model(av.tau_s[:1], x[:4], gm, dt)[0])
-    return model - av.avar[0] > 3 * model * math.sqrt(2 / av.edf[0])
 
 
 def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, ...]:
