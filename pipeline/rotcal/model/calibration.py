@@ -29,6 +29,7 @@ import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.jsontext import json_text
+from rotcal.model.identification import Identification
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal_schemas import schema_text
@@ -37,7 +38,7 @@ if TYPE_CHECKING:
     from rotcal.ingest.meta import DatasetMeta
 
 CALIBRATION_SCHEMA = "calibration"
-CALIBRATION_VERSION = "1.0"
+CALIBRATION_VERSION = "1.1"  # 1.1: certificate (the laboratory's, customer's, item's, equipment's fields)
 BASELINE, REFINED = "baseline", "refined"
 
 
@@ -248,7 +249,8 @@ class Calibration:
     """``calibration.json``: the dataset, the DUT's output unit, g_local with
     its standard uncertainty and source, the inputs' content hashes, the run's
     configuration, rotcal's version and the time of the run, and the
-    recommended calibration per rate."""
+    recommended calibration per rate; what the certificate states beside the
+    results, as the laboratory gave it (``identification``)."""
 
     dataset: str
     device: dict[str, Any]
@@ -261,6 +263,7 @@ class Calibration:
     rotcal_version: str
     created_utc: str
     rates: tuple[RateCalibration, ...]
+    identification: Identification = Identification()
 
     def rate(self, rate_hz: float | None) -> RateCalibration:
         """The entry of ``rate_hz`` (None: DC when there is one, else the only rate)."""
@@ -283,7 +286,8 @@ class Calibration:
                             "source": self.g_local_source},
                 "coverage_probability": EXPANDED_COVERAGE, "inputs": list(self.inputs),
                 "configuration": self.configuration, "rotcal_version": self.rotcal_version,
-                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates]}
+                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates],
+                "certificate": self.identification.to_dict()}
 
     def write(self, path: Path) -> Path:
         """Write the document (validated first: a bug, not the user's input, if it fails)."""
@@ -316,14 +320,16 @@ class Calibration:
         g = doc["g_local"]
         return cls(doc["dataset"], doc["device"], doc["output_unit"], float(g["value"]), float(g["std_uncertainty"]),
                    g["source"], tuple(doc["inputs"]), doc["configuration"], doc["rotcal_version"], doc["created_utc"],
-                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
+                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]),
+                   Identification.from_dict(doc.get("certificate", {})))
 
 
 def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],
-                            configuration: dict[str, Any]) -> Calibration:
+                            configuration: dict[str, Any], site: Identification = Identification()) -> Calibration:
     """The run's document: ``chosen``'s result per rate, the dataset's
-    metadata (device, g_local and its source), rotcal's version and the time
-    of the run (``created_utc``)."""
+    metadata (device, g_local and its source; the certificate's fields,
+    each absent one from the ``site`` file's), rotcal's version and the
+    time of the run (``created_utc``)."""
     from rotcal import __version__
 
     unit = meta.output_unit
@@ -332,4 +338,5 @@ def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta
     return Calibration(dataset, device, unit, meta.g_local, meta.g_local_uncertainty, meta.g_local_source, inputs,
                        configuration, __version__, created_utc(),
                        tuple(rate_calibration(r, f, chosen.model, chosen.reason, unit)
-                             for r, f in zip(chosen.results, chosen.frames)))
+                             for r, f in zip(chosen.results, chosen.frames)),
+                       meta.identification.over(site))

@@ -19,6 +19,7 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
+from rotcal.ingest.site import load_site, site_path
 from rotcal.model.calibration import Recommended, mark_recommended
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
@@ -26,7 +27,7 @@ from rotcal.run.outputs import (
     INPUT_TABLES,
     calibration_document,
     calibration_output,
-    certificate_output,
+    certificate_outputs,
     diagnosis_outputs,
     publish,
     result_tables,
@@ -87,6 +88,7 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     (the tables that describe the input, with the failure rows, are written then).
     """
     ds = load(path, meta_path, config)  # its samples streamed past [run] stream_above_samples (``streamed``)
+    site = load_site(site_path(path, config.report.site))  # checked before the work, as dataset.toml is
     seg = segment_and_fit(ds, config)
     reductions = reduce(seg, ds)
     try:
@@ -102,10 +104,10 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    calibration = calibration_document(chosen, ds, config, known)
+    calibration = calibration_document(chosen, ds, config, known, site)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(calibration), certificate_output(config, calibration)]
+               calibration_output(calibration), *certificate_outputs(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)
