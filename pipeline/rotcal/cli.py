@@ -52,6 +52,7 @@ def _options(
 FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
 
 
+SITE_HELP = r"the laboratory's site file (its \[laboratory], \[equipment], \[certificate] fields for the certificate); default: site.toml beside the dataset (rotcal batch: in ROOT)"
 REPLACE_HELP = "replace files in the output directory that no rotcal listing (rotcal-files.json) names"
 
 
@@ -114,6 +115,7 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary (the recommended result per rate, warnings, files written) as JSON on stdout")] = False,
     replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
+    site: Annotated[Path | None, typer.Option(help=SITE_HELP)] = None,
 ) -> None:
     """Run the whole pipeline on one dataset."""
     target = _out_dir(out_dir, replace_files, (dataset, meta, config))
@@ -122,6 +124,8 @@ def run(
     cfg = load_config(config)
     if workers is not None:
         cfg = with_options(cfg, run={"workers": workers})
+    if site is not None:
+        cfg = with_options(cfg, report={"site": str(site.resolve())})
     if not json_summary:
         _print_outcome(run_dataset(dataset, target, meta, cfg), quiet)
         return
@@ -275,10 +279,11 @@ def export_cmd(
 def certificate(
     run_dir: Annotated[Path, typer.Argument(help="a run's output directory (calibration.json and its tables)")],
 ) -> None:
-    """Render a run's calibration certificate (RUN_DIR/certificate.html) again from its published files."""
-    from rotcal.report.certificate import write_certificate
+    """Render a run's calibration certificate (RUN_DIR/certificate.html and .pdf) again from its published files."""
+    from rotcal.report.certificate import rewrite_certificates
 
-    out.print(f"certificate written to {write_certificate(_writable(run_dir))}", highlight=False, markup=False)
+    written = rewrite_certificates(_writable(run_dir))
+    out.print(f"certificate written to {', '.join(str(p) for p in written)}", highlight=False, markup=False)
 
 
 def main() -> None:
@@ -301,12 +306,14 @@ def batch(
     executor: Annotated[str | None, typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
+    site: Annotated[Path | None, typer.Option(help=SITE_HELP)] = None,
 ) -> None:
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
     from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}
-    cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})
+    report = {"figures": figures, **({"site": str(site.resolve())} if site is not None else {})}
+    cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report=report)
     with Reporter(err) as reporter:
         summary = run_batch(root, _writable(out_dir), cfg, reporter)
     if json_summary:

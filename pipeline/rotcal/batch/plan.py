@@ -9,7 +9,7 @@ import hashlib
 import json
 import os
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from rotcal import __version__
@@ -18,6 +18,7 @@ from rotcal.config import Limits, RunConfig
 from rotcal.errors import InputError, LimitError, RotcalError, decoded
 from rotcal.ingest.files import CAPTURE_SUFFIXES, capture_files
 from rotcal.ingest.meta import load_meta
+from rotcal.ingest.site import SITE_FILE, load_site
 
 _CLEAN_PART = re.compile(r"[A-Za-z0-9.-]+(?:_[A-Za-z0-9.-]+)*")
 
@@ -131,12 +132,28 @@ def _listing(source: Path) -> list[list]:
     return sorted(rows)
 
 
+def batch_site(root: Path, config: RunConfig) -> RunConfig:
+    """``config`` with the batch's site file: ``[report] site`` (``--site``),
+    else ROOT's ``site.toml`` when there is one, for every dataset; checked
+    once here (a bad one is the whole batch's error, ``InputError``)."""
+    given = config.report.site or (str(root / SITE_FILE) if (root / SITE_FILE).is_file() else "")
+    if not given:
+        return config
+    site = load_site(Path(given))
+    assert site.site_file is not None
+    return replace(config, report=replace(config.report, site=site.site_file.path))
+
+
 def config_json(config: RunConfig) -> str:
     """The configuration results depend on: every table but the cores and
-    executors (``[run]``, ``[batch]``)."""
+    executors (``[run]``, ``[batch]``); the site file by its content, so that
+    a changed site file (the certificates' laboratory fields) reruns the datasets."""
     doc = asdict(config)
     for key in ("run", "batch"):
         doc.pop(key)
+    site = doc["report"]["site"]
+    if site:
+        doc["report"]["site"] = hashlib.sha256(Path(site).read_bytes()).hexdigest()
     return json.dumps(doc, sort_keys=True)
 
 

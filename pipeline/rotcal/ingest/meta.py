@@ -87,7 +87,7 @@ class DatasetMeta:
 
 def _parse(text: str, path: Path, what: str = "dataset.toml") -> dict:
     try:
-        return _dates_as_text(tomllib.loads(text))
+        return {key: _dates_as_text(value) for key, value in tomllib.loads(text).items()}
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{what} is not valid TOML: {exc}", path=path) from None
     except RecursionError:

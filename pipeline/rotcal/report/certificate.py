@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import polars as pl
 
 from rotcal.model.calibration import Calibration
-from rotcal.report.certificate_blocks import Block, Document, Fields, Figure, Grid, Heading, Preformatted, Section, Text
+from rotcal.report.certificate_blocks import Block, Document, Fields, Figure, Grid, Heading, Section, Text
 from rotcal.report.certificate_content import TABLES, certificate_document, read_tables
 from rotcal.tables import atomic_write
 
@@ -26,7 +26,8 @@ if TYPE_CHECKING:
 
 CERTIFICATE = "certificate.html"
 CERTIFICATE_PDF = "certificate.pdf"
-__all__ = ["CERTIFICATE", "CERTIFICATE_PDF", "document", "read_tables", "render", "write_certificate", "write_certificate_pdf"]
+__all__ = ["CERTIFICATE", "CERTIFICATE_PDF", "document", "read_tables", "render", "rewrite_certificates", "write_certificate",
+           "write_certificate_pdf"]
 
 
 def _cell(text: object, cls: str = "", tag: str = "td") -> str:
@@ -125,3 +126,18 @@ def write_certificate_pdf(run_dir: Path, paper: str = "a4", figures: bool = True
 
     data = pdf_bytes(doc or document(Path(run_dir), figures, calibration, published), paper)
     return atomic_write(Path(run_dir) / CERTIFICATE_PDF, lambda tmp: tmp.write_bytes(data))
+
+
+def rewrite_certificates(run_dir: Path) -> list[Path]:
+    """``rotcal certificate``: the run's certificate drawn again from its
+    files, as HTML, and as PDF on its paper where the run wrote one (its
+    configuration's ``[report] pdf``; a run from before the PDF lists none,
+    and a file its listing does not name would bar the next run's output)."""
+    run_dir = Path(run_dir)
+    cal = Calibration.read(run_dir / "calibration.json")
+    doc = document(run_dir, calibration=cal)
+    written = [write_certificate(run_dir, doc=doc)]
+    report = cal.configuration.get("report", {})
+    if report.get("pdf") is True:
+        written.append(write_certificate_pdf(run_dir, report.get("paper", "a4"), doc=doc))
+    return written
