@@ -28,19 +28,25 @@ def pdf_bytes(doc: Document, paper: str = "a4") -> bytes:
     """The PDF of ``doc`` on ``paper`` (a4 or letter)."""
     import typst
 
-    with tempfile.TemporaryDirectory(prefix="rotcal-certificate-") as scratch:
-        root = Path(scratch)
-        names: dict[int, str] = {}
-
+    # a scratch folder of the files the template reads, removed file by file (what was written is known)
+    root = Path(tempfile.mkdtemp(prefix="rotcal-certificate-"))
+    written: list[Path] = []
+    try:
         def figure_name(figure: Figure) -> str:
-            name = names.setdefault(id(figure), f"figure-{len(names) + 1}.png")
-            (root / name).write_bytes(figure.png)
+            name = f"figure-{len(written) + 1}.png"
+            written.append(root / name)
+            written[-1].write_bytes(figure.png)
             return name
 
         data = {**doc.as_data(figure_name), "paper": PAPERS[paper]}
-        (root / "data.json").write_text(json.dumps(data, ensure_ascii=False), encoding="utf-8")
-        main = root / TEMPLATE
-        main.write_text(files("rotcal.report").joinpath(TEMPLATE).read_text(encoding="utf-8"), encoding="utf-8")
-        pdf = typst.compile(str(main), root=str(root), ignore_system_fonts=True)
+        for name, text in (("data.json", json.dumps(data, ensure_ascii=False)),
+                           (TEMPLATE, files("rotcal.report").joinpath(TEMPLATE).read_text(encoding="utf-8"))):
+            written.append(root / name)
+            written[-1].write_text(text, encoding="utf-8")
+        pdf = typst.compile(str(root / TEMPLATE), root=str(root), ignore_system_fonts=True)
+    finally:
+        for path in written:
+            path.unlink(missing_ok=True)
+        root.rmdir()
     assert isinstance(pdf, bytes)
     return pdf
