@@ -120,7 +120,7 @@ def test_every_17025_item_is_in_the_pdf(runs):
     for k, page in enumerate(pages, 1):
         assert "Inertial Metrology Laboratory" in page and "K-2026-0815" in page
         assert f"page {k} of {len(pages)}" in page
-    assert len(pages) >= 3
+    assert len(pages) >= 3 and "End of certificate K-2026-0815" in pages[-1]  # and where it ends (7.8.2.1 e)
     # the site file the run read, with its content's hash, in the records
     cal = Calibration.read(runs["given"])
     assert cal.identification.site_file is not None and cal.identification.site_file.sha256 in whole

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import polars as pl
 
 from rotcal.model.calibration import Calibration
+from rotcal.model.identification import NOT_GIVEN
 from rotcal.report.certificate_blocks import Block, Document, Fields, Figure, Grid, Heading, Section, Text
 from rotcal.report.certificate_content import TABLES, certificate_document, read_tables
 from rotcal.tables import atomic_write
@@ -84,7 +85,8 @@ def _page() -> Template:
 def html(doc: Document) -> str:
     """The page of ``doc``."""
     body = ("".join(_section(s) for s in doc.sections) + _approval(doc)
-            + '<h2 class="annex">Annex: evidence and records</h2>' + "".join(_section(s) for s in doc.annex))
+            + '<h2 class="annex">Annex: evidence and records</h2>' + "".join(_section(s) for s in doc.annex)
+            + f'<p class="note end">End of certificate{"" if doc.number == NOT_GIVEN else " " + escape(doc.number)}</p>')
     return _page().substitute(title=escape(doc.title), number=escape(doc.number), laboratory=escape(doc.laboratory),
                               subtitle=escape(doc.subtitle), generated=escape(doc.generated), sections=body)
 
