@@ -245,3 +245,30 @@ def test_a_batch_reads_roots_site_file_and_reruns_when_it_changes(tmp_path):
     (tmp_path / "site.toml").write_text('[certificate]\nnumber = "K-1"\n', encoding="utf-8")
     with pytest.raises(InputError, match="one certificate's"):
         batch_site(tmp_path, RunConfig())
+
+
+def test_the_schema_and_the_record_name_the_same_fields():
+    """dataset.toml's contract (schemas/dataset_toml.json) and model.identification: one set of keys per part."""
+    import dataclasses
+
+    from rotcal.model.identification import LABELS, PARTS
+    from rotcal_schemas import schema_text
+
+    properties = schema_text("dataset_toml")["properties"]
+    for part, kind in PARTS.items():
+        fields = [f.name for f in dataclasses.fields(kind)]
+        assert list(properties[part]["properties"]) == fields == list(LABELS[part]), part
+
+
+def test_a_calibration_document_without_certificate_fields_still_reads(runs, tmp_path):
+    """Version 1.0 documents have no ``certificate``; a later 1.x may add fields this reader leaves out."""
+    import json
+
+    doc = json.loads((runs["given"] / "calibration.json").read_text(encoding="utf-8"))
+    assert doc["version"] == "1.1" and doc["certificate"]["item"]["serial_number"] == "SN-0042-7781"
+    doc["certificate"]["item"]["colour"] = "blue"
+    assert Calibration.from_dict(doc).identification.item.serial_number == "SN-0042-7781"
+    doc.pop("certificate")
+    doc["version"] = "1.0"
+    (tmp_path / "calibration.json").write_text(json.dumps(doc), encoding="utf-8")
+    assert Calibration.read(tmp_path).identification.item.serial_number is None
