@@ -272,3 +272,16 @@ def test_a_calibration_document_without_certificate_fields_still_reads(runs, tmp
     doc["version"] = "1.0"
     (tmp_path / "calibration.json").write_text(json.dumps(doc), encoding="utf-8")
     assert Calibration.read(tmp_path).identification.item.serial_number is None
+
+
+def test_a_batch_notes_a_certificate_number_two_datasets_give(tmp_path):
+    from rotcal.batch.plan import Found, Plan, shared_certificate_numbers
+
+    plans = []
+    for name, number in (("a", "K-1"), ("b", "K-2"), ("c", "K-1"), ("d", None)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "dataset.toml").write_text("" if number is None else f'[certificate]\nnumber = "{number}"\n')
+        plans.append(Plan(Found(name, tmp_path / name), name, "", "[]", None, {}))
+    assert shared_certificate_numbers(plans) == (
+        "certificate number 'K-1' is given by 2 datasets (a, c): each certificate needs its own",)
+    assert shared_certificate_numbers(plans[:2] + [replace(plans[2], refusal="bad")]) == ()

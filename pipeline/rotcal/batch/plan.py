@@ -144,6 +144,21 @@ def batch_site(root: Path, config: RunConfig) -> RunConfig:
     return replace(config, report=replace(config.report, site=site.site_file.path))
 
 
+def shared_certificate_numbers(plans: list[Plan]) -> tuple[str, ...]:
+    """A note per certificate number that more than one dataset's
+    ``dataset.toml`` gives (a certificate number identifies one certificate,
+    ISO/IEC 17025:2017 7.8.2.1 e); the refused datasets left out."""
+    holders: dict[str, list[str]] = {}
+    for plan in plans:
+        toml = plan.found.source / "dataset.toml"
+        if plan.refusal is None and toml.is_file():
+            number = load_meta(toml).identification.certificate.number
+            if number is not None:
+                holders.setdefault(number, []).append(plan.found.dataset_path)
+    return tuple(f"certificate number {number!r} is given by {len(paths)} datasets ({', '.join(paths)}): "
+                 "each certificate needs its own" for number, paths in sorted(holders.items()) if len(paths) > 1)
+
+
 def config_json(config: RunConfig) -> str:
     """The configuration results depend on: every table but the cores and
     executors (``[run]``, ``[batch]``); the site file by its content, so that
