@@ -161,8 +161,13 @@ def test_the_annex_prints_what_the_html_folds_away(runs):
 
 
 def test_a4_by_default_letter_by_option_and_the_same_bytes_again(runs, tmp_path):
-    size = pypdf.PdfReader(runs["given"] / CERTIFICATE_PDF).pages[0].mediabox
+    reader = pypdf.PdfReader(runs["given"] / CERTIFICATE_PDF)
+    size = reader.pages[0].mediabox
     assert (round(float(size.width)), round(float(size.height))) == (595, 842)  # A4, 210 x 297 mm in points
+    # declared PDF/A-2b, dated the time of the run
+    xmp = reader.trailer["/Root"]["/Metadata"].get_data().decode()
+    assert "<pdfaid:part>2</pdfaid:part><pdfaid:conformance>B</pdfaid:conformance>" in xmp
+    assert f"<xmp:CreateDate>{Calibration.read(runs['given']).created_utc}</xmp:CreateDate>" in xmp
     run = tmp_path / "letter"
     shutil.copytree(runs["given"], run)
     before = (run / CERTIFICATE_PDF).read_bytes()

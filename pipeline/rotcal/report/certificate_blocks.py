@@ -63,6 +63,18 @@ class Preformatted:
     folded: str | None = None
 
 
+def _date_parts(iso: str) -> dict[str, int] | None:
+    """An ISO 8601 UTC time as Typst's datetime arguments; None when there is none to read."""
+    from datetime import datetime
+
+    try:
+        when = datetime.fromisoformat(iso.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return {"year": when.year, "month": when.month, "day": when.day, "hour": when.hour, "minute": when.minute,
+            "second": when.second}
+
+
 Block = Text | Heading | Fields | Grid | Figure | Preformatted
 
 
@@ -95,6 +107,7 @@ class Document:
     annex: tuple[Section, ...]
     statements: tuple[str, ...] = STATEMENTS
     generated: str = ""
+    created_utc: str = ""  # the run's time, ISO 8601: the PDF's document date
 
     def as_data(self, figure_name: Any) -> dict[str, Any]:
         """The document as JSON-ready data; ``figure_name(figure)`` names each figure's file."""
@@ -120,5 +133,6 @@ class Document:
         return {"title": self.title, "subtitle": self.subtitle, "laboratory": self.laboratory, "number": self.number,
                 "sections": [section(s) for s in self.sections], "annex": [section(s) for s in self.annex],
                 "statements": list(self.statements), "generated": self.generated,
+                "created": _date_parts(self.created_utc),
                 "approval": {"name": self.approval.name, "function": self.approval.function,
                              "date_of_issue": self.approval.date_of_issue}}

@@ -293,4 +293,4 @@ def certificate_document(run_dir: Path, cal: Calibration, tables: dict[str, pl.D
         approval(cal),
         (frequency_response_section(run_dir, tables, cal, figures), norm_section(tables, cal, figures),
          diagnosis_section(run_dir, tables, cal, figures), records_section(cal, run_dir, read, kind)),
-        generated=f"rendered by rotcal {cal.rotcal_version}, {cal.created_utc}")
+        generated=f"rendered by rotcal {cal.rotcal_version}, {cal.created_utc}", created_utc=cal.created_utc)

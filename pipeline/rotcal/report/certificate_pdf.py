@@ -8,8 +8,9 @@ its embedded fonts cover the certificate's Greek and symbols (ν, φ, ±, →,
 ΔBIC) where reportlab's built-in fonts are Latin-1 only, its tables break
 across pages with their header repeated, and the total page count is one
 expression rather than a second pass. The fonts are the wheel's own
-(system fonts ignored) and the document carries no date: the same
-certificate gives the same bytes on any machine."""
+(system fonts ignored) and the document's date is the run's: the same
+certificate gives the same bytes on any machine. Written as PDF/A-2b
+(ISO 19005-2), the archival form a laboratory keeps its records in."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from rotcal.report.certificate_blocks import Document, Figure
 
 TEMPLATE = "certificate.typ"
 PAPERS = {"a4": "a4", "letter": "us-letter"}
+PDF_STANDARD = "a-2b"  # PDF/A-2b (ISO 19005-2), for archiving: fonts embedded, colours defined, a document date
 
 
 def pdf_bytes(doc: Document, paper: str = "a4") -> bytes:
@@ -43,7 +45,8 @@ def pdf_bytes(doc: Document, paper: str = "a4") -> bytes:
                            (TEMPLATE, files("rotcal.report").joinpath(TEMPLATE).read_text(encoding="utf-8"))):
             written.append(root / name)
             written[-1].write_text(text, encoding="utf-8")
-        pdf = typst.compile(str(root / TEMPLATE), root=str(root), ignore_system_fonts=True)
+        pdf = typst.compile(str(root / TEMPLATE), root=str(root), ignore_system_fonts=True,
+                            pdf_standards=PDF_STANDARD if doc.created_utc else [])
     finally:
         for path in written:
             path.unlink(missing_ok=True)
