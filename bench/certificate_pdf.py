@@ -1,37 +1,38 @@
-"""What the certificate costs a run: its content (tables read, the |a|
-figure drawn), the HTML page and the PDF (Typst) drawn from it, medians of
-``--repeats`` on a run's output directory; and, in a new process, importing
-typst with its first compile.
+"""What the certificate costs a run: its content (tables read, figures
+drawn), the HTML page and the PDF (Typst) drawn from it, for each of
+several run directories in one process, after one warm-up compile (typst
+imported, its fonts read). Each certificate is compiled once: Typst
+memoises layout within a process, so compiling the same certificate again
+costs a tenth and would flatter it.
 
-    python bench/certificate_pdf.py RUN_DIR [--repeats 5]
+    python bench/certificate_pdf.py RUN_DIR [RUN_DIR ...] [--no-figures]
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
+
+import typst
 
 from rotcal.report.certificate import document, html
 from rotcal.report.certificate_pdf import pdf_bytes
 
-FIRST = ("import time; start = time.perf_counter(); import typst; "
-         "typst.compile(b'#set document(date: none)\\nx', ignore_system_fonts=True); print(time.perf_counter() - start)")
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("run_dirs", type=Path, nargs="+")
+    parser.add_argument("--no-figures", action="store_true", help="as rotcal batch draws it (no --figures)")
     args = parser.parse_args()
-    pdf_bytes(document(args.run_dir))  # typst loaded and its fonts read once, as a run's first certificate does
+    start = time.perf_counter()
+    typst.compile(b"#set document(date: none)\nwarm-up", ignore_system_fonts=True)
+    print(f"typst's first compile in this process: {time.perf_counter() - start:.3f} s")
     times: dict[str, list[float]] = {"content": [], "html": [], "pdf": []}
-    for _ in range(args.repeats):
+    for run_dir in args.run_dirs:
         start = time.perf_counter()
-        doc = document(args.run_dir)
+        doc = document(run_dir, figures=not args.no_figures)
         built = time.perf_counter()
         html(doc)
         paged = time.perf_counter()
@@ -39,10 +40,9 @@ def main() -> None:
         times["content"].append(built - start)
         times["html"].append(paged - built)
         times["pdf"].append(time.perf_counter() - paged)
-    for name, values in times.items():
-        print(f"{name:8s} {statistics.median(values):.3f} s")
-    first = subprocess.run([sys.executable, "-c", FIRST], capture_output=True, text=True, check=True)
-    print(f"typst import and first compile, new process: {float(first.stdout):.3f} s; PDF {len(pages):,} bytes")
+        print(f"{run_dir}: content {times['content'][-1]:.3f} s, html {times['html'][-1]:.3f} s, "
+              f"pdf {times['pdf'][-1]:.3f} s ({len(pages):,} bytes)")
+    print("medians: " + ", ".join(f"{name} {statistics.median(v):.3f} s" for name, v in times.items()))
 
 
 if __name__ == "__main__":
