@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import cache, lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import jsonschema
 import numpy as np
@@ -33,9 +33,6 @@ from rotcal.model.identification import Identification
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal_schemas import schema_text
-
-if TYPE_CHECKING:
-    from rotcal.ingest.meta import DatasetMeta
 
 CALIBRATION_SCHEMA = "calibration"
 CALIBRATION_VERSION = "1.1"  # 1.1: certificate (the laboratory's, customer's, item's, equipment's fields)
@@ -324,7 +321,27 @@ class Calibration:
                    Identification.from_dict(doc.get("certificate", {})))
 
 
-def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],
+class DeviceMeta(Protocol):
+    """What the document records of a dataset's metadata (``dataset.toml``,
+    read by ``rotcal.ingest.meta``): the device, the local gravity and the certificate's fields."""
+
+    @property
+    def device_id(self) -> str | None: ...
+    @property
+    def output_unit(self) -> str: ...
+    @property
+    def full_scale(self) -> float | None: ...
+    @property
+    def g_local(self) -> float: ...
+    @property
+    def g_local_uncertainty(self) -> float: ...
+    @property
+    def g_local_source(self) -> str: ...
+    @property
+    def identification(self) -> Identification: ...
+
+
+def recommended_calibration(chosen: Recommended, dataset: str, meta: DeviceMeta, inputs: tuple[dict[str, Any], ...],
                             configuration: dict[str, Any], site: Identification = Identification()) -> Calibration:
     """The run's document: ``chosen``'s result per rate, the dataset's
     metadata (device, g_local and its source; the certificate's fields,

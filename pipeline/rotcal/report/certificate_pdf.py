@@ -18,12 +18,13 @@ import json
 import tempfile
 from importlib.resources import files
 from pathlib import Path
+from typing import Literal
 
 from rotcal.report.certificate_blocks import Document, Figure
 
 TEMPLATE = "certificate.typ"
 PAPERS = {"a4": "a4", "letter": "us-letter"}
-PDF_STANDARD = "a-2b"  # PDF/A-2b (ISO 19005-2), for archiving: fonts embedded, colours defined, a document date
+PDF_STANDARD: Literal["a-2b"] = "a-2b"  # PDF/A-2b (ISO 19005-2), for archiving: fonts embedded, colours defined, a document date
 
 
 def pdf_bytes(doc: Document, paper: str = "a4") -> bytes:
@@ -46,7 +47,7 @@ def pdf_bytes(doc: Document, paper: str = "a4") -> bytes:
             written.append(root / name)
             written[-1].write_text(text, encoding="utf-8")
         pdf = typst.compile(str(root / TEMPLATE), root=str(root), ignore_system_fonts=True,
-                            pdf_standards=PDF_STANDARD if doc.created_utc else [])
+                            pdf_standards=PDF_STANDARD if doc.created_utc else None)
     finally:
         for path in written:
             path.unlink(missing_ok=True)
