@@ -22,6 +22,7 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.ingest.site import load_site, site_path
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.identification import Identification
 from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
@@ -72,12 +73,13 @@ def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None
     on small matrices competing with it costs more than it gives. A bare
     path ``out`` replaces only what a rotcal listing there names. ``known``:
     the inputs' SHA-256s the caller has computed (``ingest.duplicates.content_hashes``)."""
+    site = load_site(site_path(Path(path), config.report.site))  # the site file checked before any work
     with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known)
+        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known, site)
 
 
 def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
-         known: Mapping[tuple[int, ...], str] | None) -> RunOutcome:
+         known: Mapping[tuple[int, ...], str] | None, site: Identification) -> RunOutcome:
     """Run the pipeline on one dataset and publish its tables as ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
@@ -85,7 +87,6 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     (the tables that describe the input, with the failure rows, are written then).
     """
     ds = load(path, meta_path, config)  # its samples streamed past [run] stream_above_samples (``streamed``)
-    site = load_site(site_path(path, config.report.site))  # checked before the work, as dataset.toml is
     seg = segment_and_fit(ds, config)
     reductions = reduce(seg, ds)
     try:
