@@ -77,7 +77,7 @@ def _package_parent(name: str) -> str:
 
 def test_a_handful_of_modules_at_the_top_and_one_folder_per_stage():
     top = sorted(p.name for p in PIPELINE.glob("*.py"))
-    assert len(top) <= 8, top
+    assert len(top) <= 9, top  # the two front doors (cli, api) among them
     packages = {p.parent.name for p in PIPELINE.glob("*/__init__.py")}
     assert STAGES <= packages, STAGES - packages
 
