@@ -284,7 +284,7 @@ def apply_cmd(
     uncertainty: Annotated[bool, typer.Option("--uncertainty", help="each sample's standard uncertainty from the calibration's covariance")] = False,
     meta: Annotated[Path | None, typer.Option(metavar="FILE", help="the recording's dataset.toml kept outside it")] = None,
 ) -> None:
-    """Calibrate a recording: a = P (R - O) in m/s^2 in the calibration's frame (docs/apply.md)."""
+    """Calibrate a recording: a = P (R - O) in m/s^2 in the calibration's frame (documentation: Using a calibration)."""
     from rotcal.apply import apply_calibration
 
     done = apply_calibration(calibration, recording, out_file, rate, uncertainty, meta)
@@ -302,7 +302,7 @@ def export_cmd(
     out_file: Annotated[Path | None, typer.Option("--out", metavar="FILE", help="file to write; default standard output")] = None,
     nominal_scale: Annotated[float | None, typer.Option(metavar="SCALE", help="ardupilot, px4: the driver's m/s^2 per output unit (needed unless the unit is m/s^2)")] = None,
 ) -> None:
-    """Write the calibration in a flight stack's or IMU tool's form (docs/apply.md)."""
+    """Write the calibration in a flight stack's or IMU tool's form (documentation: Using a calibration)."""
     from rotcal.apply import export_calibration, writable_file
     from rotcal.model.calibration import Calibration
 
@@ -362,7 +362,7 @@ def batch(
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help=r"draw each dataset's PNG figures too (\[report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:
-    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
+    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (documentation: Batch runs)."""
     from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}
