@@ -18,8 +18,9 @@ os.environ.setdefault("_RJEM_MALLOC_CONF", JEMALLOC_CONF)
 # The Python API (rotcal.api) from the package itself, loaded when first used:
 # `import rotcal` and the command line's start-up stay free of the stages.
 # (named apart from the subpackages rotcal.run, rotcal.apply and rotcal.simulate)
-_API = ("Calibration", "Recording", "Result", "apply_calibration", "calibrate", "correct", "export_calibration",
-        "load_calibration", "load_dataset", "open_results", "simulate_dataset")
+_API = ("Applied", "Calibration", "Export", "Quantity", "RateCalibration", "Recording", "Result", "apply_calibration",
+        "calibrate", "correct", "export_calibration", "load_calibration", "load_dataset", "open_results",
+        "simulate_dataset")
 
 
 def __getattr__(name: str) -> object:
