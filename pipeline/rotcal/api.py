@@ -56,6 +56,8 @@ the same way:
 
 >>> rotcal.open_results(work / "results").files == result.files
 True
+>>> import shutil
+>>> shutil.rmtree(work)
 """
 
 from __future__ import annotations
