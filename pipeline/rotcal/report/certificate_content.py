@@ -21,7 +21,7 @@ from rotcal.model.calibration import Calibration, Quantity, RateCalibration
 from rotcal.model.identification import NOT_GIVEN
 from rotcal.model.results import EXPANDED_COVERAGE
 from rotcal.report.certificate_blocks import Approval, Block, Document, Fields, Figure, Grid, Heading, Preformatted, Section, Text
-from rotcal.report.certificate_checks import main_contributions, norm_check, norm_summary
+from rotcal.report.certificate_checks import main_contributions, norm_check, norm_remark, norm_summary
 from rotcal.report.rounding import gum_round, gum_text
 from rotcal.tables import schema
 
@@ -226,7 +226,15 @@ def norm_section(tables: dict[str, pl.DataFrame], cal: Calibration, figures: boo
         Text(f"The magnitude of the corrected acceleration against g_local = {cal.g_local:g} m/s² (poses: with the "
              "two-fold held-out check and its uncertainty from the result's covariance and the pose's noise; dwells: "
              "u from the dwell's noise; segment fits: under their rate's calibration, averaged over a turn, u from "
-             "the fit's noise)."), summary, *figure, every))
+             "the fit's noise)."), summary, *_remark(check, cal, tables), *figure, every))
+
+
+def _remark(check: pl.DataFrame, cal: Calibration, tables: dict[str, pl.DataFrame]) -> tuple[Block, ...]:
+    """Why items lie beyond their uncertainty, where the check says (``norm_remark``)."""
+    findings = tables.get("diagnosis")
+    detected = () if findings is None else tuple(dict.fromkeys(findings.filter(pl.col("detected"))["effect"].to_list()))
+    remark = norm_remark(check, cal, detected)
+    return (Text(remark, note=True),) if remark else ()
 
 
 def diagnosis_section(run_dir: Path, tables: dict[str, pl.DataFrame], cal: Calibration, figures: bool) -> Section:
