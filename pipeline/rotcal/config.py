@@ -85,7 +85,7 @@ class ReportConfig:
     """Outputs for people beside the tables."""
 
     figures: bool = _key(True, "PNG figures (frequency response, diagnosis residuals); rotcal batch draws them only with --figures")
-    pdf: bool = _key(True, "certificate.pdf beside certificate.html (docs/outputs.md#the-certificate); rotcal batch writes it only with --pdf")
+    pdf: bool = _key(True, "certificate.pdf beside certificate.html (docs/outputs.md, the certificate); rotcal batch writes it only with --pdf")
     paper: Literal["a4", "letter"] = _key("a4", "the PDF certificate's paper: a4 or letter")
     site: str = _key("", "the laboratory's site file (its [laboratory], [equipment], [certificate] defaults); "
                      "empty: site.toml beside the dataset (rotcal run) or in ROOT (rotcal batch), if there is one")

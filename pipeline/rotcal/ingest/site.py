@@ -1,5 +1,5 @@
 """The site file: what a laboratory states on every certificate, kept once
-(docs/outputs.md#the-certificate). It holds ``[laboratory]``,
+(docs/outputs.md#how-a-laboratory-fills-in-the-fields). It holds ``[laboratory]``,
 ``[equipment]`` and ``[certificate]`` defaults (place, conditions,
 approval; never the number or the dates, which are one certificate's), with
 the keys and checks of ``dataset.toml`` (``schemas/dataset_toml.json``); a
