@@ -19,23 +19,20 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import RunConfig
-from rotcal.errors import InputError
 from rotcal.fit.segments import SegmentFit
-from rotcal.ingest import mcap_fast
 from rotcal.ingest.dataset import Dataset, load_dataset
 from rotcal.ingest.files import capture_files, dataset_name
-from rotcal.ingest.mcap_records import McapFile, Unsupported
+from rotcal.ingest.formats import named_format
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import open_stream
+from rotcal.ingest.stream import BLOCK_SAMPLES, open_stream
 from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
+from rotcal.timebase.blocks import repaired_stream
 from rotcal.timebase.check import TimebaseResult
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
-
-BLOCK_SAMPLES = 1 << 20  # samples a block of the capture holds (ingest.stream's)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,12 +60,13 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
     files = capture_files(path, meta)
-    counts = _messages(files[0][0], config) if len(files) == 1 and files[0][0].suffix.lower() == ".mcap" else []
+    counts = named_format(files[0][0]).message_counts(files[0][0], config.limits) if len(files) == 1 else []
     if max(counts, default=0) <= config.run.stream_above_samples:
         return whole()
     file, spec = files[0]
     capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES)
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
         read = whole()
         return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
@@ -82,17 +80,6 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
                            inputs=(file, *(() if meta_path is None else (Path(meta_path),))),
                            blocks=lambda: (b.with_columns(constant) for b in stream.blocks()), timebase=timebase,
                            in_memory=whole)
-
-
-def _messages(file: Path, config: RunConfig) -> list[int]:
-    """The messages of each channel of an MCAP file, from its message
-    indexes (the most: its samples, for a capture whose table channel is
-    slower); none where it has none the fast reader can count (it is then read whole)."""
-    try:
-        with file.open("rb") as fh:
-            return list(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values())
-    except (Unsupported, InputError, OSError):
-        return []
 
 
 def why_not(ds: StreamedDataset, config: RunConfig, streamed: StreamedSegments | None = None) -> str | None:
