@@ -78,6 +78,7 @@ class CaptureFormat:
 REGISTRY: tuple[CaptureFormat, ...] = (
     CaptureFormat("csv", ".csv", "csv"),
     CaptureFormat("mcap", ".mcap", "mcap", streams="stream"),
+    CaptureFormat("mat", ".mat", "mat", writes=None),
 )
 # a capture named in dataset.toml [[capture]] with a suffix of no format (a logger's .txt or .log) is read as CSV
 NAMED_DEFAULT = REGISTRY[0]
