@@ -76,7 +76,7 @@ class CaptureFormat:
 
 
 REGISTRY: tuple[CaptureFormat, ...] = (
-    CaptureFormat("csv", ".csv", "csv"),
+    CaptureFormat("csv", ".csv", "csv", streams="stream"),
     CaptureFormat("mcap", ".mcap", "mcap", streams="stream"),
     CaptureFormat("mat", ".mat", "mat", writes=None),
 )
