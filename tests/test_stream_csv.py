@@ -94,7 +94,8 @@ def test_what_the_block_reader_does_not_take(tmp_path, csv_dataset, change):
         assert str(streamed.value) == str(memory.value) and "row" in str(memory.value)
         return
     raw = open_stream(path, meta, block_samples=1000)
-    assert not raw.bounded
+    assert not raw.bounded and raw.whole_because is not None
+    assert raw.whole_because.startswith("a CSV capture its block reader does not take: ")
     assert_frame_equal(raw.whole, load_dataset(path).samples)
 
 

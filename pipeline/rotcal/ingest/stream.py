@@ -48,8 +48,8 @@ class RawStream:
     ``ties``: where stamps repeat, the positions of both samples and their
     channels (n x 3), the only values the time base's duplicate check reads;
     None where no stamp repeats. A capture read whole holds its samples in
-    ``whole`` (conformed, with ``capture``). ``read_whole()`` reads it whole
-    (for a time base that needs a sort).
+    ``whole`` (conformed, with ``capture``) and says why in ``whole_because``.
+    ``read_whole()`` reads it whole (for a time base that needs a sort).
     """
 
     capture: str
@@ -62,6 +62,7 @@ class RawStream:
     stamps: Stamps = lambda: iter(())
     ties: tuple[np.ndarray, np.ndarray] | None = None
     whole: pl.DataFrame | None = None
+    whole_because: str | None = None
     _files: tuple = field(default=(), repr=False)  # the spills (``ingest.spill``), removed with the stream
 
     @property
@@ -70,15 +71,16 @@ class RawStream:
 
 
 def read_whole(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int,
-               capture: str) -> RawStream:
-    """The capture read whole (``ingest.dataset.read_capture``), as ``load_dataset`` reads it."""
+               capture: str, because: str | None = None) -> RawStream:
+    """The capture read whole (``ingest.dataset.read_capture``), as ``load_dataset``
+    reads it, ``because`` the reason it is not read block by block."""
     frame, notes = read_capture(path, spec, meta, limits, workers)
     samples = conform(frame.with_columns(capture=pl.lit(capture)), "samples")
     source = next(iter(samples["label_source"].drop_nulls()), None)
 
     def again() -> RawStream:
-        return read_whole(path, meta, spec, limits, workers, capture)
-    return RawStream(capture, samples.height, source, meta.angle_source, notes, again, whole=samples)
+        return read_whole(path, meta, spec, limits, workers, capture, because)
+    return RawStream(capture, samples.height, source, meta.angle_source, notes, again, whole=samples, whole_because=because)
 
 
 def open_stream(path: Path, meta: DatasetMeta, spec: CaptureSpec | None = None, limits: Limits = Limits(),
@@ -93,10 +95,11 @@ def open_stream(path: Path, meta: DatasetMeta, spec: CaptureSpec | None = None, 
     Bad input raises the ``InputError`` the in-memory reader raises."""
     path = Path(path)
     capture = capture or path.name
-    block_reader = named_format(path).block_reader
-    if block_reader is not None:
+    fmt = named_format(path)
+    because = f"{fmt.name.upper()} captures have no block reader"
+    if fmt.block_reader is not None:
         try:
-            return block_reader(path, meta, spec, limits, workers, block_samples, capture, messages)
-        except NotBlockwise:
-            pass  # read below, outside the handler
-    return read_whole(path, meta, spec, limits, workers, capture)
+            return fmt.block_reader(path, meta, spec, limits, workers, block_samples, capture, messages)
+        except NotBlockwise as exc:
+            because = f"a {fmt.name.upper()} capture its block reader does not take: {exc}"  # read below, outside the handler
+    return read_whole(path, meta, spec, limits, workers, capture, because)

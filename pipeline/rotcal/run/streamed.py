@@ -1,10 +1,15 @@
-"""The run's load and segment stages for a capture read block by block
-(issue 16, item 1): past ``[run] stream_above_samples`` a single capture's
-samples are not held; the segment stage reads them in passes
-(``run.streaming``) and keeps only what the later stages read: the static
-segments' samples, the diagnosis's thinned rows and each fitted segment's
-sums. What the streamed path cannot take (see ``why_not``) is read in
-memory, with a note saying so."""
+"""The run's load and segment stages for a capture read block by block:
+past ``[run] stream_above_samples`` a single capture's samples are not
+held; the segment stage reads them in passes (``run.streaming``) and keeps
+only what the later stages read: the static segments' samples, the
+diagnosis's thinned rows and each fitted segment's sums.
+
+What still needs the whole capture is read in memory with one note,
+``read in memory, not block by block: <why>``, the reason given where it
+is known: a format without a block reader or a capture its block reader
+does not take (``ingest.formats``, ``ingest.stream.NotBlockwise``), repaired
+stamps that need a sort (``timebase.blocks``), and what the later stages
+read whole (``why_not``)."""
 
 from __future__ import annotations
 
@@ -48,9 +53,11 @@ class StreamedDataset(Dataset):
 
 
 def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
-    """The dataset, its samples streamed (``ingest.stream.open_stream``)
-    when it is one MCAP capture of more than ``[run] stream_above_samples``
-    samples that the streamed reader decodes chunk by chunk; read whole otherwise."""
+    """The dataset, its samples streamed (``ingest.stream.open_stream``,
+    repaired by ``timebase.blocks.repaired_stream``) when it is one capture
+    of more than ``[run] stream_above_samples`` samples whose format's block
+    reader takes it (``ingest.formats``: MCAP and CSV); read whole otherwise,
+    with a note saying why past the key."""
     path = Path(path)
     if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
         meta_path = path / "dataset.toml"
@@ -68,9 +75,10 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
     stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES)
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
+        because = stream.whole_because
+        del raw, stream  # not held while the dataset is read again
         read = whole()
-        return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
-                                    "does not decode chunk by chunk (docs/streaming.md)"))
+        return replace(read, notes=(*read.notes, f"read in memory, not block by block: {because} (docs/streaming.md)"))
     constant = [pl.lit(capture, pl.Categorical).alias("capture"), pl.lit(None, pl.Float64).alias("temperature_c"),
                 pl.lit(stream.label_source or "file", schema("samples").polars_schema["label_source"]).alias("label_source")]
     tb = stream.timebase

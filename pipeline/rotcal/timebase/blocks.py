@@ -9,7 +9,7 @@ stamps need a sort, on the whole capture."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
@@ -31,7 +31,7 @@ class StreamedCapture:
     (after the time base), ``timebase`` its time base (findings, warnings,
     gaps), and ``blocks()`` the repaired sample blocks (``COLUMNS``) in time
     order, anew on each call. ``bounded`` is False where the capture was
-    read whole.
+    read whole, and why (``whole_because``).
     """
 
     capture: str
@@ -42,6 +42,7 @@ class StreamedCapture:
     timebase: StreamedTimebase
     blocks: Blocks
     bounded: bool = True
+    whole_because: str | None = None
     _raw: RawStream | None = field(default=None, repr=False)  # holds the spills while the capture is read
 
 
@@ -69,7 +70,7 @@ def _whole(raw: RawStream, config: TimebaseConfig, block: int) -> StreamedCaptur
         for a in range(0, whole.height, block):
             yield whole.slice(a, block)
     return StreamedCapture(raw.capture, whole.height, raw.label_source, raw.angle_source, raw.notes, outcome(tb, raw.capture),
-                           blocks, bounded=False)
+                           blocks, bounded=False, whole_because=raw.whole_because)
 
 
 def repaired_stream(raw: RawStream, config: TimebaseConfig = TimebaseConfig(),
@@ -82,7 +83,7 @@ def repaired_stream(raw: RawStream, config: TimebaseConfig = TimebaseConfig(),
         try:
             timebase = _timebase(raw, config)
         except NotSorted:
-            raw = raw.read_whole()
+            raw = replace(raw.read_whole(), whole_because="repaired time stamps out of order: they are sorted whole")
         else:
             def blocks() -> Iterator[pl.DataFrame]:
                 repair = timebase.repairer()
