@@ -19,6 +19,7 @@ import rotcal.run.stages as stages
 from rotcal.config import Limits, RunConfig, with_options
 from rotcal.errors import InputError
 from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest.formats.csv import stream as csv_stream
 from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import COLUMNS, open_stream
@@ -52,15 +53,20 @@ def csv_dataset(tmp_path_factory, request) -> Path:
 
 
 @pytest.mark.parametrize("block", [777, 1 << 20])
-def test_blocks_are_the_in_memory_samples(csv_dataset, block):
+@pytest.mark.parametrize("piece", [100, 1 << 18])
+def test_blocks_are_the_in_memory_samples(csv_dataset, block, piece, monkeypatch):
+    """Blocks of 777 lines cut every segment mid-way, parsed in pieces of
+    100 lines (the last of each block 77); one block holds the capture whole."""
+    monkeypatch.setattr(csv_stream, "PIECE_LINES", piece)
     ds = load_dataset(csv_dataset)
     memory = repair_timebase(ds.samples, ds.name)
     raw = open_stream(csv_dataset / "capture.csv", ds.meta, block_samples=block)
     assert raw.bounded and raw.n_samples == ds.samples.height
+    heights = [b.height for b in raw.blocks()]  # before the time base drops any
+    assert heights[:-1] == [block] * (len(heights) - 1) and 0 < heights[-1] <= block
     capture = repaired_stream(raw, block_samples=block)
     for _ in range(2):  # a later pass reads the same back
         blocks = list(capture.blocks())
-        assert max(b.height for b in blocks) <= block
         assert_frame_equal(pl.concat(blocks), memory.samples.select(COLUMNS))  # exact
     assert capture.n_samples == memory.samples.height
     assert capture.timebase.findings_table(ds.name).select("check", "detected", "action").equals(

@@ -35,7 +35,8 @@ from rotcal.ingest.spill import FrameSpill, room_for
 from rotcal.ingest.stream import COLUMNS, NotBlockwise, RawStream, read_whole
 from rotcal.tables import conform, schema
 
-READ_BYTES = 1 << 25  # the file read this many bytes at a time
+READ_BYTES = 1 << 24  # the file read this many bytes at a time
+PIECE_LINES = 1 << 18  # lines parsed at a time
 _STAMP_BLOCK = 1 << 16  # stamps read back a block at a time for the time base
 TAKEN = ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg")  # header names the block reader takes
 
@@ -53,9 +54,10 @@ def message_counts(path: Path, limits: Limits) -> list[int]:
     return [max(lines + (last != b"\n") - 1, 0)]
 
 
-def _line_blocks(fh, block: int) -> Iterator[bytes]:
-    """The file's lines after the header, ``block`` lines at a time (the last fewer), each ending in a newline."""
-    pending = b""
+def _line_blocks(fh, sizes: list[int]) -> Iterator[bytes]:
+    """The file's lines after the header, ``sizes[0]`` lines, then ``sizes[1]``,
+    ... and round again (the last piece fewer), each ending in a newline."""
+    pending, k = b"", 0
     while True:
         chunk = fh.read(READ_BYTES)
         pending += chunk
@@ -64,10 +66,12 @@ def _line_blocks(fh, block: int) -> Iterator[bytes]:
                 yield pending if pending.endswith(b"\n") else pending + b"\n"
             return
         ends = np.flatnonzero(np.frombuffer(pending, np.uint8) == 10)
-        start = 0
-        for k in range(block - 1, ends.size, block):
-            yield pending[start : ends[k] + 1]
-            start = int(ends[k]) + 1
+        start, end = 0, sizes[k] - 1
+        while end < ends.size:
+            yield pending[start : ends[end] + 1]
+            start = int(ends[end]) + 1
+            k = (k + 1) % len(sizes)
+            end += sizes[k]
         pending = pending[start:]
 
 
@@ -119,10 +123,17 @@ def open_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits
         with files.open_capture(path) as fh:
             header = _header(fh, path)
             source = "file" if {"axis", "rate_hz"} & set(header.decode().split(",")) else None
-            for text in _line_blocks(fh, block):
+            # a block parsed in pieces (its text and temporaries a piece's), read back whole
+            sizes = [min(PIECE_LINES, block - a) for a in range(0, block, PIECE_LINES)]
+            pieces = 0  # of the block being read
+            for text in _line_blocks(fh, sizes):
                 frame = _labelled(text, header, spec, path, limits, capture)
                 if not spill.append(frame):
                     raise NotBlockwise("samples without a rate or an angle")
+                pieces += 1
+                if pieces == len(sizes):
+                    spill.join_last(pieces)
+                    pieces = 0
                 t = frame["t_ns"].to_numpy()
                 xyz = frame.select("u", "v", "w").to_numpy()
                 if last:
@@ -139,6 +150,7 @@ def open_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits
     except BaseException:
         spill.close()
         raise
+    spill.join_last(pieces)
     if n == 0:
         spill.close()
         raise NotBlockwise("no samples: the in-memory reader words the error")
