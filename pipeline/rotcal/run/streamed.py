@@ -34,7 +34,7 @@ from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
 from rotcal.timebase.blocks import repaired_stream
-from rotcal.timebase.check import TimebaseResult
+from rotcal.timebase.repair import TimebaseResult
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis

@@ -1,7 +1,6 @@
-"""The time base of a capture read block by block: ``check.check_capture``'s
-findings and repairs for a capture whose stamps are read in blocks, and the
-repair applied to its sample blocks in order (``repaired_stream``: ingest's
-``RawStream`` in, a ``StreamedCapture`` of repaired blocks out).
+"""The time base of a capture read block by block:
+``check.check_capture``'s findings and repairs for a capture whose stamps
+are read in blocks, and the repair applied to its sample blocks in order.
 
 ``StreamedTimebase`` is the outcome, with no sample-length array where the
 time base is streamed (``timebase.stream_grid``); ``held`` wraps the

@@ -243,6 +243,9 @@ def _raw_blocks(samples: Iterator[dict[str, np.ndarray]], tables: Iterator[Table
                     more = False
                 elif nxt.t_ns.size:
                     track = nxt if track is None else _joined(track, nxt)
+            if track is None:  # the table topic holds no message: no labels to join
+                yield frame
+                continue
             track = _window(track, int(t_ns[0]))
             yield frame.hstack(table_labels(t_ns, track).get_columns())  # the track: the window around the block
 
