@@ -7,6 +7,7 @@ in MCAP read block by block, exactly."""
 
 from __future__ import annotations
 
+import io
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.formats.csv import stream as csv_stream
 from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import COLUMNS, open_stream
+from rotcal.ingest.stream import COLUMNS, NotBlockwise, open_stream
 from rotcal.run import run_dataset
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 from rotcal.timebase import repair_timebase
@@ -122,3 +123,30 @@ def test_a_streamed_csv_run_is_the_streamed_mcap_run(tmp_path, monkeypatch):
                 for name in ("mcap", "csv"))
         assert_frame_equal(a, b)
     assert np.isfinite(pl.read_parquet(tmp_path / "out_csv" / "intrinsic.parquet")["value"].to_numpy()).all()
+
+
+@pytest.mark.parametrize("read_bytes", [512, 1 << 24])
+def test_a_long_line_is_not_held(tmp_path, csv_dataset, monkeypatch, read_bytes):
+    """A line past ``[limits] max_line_bytes`` after many good ones: refused
+    with the in-memory reader's one line, read 512 bytes at a time or more."""
+    monkeypatch.setattr(csv_stream, "READ_BYTES", read_bytes)
+    lines = (csv_dataset / "capture.csv").read_text().splitlines()
+    lines.insert(4000, "1" * 5000)
+    path = tmp_path / "capture.csv"
+    path.write_text("\n".join(lines) + "\n")
+    limits = Limits(max_line_bytes=1000)
+    with pytest.raises(InputError) as memory:
+        read_csv_capture(path, load_meta(None).csv_format, None, limits)
+    with pytest.raises(InputError) as streamed:
+        open_stream(path, load_meta(None), limits=limits, block_samples=1000)
+    assert str(streamed.value) == str(memory.value) and "longer than the limit" in str(memory.value)
+
+
+def test_the_block_reader_gives_up_a_long_line_at_the_limit(monkeypatch):
+    """A line of 10 MB read 512 bytes at a time: given up once past the
+    limit of 1000 bytes, not read whole."""
+    monkeypatch.setattr(csv_stream, "READ_BYTES", 512)
+    fh = io.BytesIO(b"1" * 10_000_000 + b"\n")
+    with pytest.raises(NotBlockwise):
+        list(csv_stream._line_blocks(fh, [100], 1000))
+    assert fh.tell() <= 1000 + 512

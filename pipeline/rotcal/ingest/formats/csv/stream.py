@@ -54,9 +54,11 @@ def message_counts(path: Path, limits: Limits) -> list[int]:
     return [max(lines + (last != b"\n") - 1, 0)]
 
 
-def _line_blocks(fh, sizes: list[int]) -> Iterator[bytes]:
+def _line_blocks(fh, sizes: list[int], max_line_bytes: int) -> Iterator[bytes]:
     """The file's lines after the header, ``sizes[0]`` lines, then ``sizes[1]``,
-    ... and round again (the last piece fewer), each ending in a newline."""
+    ... and round again (the last piece fewer), each ending in a newline; a
+    line past ``max_line_bytes`` is not held (``NotBlockwise``: the whole
+    reader refuses it in bounded memory)."""
     pending, k = b"", 0
     while True:
         chunk = fh.read(READ_BYTES)
@@ -73,6 +75,8 @@ def _line_blocks(fh, sizes: list[int]) -> Iterator[bytes]:
             k = (k + 1) % len(sizes)
             end += sizes[k]
         pending = pending[start:]
+        if len(pending) - pending.rfind(b"\n") - 1 > max_line_bytes:
+            raise NotBlockwise("a line longer than the limit")
 
 
 def _header(fh, path: Path) -> bytes:
@@ -126,7 +130,7 @@ def open_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits
             # a block parsed in pieces (its text and temporaries a piece's), read back whole
             sizes = [min(PIECE_LINES, block - a) for a in range(0, block, PIECE_LINES)]
             pieces = 0  # of the block being read
-            for text in _line_blocks(fh, sizes):
+            for text in _line_blocks(fh, sizes, limits.max_line_bytes):
                 frame = _labelled(text, header, spec, path, limits, capture)
                 if not spill.append(frame):
                     raise NotBlockwise("samples without a rate or an angle")
