@@ -16,7 +16,8 @@ from rotcal import __version__
 from rotcal.batch.manifest import Manifest
 from rotcal.config import Limits, RunConfig
 from rotcal.errors import InputError, LimitError, RotcalError, decoded
-from rotcal.ingest.files import CAPTURE_SUFFIXES, capture_files
+from rotcal.ingest.files import capture_files
+from rotcal.ingest.formats import is_capture
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.site import SITE_FILE, load_site
 
@@ -84,7 +85,7 @@ def discover(root: Path, out: Path) -> list[Found]:
                     stack.append(path)
             elif entry.is_symlink() and path.is_dir():
                 found.append(Found(rel, path))
-            elif path.suffix.lower() in CAPTURE_SUFFIXES:
+            elif is_capture(path):
                 found.append(Found(rel, path))
     return sorted(found, key=lambda f: f.dataset_path)
 
