@@ -64,15 +64,14 @@ def test_six_pose_session_and_its_summaries_give_the_same_parameters(cli, tmp_pa
         np.testing.assert_allclose(summarised["value"], from_samples["value"], rtol=1e-9, atol=0)
     # with the channels' correlations every uncertainty is the samples' too
     np.testing.assert_allclose(from_correlated["std_uncertainty"], from_samples["std_uncertainty"], rtol=1e-9)
-    # without them, the sensitivities' and offsets' still are; the angles' miss the channels'
-    # covariance (independent noise: a sample correlation of ~1/sqrt(n))
-    same_u = ~from_samples["parameter"].str.starts_with("phi")
-    np.testing.assert_allclose(from_summaries["std_uncertainty"].filter(same_u),
-                               from_samples["std_uncertainty"].filter(same_u), rtol=1e-9)
+    # without them nearly: |a| of a face mixes the channels slightly, whose covariance (independent
+    # noise: a sample correlation of ~1/sqrt(n)) is then missed
     np.testing.assert_allclose(from_summaries["std_uncertainty"], from_samples["std_uncertainty"], rtol=0.01)
     # and both near the simulated truth (independent of either path)
     truth = dict(zip(["s_u", "s_v", "s_w", "phi_uv", "phi_vw", "phi_wu", "O_u", "O_v", "O_w"], sim.truth))
-    for name, value, u in from_summaries.filter(pl.col("model") == "baseline").select("parameter", "value", "std_uncertainty").iter_rows():
+    # six faces: the orthogonal model (its angles fixed), sensitivities and offsets against the truth
+    six = from_summaries.filter(pl.col("model") == "orthogonal", ~pl.col("parameter").str.starts_with("phi"))
+    for name, value, u in six.select("parameter", "value", "std_uncertainty").iter_rows():
         assert abs(value - truth[name]) < 5 * u, (name, value, truth[name], u)
 
 

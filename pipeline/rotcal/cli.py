@@ -92,7 +92,7 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
         unit = escape(outcome.output_unit)  # dataset.toml's text, printed inside the table's rich markup
-        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, baseline model, value ± U (95 %)"))
+        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, {outcome.static.model if outcome.static else 'baseline'} model, value ± U (95 %)"))
         if outcome.diagnosis is not None:
             _print_diagnosis(outcome.diagnosis, unit)
         if outcome.static is not None:

@@ -208,18 +208,22 @@ def direction_spread(directions: np.ndarray, free: np.ndarray = FULL) -> float:
 
 
 def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                     free: np.ndarray = FULL) -> OrientationFreeFit | Failure:
+                     free: np.ndarray = FULL, misalignment_u: float = 0.0) -> OrientationFreeFit | Failure:
     """The nine intrinsic parameters from static poses of unknown orientation
-    (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees).
+    (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees;
+    ``misalignment_u`` > 0: the standard uncertainty of the cosines of the
+    angles it fixes, a Type B input carried into the six, ``combine.placement``).
 
     ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
     ``pose_table``). Returns a ``Failure`` (rate 0) with the reason when the poses
     are too few or too alike to identify the model's parameters.
     """
     n, k = poses.height, len(free)
-    if n <= k:
-        return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {k + 1} (its {k} "
-                           "intrinsic parameters and one residual degree of freedom)")
+    # the orthogonal model may be exactly determined (the six faces): its angles' prior and the pose noise give its u
+    needed = k if len(free) < len(FULL) else k + 1
+    if n < needed:
+        return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {needed} (its {k} intrinsic "
+                            f"parameters{' and one residual degree of freedom' if needed > k else ''})")
     m, cov = pose_arrays(poses)
     try:
         params = _ellipsoid_start(m, g_local, free)
@@ -246,8 +250,9 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None], free)
     if spread < MIN_SPREAD:
         return Failure(0.0, TOO_ALIKE.format(k=k, detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
-    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof)
+    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof) if dof else float("nan")
     weight = 1.0 / (noise_var + tau2)
+    full_jac = jac
     jac = jac[:, free]
     params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]))
     gain = params_cov @ (jac * weight[:, None]).T  # (k, n): d params / d residual
@@ -259,8 +264,15 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     lift = lift[:, free]
     gain = lift @ gain
     # the pose means' noise is known from many samples each; the excess scatter is estimated from the dof residuals
-    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T),
-             (whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T)]
+    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T)]
+    if dof:  # an exactly determined fit has no residual to estimate the scatter from (its u rests on the noise and priors)
+        parts.append((whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T))
+    fixed = np.setdiff1d(FULL[:6], free)
+    if misalignment_u > 0 and fixed.size:
+        # the angles the model fixes at 90 degrees, a Type B input (GUM 4.3): L_ij = L_ii cos(phi) within its prior
+        prior = misalignment_u * np.abs(np.diag(L))[TRIL[0][fixed]]
+        sensitivity = gain @ full_jac[:, fixed] * prior
+        parts.append((whole_fit_input("misalignment prior", float("inf")), sensitivity @ sensitivity.T))
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
-    result = IntrinsicResult.from_state(0.0, state, lift @ params_cov @ lift.T, g_local, g_uncertainty, parts)
+    result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)

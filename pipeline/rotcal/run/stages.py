@@ -175,7 +175,7 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     g, u = ds.meta.g_local, ds.meta.g_local_uncertainty
     if not seg.table:
         summaries = None if ds.summaries is None else summary_poses(ds.summaries)
-        static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries)
+        static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries, ds.meta.placement)
         return static if isinstance(static, Failure) else Reductions(None, (), static)
     labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name, seg.labelled_rates)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
