@@ -93,8 +93,8 @@ def test_jig_reference_summaries_match_their_samples(cli, tmp_path):
 
 
 def test_one_row_per_pose_as_samples_is_one_line(cli, tmp_path):
-    """A file of pose means in the sample columns used to end in a divide by
-    zero and LinAlgError; it is refused with one line naming the way out."""
+    """A file of six pose means in the sample columns used to end in a divide
+    by zero and LinAlgError; it is refused with one line naming the way out."""
     sim = session(4)
     means = summary_rows(sim)
     frame = pl.DataFrame({"t": np.arange(6) * 1.0, "u": means["u_mean"], "v": means["v_mean"], "w": means["w_mean"],
@@ -106,14 +106,15 @@ def test_one_row_per_pose_as_samples_is_one_line(cli, tmp_path):
     status, _, err = cli("run", directory, "--out", tmp_path / "o")
     lines = err.strip().splitlines()
     assert status == 3 and len(lines) == 1 and "Traceback" not in err, err
-    assert "6 of the 6 labelled poses have one sample each" in lines[0] and "pose summaries" in lines[0]
+    # one row per pose: six pose means without scatter, which determine the six parameters with no residual left
+    assert "6 pose means without scatter determine the 6 parameters exactly" in lines[0] and "pose summaries" in lines[0]
 
 
 @pytest.mark.parametrize("change, needle", [
     (lambda f: f.with_columns(n=pl.lit(1)), "column 'u_n', row 1: 1 is not a sample count of 2 or more"),
     (lambda f: f.with_columns(v_std=pl.lit(0.0)), "column 'v_std', row 1: a standard deviation of 0"),
     (lambda f: f.drop("w_std"), "pose summaries need the columns 'w_std'"),
-    (lambda f: f.with_columns(part=pl.lit("tilted")), "row 1: neither a pose label"),
+    (lambda f: f.with_columns(part=pl.Series(["tilted", *LABELS[1:]])), "row 1: neither a pose label"),
     (lambda f: f.with_columns(u_mean=pl.lit(None, pl.Float64)), "column 'u_mean', row 1 is empty"),
     (lambda f: f.with_columns(corr_uv=pl.lit(1.5)), "column 'corr_uv', row 1: 1.5 is not a correlation"),
 ], ids=["one sample", "no scatter", "missing column", "no pose", "empty mean", "correlation beyond 1"])

@@ -225,6 +225,10 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {needed} (its {k} intrinsic "
                             f"parameters{' and one residual degree of freedom' if needed > k else ''})")
     m, cov = pose_arrays(poses)
+    if n == k and not np.any(cov):
+        return Failure(0.0, f"{n} pose means without scatter determine the {k} parameters exactly, leaving no residual to "
+                            "estimate their uncertainty from: give each pose's standard deviation and count (pose "
+                            "summaries, docs/inputs.md), or more poses")
     try:
         params = _ellipsoid_start(m, g_local, free)
     except np.linalg.LinAlgError:

@@ -38,7 +38,10 @@ from rotcal.combine.poses import (
     labelled_poses,
     reference_fit,
     references,
+    sample_poses,
+    scatterless_poses,
     still_poses,
+    without_scatter,
 )
 from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
 from rotcal.model.physics import AXES, CHANNELS
@@ -136,9 +139,11 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     they have one. ``placement``: the labels' tolerance and the datasheet's
     cross-axis bound (the prior of angles the poses do not determine)."""
     if positions is None:
-        positions = labelled_poses(samples, segments)
+        positions = sample_poses(samples) if placement.pose_means else labelled_poses(samples, segments)
     single = positions.filter(pl.col("n_samples") < 2)
-    if single.height:
+    if single.height and single.height == positions.height:  # one row per pose: means without scatter
+        positions = scatterless_poses(positions)
+    elif single.height:
         return Failure(0.0, f"{single.height} of the {positions.height} labelled poses have one sample each: a pose's "
                             "scatter needs two or more (one row per pose? give its mean, standard deviation and count "
                             "as pose summaries, docs/inputs.md)")
@@ -146,6 +151,17 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         positions = still_poses(samples)
         if positions.height == 0:
             return Failure(0.0, "no still intervals found")
+    reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
+    if isinstance(reduction, Failure) or not without_scatter(positions):
+        return reduction
+    return replace(reduction, notes=reduction.notes + (
+        f"{positions.height} pose means without scatter: no pose noise is known, so the scatter is taken from the fit's "
+        "residuals (its residual degrees of freedom, n - p, set the coverage factor)",))
+
+
+def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertainty: float,
+             placement: Placement) -> StaticReduction | Failure:
+    """``reduce_static`` of a pose table."""
     source = positions["source"][0]
     if source == "jig":
         return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty), "reference",

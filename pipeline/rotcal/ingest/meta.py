@@ -70,6 +70,7 @@ class DatasetMeta:
     full_scale: float | None = None
     cross_axis: float | None = None
     label_tolerance_deg: float = 4.0
+    pose_means: bool = False
     g_local: float = STANDARD_GRAVITY
     g_local_uncertainty: float = STANDARD_GRAVITY_UNCERTAINTY
     g_local_source: str = "standard gravity (default)"
@@ -87,7 +88,7 @@ class DatasetMeta:
     @property
     def placement(self) -> Placement:
         """What the static reduction takes from ``[device]`` and ``[format]`` about hand-placed poses."""
-        return Placement(self.cross_axis, self.label_tolerance_deg)
+        return Placement(self.cross_axis, self.label_tolerance_deg, self.pose_means)
 
 
 def _parse(text: str, path: Path) -> dict:
@@ -197,6 +198,7 @@ def load_meta(path: Path | None) -> DatasetMeta:
         full_scale=device.get("full_scale"),
         cross_axis=device.get("cross_axis"),
         label_tolerance_deg=float(fmt.get("label_tolerance_deg", 4.0)),
+        pose_means=bool(fmt.get("pose_means", False)),
         g_local=float(site.get("g_local", STANDARD_GRAVITY)),
         g_local_uncertainty=g_u,
         g_local_source=f"{path.name} [site]" if "g_local" in site and path is not None else DatasetMeta.g_local_source,

@@ -1,5 +1,5 @@
 """What the user states about hand-placed poses (``[device] cross_axis``,
-``[format] label_tolerance_deg`` of dataset.toml), read by the static
+``[format] label_tolerance_deg`` and ``pose_means`` of dataset.toml), read by the static
 reduction (``combine.placement``). Imports nothing heavy: ``ingest.meta``
 builds it when reading a dataset's metadata."""
 
@@ -17,10 +17,12 @@ DEFAULT_TOLERANCE_DEG = 4.0  # a hand places a face within about 3 degrees (docs
 class Placement:
     """What the user states about the poses: the datasheet's cross-axis
     sensitivity bound (fraction; None: not stated, ``DEFAULT_CROSS_AXIS``
-    taken) and the tolerance of pose labels (degrees)."""
+    taken), the tolerance of pose labels (degrees) and whether each row of
+    the capture is a pose mean."""
 
     cross_axis: float | None = None
     tolerance_deg: float = DEFAULT_TOLERANCE_DEG
+    pose_means: bool = False  # each row of the capture is one pose's mean (``[format] pose_means``)
 
     @property
     def misalignment_u(self) -> float:
