@@ -115,11 +115,14 @@ def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFre
                   float("inf") if full.excess_std == 0.0 else float(full.dof))
 
 
-def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float, misalignment_u: float = 0.0) -> ModelChoice:
+def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float, misalignment_u: float = 0.0,
+                 stated_u: float = 0.0) -> ModelChoice:
     """Both models fitted to ``poses`` and the one the evidence chooses; where
     the poses do not determine the nine parameters, the orthogonal model's
-    angles carry the prior ``misalignment_u`` (``combine.placement``)."""
-    full = orientation_free(poses, g_local, g_uncertainty, FULL)
+    angles carry the prior ``misalignment_u`` (``combine.placement``); the
+    nine parameters' angles the datasheet's prior ``stated_u`` where the
+    user states one."""
+    full = orientation_free(poses, g_local, g_uncertainty, FULL, stated_u)
     orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL,
                                   misalignment_u if isinstance(full, Failure) else 0.0)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):

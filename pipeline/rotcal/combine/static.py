@@ -168,7 +168,7 @@ def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertaint
                        {"baseline": reference_fit, "orthogonal": orthogonal_reference_fit}, g_local, g_uncertainty)
     # the raw means' directions: gravity's when the offsets are small beside g (the refusal's reason only)
     cone = gravity_cone(pose_arrays(positions)[0])
-    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u)
+    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u)
     if cone is not None and isinstance(choice.full, Failure) and isinstance(choice.orthogonal, Failure):
         return _chosen(positions, dataset, Failure(0.0, cone), "orientation-free", {}, g_local, g_uncertainty)
     reduction = _chosen(positions, dataset, choice, "orientation-free",

@@ -31,6 +31,11 @@ class Placement:
         return (DEFAULT_CROSS_AXIS if self.cross_axis is None else self.cross_axis) / math.sqrt(3.0)
 
     @property
+    def stated_u(self) -> float:
+        """``misalignment_u`` where ``[device] cross_axis`` states the bound, else 0 (no prior on fitted angles)."""
+        return self.misalignment_u if self.cross_axis is not None else 0.0
+
+    @property
     def prior_note(self) -> str:
         source = "[device] cross_axis" if self.cross_axis is not None else "not stated in [device] cross_axis, default"
         bound = DEFAULT_CROSS_AXIS if self.cross_axis is None else self.cross_axis
