@@ -27,8 +27,10 @@ recording that carries nothing but ``t, u, v, w``.
    a move faster than one sample (the output jumps between two consecutive
    samples) has no samples to stray from that plane and joins its dwells on
    their means alone. A time gap between two dwells (the logger paused; the
-   move, perhaps a hand's, unseen) joins nothing. Other dwells are single
-   poses of unknown orientation.
+   move, perhaps a hand's, unseen) joins nothing. A chain is a table's step
+   sequence only with the evidence of a table (``table_steps``): its
+   directions on one great circle, turned by equal steps. Other dwells are
+   single poses of unknown orientation.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class BlindConfig:
     cusum_kappa: float = 2.5           # edge detection: CUSUM reference (z is 1 on average under the model)
     plane_tolerance_deg: float = 2.0   # a step move stays this close to its plane
     min_steps: int = 3                 # dwells in a step sequence
+    step_tolerance_deg: float = 1.0    # a table's steps are equal to this angle (a hand's are not)
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,9 +258,27 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
         if members.size < config.min_steps:
             continue
         plane_normal = np.linalg.svd(a[members], full_matrices=False)[2][-1]
+        if not table_steps(a[members], plane_normal, config):
+            continue  # poses turned about one axis by hand: single poses of unknown orientation
         axis, off = axis_from_normal(plane_normal)
         out.append(StepSequence(tuple(int(m) for m in members), axis, off))
     return tuple(out)
+
+
+def table_steps(outputs: np.ndarray, normal: np.ndarray, config: BlindConfig) -> bool:
+    """Whether dwells' offset-free outputs (k, 3) are the steps a table
+    makes: their directions on one great circle about ``normal`` (each
+    within ``plane_tolerance_deg`` of its plane) and turned by equal steps
+    (each within ``step_tolerance_deg`` of their median; three steps at
+    least, two being equal by chance too often). A hand turning a
+    DUT about one axis leaves both: irregular angles and a few degrees of
+    wobble."""
+    unit = outputs / np.linalg.norm(outputs, axis=1)[:, None]
+    if np.degrees(np.arcsin(np.clip(np.abs(unit @ normal), 0.0, 1.0))).max() > config.plane_tolerance_deg:
+        return False
+    steps = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", unit[:-1], unit[1:]), -1.0, 1.0)))
+    # two equal steps happen by chance; three or more are a table's program
+    return steps.size >= 3 and bool(np.abs(steps - np.median(steps)).max() <= config.step_tolerance_deg)
 
 
 def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindConfig()) -> BlindSegmentation:
