@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 from scipy import stats
+from test_corpus import SUAREZ, assert_within, suarez_parameters
 
 from rotcal.combine.heldout import compare, press
 from rotcal.combine.posemodels import choose_model
 from rotcal.run import run_dataset
 
-from test_corpus import SUAREZ, assert_within, suarez_parameters
 from testdata import REPO
 
 
