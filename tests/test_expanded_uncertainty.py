@@ -9,8 +9,6 @@ import polars as pl
 import pytest
 from scipy import stats
 
-from testdata import REAL, REPO
-
 
 @pytest.mark.real
 def test_few_poses_give_k_from_the_t_distribution(cli, tmp_path):
