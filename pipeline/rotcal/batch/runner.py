@@ -210,7 +210,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             if result.status == "ok" and result.rotcal_version != __version__:
                 result = replace(result, status="error", reason=f"the worker runs rotcal {result.rotcal_version}, this run {__version__}")
             output = None
-            if result.status == "ok":
+            if result.status == "ok" and work is not None:  # a refused plan settles with no work folder
                 output = layout.publish(plan.dataset_id, plan.fingerprint, work)
             else:
                 layout.withdraw(plan.dataset_id)
@@ -236,7 +236,8 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
                 settle(plan, result, layout.work / f"{plan.dataset_id}.{run_id}")
     records = manifest.records()
     combined = layout.publish_combined({r.dataset_id: r.output for r in records.values()
-                                        if r.status == "ok" and layout.published(r.dataset_id) == r.output})
+                                        if r.status == "ok" and r.output is not None
+                                        and layout.published(r.dataset_id) == r.output})
     layout.sweep()
     seen = {p.found.dataset_path for p in plans}
     problems = [{"dataset_path": p.found.dataset_path, "status": r.status, "reason": r.reason}

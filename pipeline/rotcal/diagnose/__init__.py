@@ -36,7 +36,7 @@ from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, 
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
-from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
+from rotcal.diagnose.reconstructed import with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
     Unexplained,
@@ -46,7 +46,7 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
-from rotcal.model.effects import LimitEffect, listed
+from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult, whole_fit_input
@@ -288,7 +288,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     absorbed: frozenset[str] = frozenset()
     if phases is not None and phases.height:
         samples, segments = with_reconstructed_angles(samples, segments, phases)
-        absorbed = ABSORBED_BY_OWN_PHASE
+        absorbed = frozenset(e.name for e in catalogue() if e.absorbed_by_own_phase)
     built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local, config.max_samples)
     if built is None:
         return None

@@ -45,7 +45,7 @@ from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.scans import _fmt
 from rotcal.diagnose.static_model import PoseModel, pose_model
 from rotcal.fit.lsq import nonlinear
-from rotcal.model.effects import listed
+from rotcal.model.effects import effect_named, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
@@ -214,9 +214,10 @@ def _against(model: PoseModel, theta: np.ndarray, cand: Candidate) -> tuple[str,
     """What an effect's residuals follow, per pose: the channel's output in g
     (the nonlinearities), the time (drift) or the temperature (thermal)."""
     r = "uvw".index(cand.scope)
-    if cand.effect == "offset_drift" and model.elapsed_s is not None:
+    at_rest = effect_named(cand.effect).at_rest
+    if at_rest == "time" and model.elapsed_s is not None:
         return "time since the first sample (s)", model.elapsed_s, r
-    if cand.effect == "thermal" and model.excursion_k is not None:
+    if at_rest == "temperature" and model.excursion_k is not None:
         return "temperature - T_ref (K)", model.excursion_k, r
     state, _ = model.state(theta)
     rows = state[:9].reshape(3, 3)
@@ -249,9 +250,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
         row = {"dataset": dataset, "effect": effect.name, "rms_before": rms_final, "rms_after": rms_final}
         if not granules:
             rows.append(row | {"detected": False, "where": "not testable here", "delta_bic": 0.0, "p_value": 1.0,
-                               "evidence": "static poses do not show it (it needs rotation, a table angle or "
-                                           "time stamps)" if effect.name != "clipping" else
-                                           "not tested on static poses"})
+                               "evidence": effect.not_at_rest})
             continue
         found = tuple(c for c in active if c.effect == effect.name)
         if not found:
