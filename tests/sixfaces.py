@@ -85,10 +85,10 @@ def write_six_faces(path: Path, session: SixFaces, labelled: bool, extra_toml: s
 
 def pose_tables(session: SixFaces) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The session's rests as the static reduction's pose tables
-    (``combine.multiposition.pose_table``): labelled (``source`` label, the
+    (``fit.means.pose_table``): labelled (``source`` label, the
     labels' directions as references) and unlabelled (``source``
     stillness), for the reduction without the run around it."""
-    from rotcal.combine.multiposition import pose_table
+    from rotcal.fit.means import pose_table
 
     rows = session.frame.with_row_index("i").filter(pl.col("face").is_not_null())
     bounds = rows.group_by("face", maintain_order=True).agg(pl.col("i").min().alias("first"), pl.col("i").max().alias("last"))

@@ -41,3 +41,22 @@ def test_a_tables_steps_keep_the_table_route():
     step sequence of all twelve dwells about the DUT's w axis."""
     sequences = _sequences(_about_z(np.arange(12) * 30.0, 0.0, 0), 0)
     assert len(sequences) == 1 and len(sequences[0].dwells) == 12 and sequences[0].axis == "z"
+
+
+def test_the_route_and_its_evidence_are_printed(cli, tmp_path):
+    """Two sessions' rests stepped about one axis by hand, through ``rotcal
+    run``: the static route, its note naming the chains about one axis that
+    lacked a table's steps."""
+    from posesim import G_LOCAL, samples_frame
+
+    rng = np.random.default_rng(200)
+    sim = hand_placed(0, directions=_about_z(np.cumsum(rng.uniform(15, 50, 14)), 3.0, 0), samples=300, move_samples=0)
+    data = tmp_path / "data"
+    data.mkdir()
+    samples_frame(sim).write_csv(data / "s.csv")
+    (data / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
+    status, out, err = cli("run", data, "--out", tmp_path / "out")
+    printed = " ".join((out + err).split())
+    assert status == 0, err
+    assert "route: static poses, the signals showing no table segments (0 constant rotations, 0 static step sequences, " in printed
+    assert "without a table's steps" in printed

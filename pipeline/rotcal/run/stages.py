@@ -123,8 +123,15 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + (inferred.warnings if table else ()),
-                     ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None},
+                     ds.notes + (inferred.notes if table else _static_route(inferred.route)),
+                     sums={f.segment: f.sums for f in fitted if f.sums is not None},
                      clock_factor=inferred.clock_factor if table else 1.0)
+
+
+def _static_route(evidence: str) -> tuple[str, ...]:
+    """The static route's note: what the signals showed instead of a table's segments."""
+    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval enters the "
+            "static fit",) if evidence else ()
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:

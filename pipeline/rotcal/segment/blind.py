@@ -93,6 +93,7 @@ class BlindSegmentation:
     sequences: tuple[StepSequence, ...]
     noise_sd: np.ndarray
     offset: np.ndarray
+    hand_chains: int = 0  # chains of dwells about one axis without a table's evidence (``table_steps``): poses
 
 
 def axis_from_normal(normal: np.ndarray) -> tuple[str, float]:
@@ -218,14 +219,14 @@ def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.n
 
 
 def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
-               recorded: np.ndarray, config: BlindConfig) -> tuple[StepSequence, ...]:
+               recorded: np.ndarray, config: BlindConfig) -> tuple[tuple[StepSequence, ...], int]:
     """Step sequences: chains of dwells linked by in-plane moves about one
     axis (``move`` marks the samples that may belong to a move: not those of
     a constant rotation; ``recorded`` the consecutive dwells with no time gap
     between them: the move, if any, is in the samples)."""
     k = len(dwells)
     if k < config.min_steps:
-        return ()
+        return (), 0
     a = means - offset
     normal = np.cross(a[:-1], a[1:])
     size = np.linalg.norm(normal, axis=1)
@@ -252,17 +253,18 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
         for d in (link, link + 1):
             if owner[d] < 0:
                 owner[d] = chain[link]
-    out = []
+    out, hand = [], 0
     for c in np.unique(owner[owner >= 0]):
         members = np.flatnonzero(owner == c)
         if members.size < config.min_steps:
             continue
         plane_normal = np.linalg.svd(a[members], full_matrices=False)[2][-1]
         if not table_steps(a[members], plane_normal, config):
-            continue  # poses turned about one axis by hand: single poses of unknown orientation
+            hand += 1  # poses turned about one axis by hand: single poses of unknown orientation
+            continue
         axis, off = axis_from_normal(plane_normal)
         out.append(StepSequence(tuple(int(m) for m in members), axis, off))
-    return tuple(out)
+    return tuple(out), hand
 
 
 def table_steps(outputs: np.ndarray, normal: np.ndarray, config: BlindConfig) -> bool:
@@ -359,8 +361,8 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     # a time gap (as the stillness detector has it) between one dwell's last sample and the next one's first
     gaps_before = np.r_[0, np.cumsum(np.diff(t_ns) > config.stillness.gap_factor * dt_ns)]
     recorded = gaps_before[dwells[1:, 0]] == gaps_before[dwells[:-1, 1] - 1]
-    sequences = _sequences(y, dwells, means, offset, moving, recorded, config)
-    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset)
+    sequences, hand = _sequences(y, dwells, means, offset, moving, recorded, config)
+    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset, hand)
 
 
 def noise_sd_of(y: np.ndarray, dwells: np.ndarray) -> np.ndarray:
