@@ -7,6 +7,7 @@ while turning) take the pose route."""
 from __future__ import annotations
 
 import numpy as np
+import polars as pl
 
 from rotcal.model.physics import rotation_matrix
 from rotcal.segment.blind import segment_blind
@@ -60,3 +61,19 @@ def test_the_route_and_its_evidence_are_printed(cli, tmp_path):
     assert status == 0, err
     assert "route: static poses, the signals showing no table segments (0 constant rotations, 0 static step sequences, " in printed
     assert "without a table's steps" in printed
+
+
+def test_dwells_no_result_uses_are_counted():
+    """A table recording whose step sequences give the static result: the
+    dwells outside every sequence (segments of one pose) are not used, and
+    a warning says how many (dwells.parquet lists them)."""
+    from rotcal.combine.unreferenced import reduce_dwells
+    from rotcal.tables import schema
+
+    dwells = schema("dwells").empty().vstack(pl.DataFrame({"segment": [0, 0, 0, 4, 5]}).with_columns(
+        *(pl.lit(None, dtype).alias(name) for name, dtype in schema("dwells").polars_schema.items() if name != "segment")
+    ).select(schema("dwells").polars_schema.keys()).cast(schema("dwells").polars_schema))
+    used = reduce_dwells(dwells, False, 9.81, 0.0, frozenset({4, 5}))
+    assert used.warnings == ("2 of the 5 dwells found are single poses outside every step sequence and are not used: the "
+                             "step sequences give the static result (dwells.parquet lists every dwell and its segment)",)
+    assert reduce_dwells(dwells, False, 9.81, 0.0, frozenset()).warnings == ()
