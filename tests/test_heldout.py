@@ -57,9 +57,28 @@ def test_the_corpus_mpu6050_recommends_what_predicts(tmp_path):
     outcome = run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path, REPO / "configs" / "suarez_mpu6050.toml")
     intrinsic = pl.read_parquet(tmp_path / "intrinsic.parquet")
     assert outcome.recommended.model == "orthogonal" and "left out one pose at a time" in outcome.recommended.reason
+    assert "left out one pose at a time, the nine-parameter model does not predict" in (tmp_path / "calibration.json").read_text()
     recommended = intrinsic.filter("recommended")
     assert_within(recommended, suarez_parameters(), names=("s_u", "s_v", "s_w", "O_u", "O_v", "O_w"))
     phi_uv = intrinsic.filter(pl.col("model") == "baseline", pl.col("parameter") == "phi_uv")
     assert phi_uv["expanded_uncertainty"][0] < 3.0
     choice = choose_model(outcome.static.positions, outcome.results[0].g_local, 0.0, 0.0115, 0.02 / np.sqrt(3))
     assert choice.heldout is not None and choice.heldout.simple <= choice.heldout.rich
+
+
+def test_jig_positions_keep_the_twelve_parameters_where_they_predict():
+    """16 jig positions of random orientation, phi_uv = 90.5 degrees: the
+    12-parameter model is chosen, the F test and the held-out comparison
+    both in its reason; the same positions of an orthogonal DUT keep the
+    orthogonal model."""
+    from rotcal.combine.refmodels import choose_reference_model
+
+    from posesim import G_LOCAL, hand_placed, reference_pose_table
+
+    d = np.random.default_rng(1).standard_normal((16, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    skewed = choose_reference_model(reference_pose_table(hand_placed(3, directions=d, angles_deg=(90.5, 90, 90)), d), G_LOCAL, 0.0)
+    assert skewed.chosen == "baseline" and skewed.heldout is not None and skewed.heldout.better
+    assert "left out one pose at a time, the 12-parameter model predicts the held-out poses better" in skewed.reason
+    square = choose_reference_model(reference_pose_table(hand_placed(3, directions=d, angles_deg=(90, 90, 90)), d), G_LOCAL, 0.0)
+    assert square.chosen == "orthogonal"
