@@ -35,15 +35,19 @@ def test_press_is_the_explicit_leave_one_out_refit():
         np.testing.assert_allclose(press(y - design @ coef, design, size), explicit, rtol=1e-9)
 
 
-def test_the_paired_test_is_students():
-    """The one-sided p-value is scipy's paired t test's (alternative: the
-    richer model's errors smaller)."""
+def test_the_paired_test_is_students_on_the_log_ratios():
+    """The one-sided p-value is scipy's paired t test's on ln(1 + error);
+    one pose predicted far better does not swamp fifteen predicted better,
+    nor does one predicted far worse hide fifteen predicted worse."""
     rng = np.random.default_rng(4)
     simple, rich = rng.gamma(2.0, size=15) + 0.3, rng.gamma(2.0, size=15)
     held = compare(simple, rich)
-    expected = stats.ttest_rel(simple, rich, alternative="greater")
-    assert held.dof == 14
+    expected = stats.ttest_rel(np.log1p(simple), np.log1p(rich), alternative="greater")
+    assert held.dof == 14 and held.wins == int(np.sum(simple > rich))
     np.testing.assert_allclose([held.t, held.p_value], [expected.statistic, expected.pvalue], rtol=1e-9)
+    better = np.r_[np.full(15, 2.0), 1000.0] + rng.uniform(0, 0.1, 16)
+    assert compare(better, np.ones(16)).better
+    assert not compare(np.ones(16), better).better
 
 
 def test_the_corpus_mpu6050_recommends_what_predicts(tmp_path):
