@@ -104,6 +104,7 @@ class BatchSummary:
     combined: str
     wall_s: float
     notes: tuple[str, ...]
+    findings: tuple[dict, ...] = ()  # this run's datasets whose diagnosis found something: dataset_path, effects
 
     @property
     def exit_status(self) -> ExitCode:
@@ -114,13 +115,17 @@ class BatchSummary:
         return ExitCode.QUARANTINED if self.quarantined or self.still_quarantined else ExitCode.OK
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "exit_status": int(self.exit_status)}
+        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "findings": list(self.findings),
+                "exit_status": int(self.exit_status)}
 
     def text(self) -> str:
         lines = [f"{self.discovered} datasets: {self.processed} processed ({self.ok} ok, {self.quarantined} quarantined, "
                  f"{self.errors} errors), {self.unchanged} unchanged ({self.still_quarantined} still quarantined); "
                  f"{self.wall_s:.1f} s"]
         lines += [f"{p['status']}: {printable(p['dataset_path'])}: {p['reason']}" for p in self.problems]
+        if self.findings:  # the datasets to look at: their report.md says what was found and modelled
+            lines.append(f"{len(self.findings)} dataset{'s' if len(self.findings) > 1 else ''} with findings (see each one's report.md):")
+            lines += [f"finding: {printable(f['dataset_path'])}: {', '.join(f['effects'])}" for f in self.findings]
         lines.append(f"combined dataset: {self.combined}")
         return "\n".join(lines)
 
@@ -252,6 +257,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
         still_quarantined=sum(previous[p.found.dataset_path].status == "quarantined" for p in unchanged),
         not_found=sum(key not in seen for key in records), problems=tuple(problems), combined=str(combined),
         wall_s=round(time.perf_counter() - clock, 3), notes=notes,
+        findings=tuple({"dataset_path": p.found.dataset_path, "effects": list(r.findings)} for p, r in outcomes if r.findings),
     )
     manifest.finish_run(run_id, now(), json.dumps(summary.as_dict()))
     return summary

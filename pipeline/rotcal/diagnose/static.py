@@ -42,7 +42,7 @@ from rotcal.combine.heldout import HeldOut, compare, press
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import report_parameters
 from rotcal.diagnose.fitting import chi2_sf
-from rotcal.diagnose.scans import _fmt
+from rotcal.diagnose.scans import counted, p_is
 from rotcal.diagnose.static_model import PoseModel, pose_model
 from rotcal.fit.lsq import nonlinear
 from rotcal.model.effects import effect_named, listed
@@ -264,7 +264,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
                 "rms_after": _rms(model, lin.solve(active + granules)[0]),
                 "evidence": f"not detected: modelling it on every channel lowers chi-square by {joint.chi2:.1f} "
                             f"(BIC change {joint.delta_bic:+.1f}); the strongest single test ({singles[0][1]}) has "
-                            f"p = {_fmt(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
+                            f"{p_is(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
                             f"level (50 % power): {_limits_text(limit)}"})
             continue
         reduced = tuple(c for c in active if c.effect != effect.name)
@@ -282,7 +282,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
             "detected": True, "where": "; ".join(f"channel {c.scope}" for c in found) + f" ({where_poses})",
             "rms_before": _rms(model, lin.solve(reduced)[0]), "delta_bic": test.delta_bic, "p_value": test.p_value,
             "evidence": f"the static poses' residuals follow it: modelling it lowers chi-square by {test.chi2:.0f} on "
-                        f"{sum(len(c.names) for c in found)} parameters (p = {_fmt(test.p_value)}, BIC change "
+                        f"{counted(sum(len(c.names) for c in found), 'parameter')} ({p_is(test.p_value)}, BIC change "
                         f"{test.delta_bic:+.0f}); {text}"})
     return rows, params, before, against, limits
 

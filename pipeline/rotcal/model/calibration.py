@@ -173,6 +173,13 @@ class RateCalibration:
     def O_vector(self) -> np.ndarray:
         return np.array([q.value for q in self.O])
 
+    def parameter(self, name: str) -> Quantity:
+        """The intrinsic parameter ``name`` (s_u, ..., phi_uv, ..., O_u, ...)."""
+        for q in self.parameters:
+            if q.name == name:
+                return q
+        raise KeyError(f"no parameter {name!r}: {', '.join(q.name for q in self.parameters)}")
+
     def to_dict(self) -> dict[str, Any]:
         return {"rate_hz": self.rate_hz, "model": self.model, "reason": self.reason, "frame": self.frame,
                 "parameters": [q.to_dict() for q in self.parameters],

@@ -100,7 +100,8 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
     found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells), blind.hand_chains]
     if not len(blind.dwells):
         return segment
-    spread = np.array([y[s:e].std(axis=0, ddof=1) for s, e in blind.dwells])
+    # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
+    spread = np.array([y[s:e].std(axis=0, ddof=1) if e - s > 1 else np.full(y.shape[1], np.nan) for s, e in blind.dwells])
     chi2 = (spread**2 / blind.noise_sd**2).mean(axis=1)
     group = np.full(len(blind.dwells), -1)
     for q in blind.sequences:
