@@ -28,6 +28,7 @@ def test_six_faces_by_hand_are_reduced(cli, tmp_path, labelled):
     assert status == 0, err
     printed = " ".join((out + err).split())
     assert "orthogonal model" in printed and "cross-axis bound 2 %" in printed and "exactly determined" in printed
+    assert "baseline model's parameters are beside them" not in printed  # six poses give no baseline rows
     intrinsic = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet").filter("recommended")
     assert intrinsic["model"].unique().to_list() == ["orthogonal"]
     value, expanded = intrinsic["value"].to_numpy(), intrinsic["expanded_uncertainty"].to_numpy()
