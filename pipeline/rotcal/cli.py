@@ -136,7 +136,8 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         out.print(summary_table(chosen.results, unit, f"{outcome.dataset}: intrinsic parameters of the recommended model "
                                                       f"({chosen.model}), value ± U (95 %)"))
         out.print(recommendation_line(chosen), highlight=False, markup=False)
-        if chosen.model != BASELINE:
+        # a static recording whose poses do not determine the nine parameters has no baseline rows
+        if chosen.model != BASELINE and (outcome.static is None or outcome.static.model == BASELINE):
             out.print(f"the baseline model's parameters are beside them in intrinsic.parquet (model = {BASELINE})",
                       highlight=False, markup=False)
         if outcome.diagnosis is not None:

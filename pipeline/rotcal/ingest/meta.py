@@ -15,6 +15,7 @@ import jsonschema
 from rotcal.errors import InputError
 from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
 from rotcal.model.identification import Identification, identification_from_toml
+from rotcal.model.placement import Placement
 from rotcal_schemas import schema_text
 
 # The deepest valid value is three levels down ([[capture]] -> table -> key);
@@ -69,6 +70,9 @@ class DatasetMeta:
     device_id: str | None = None
     output_unit: str = "bit"
     full_scale: float | None = None
+    cross_axis: float | None = None
+    label_tolerance_deg: float = 4.0
+    pose_means: bool = False
     g_local: float = STANDARD_GRAVITY
     g_local_uncertainty: float = STANDARD_GRAVITY_UNCERTAINTY
     g_local_source: str = "standard gravity (default)"
@@ -83,6 +87,11 @@ class DatasetMeta:
     source: str | None = None
     notes: tuple[str, ...] = ()
     identification: Identification = field(default_factory=Identification)  # the certificate's parts
+
+    @property
+    def placement(self) -> Placement:
+        """What the static reduction takes from ``[device]`` and ``[format]`` about hand-placed poses."""
+        return Placement(self.cross_axis, self.label_tolerance_deg, self.pose_means)
 
 
 def _parse(text: str, path: Path, what: str = "dataset.toml") -> dict:
@@ -199,6 +208,9 @@ def load_meta(path: Path | None) -> DatasetMeta:
         device_id=device.get("id"),
         output_unit=device.get("output_unit", "bit"),
         full_scale=device.get("full_scale"),
+        cross_axis=device.get("cross_axis"),
+        label_tolerance_deg=float(fmt.get("label_tolerance_deg", 4.0)),
+        pose_means=bool(fmt.get("pose_means", False)),
         g_local=float(site.get("g_local", STANDARD_GRAVITY)),
         g_local_uncertainty=g_u,
         g_local_source=f"{path.name} [site]" if "g_local" in site and path is not None else DatasetMeta.g_local_source,

@@ -54,7 +54,8 @@ def recommended_model(intrinsic: pl.DataFrame, modelled: tuple[str, ...], baseli
     not run). The one place that chooses."""
     models = set(intrinsic["model"].to_list())
     if REFINED in models and modelled:
-        return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}"
+        held = f"; {baseline_reason}" if baseline_reason.startswith("left out") else ""  # the held-out figures, where compared
+        return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}{held}"
     if static_choice is not None and static_choice[0] in models:
         return static_choice
     return BASELINE, baseline_reason
