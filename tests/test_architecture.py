@@ -79,7 +79,7 @@ def _package_parent(name: str) -> str:
 
 def test_a_handful_of_modules_at_the_top_and_one_folder_per_stage():
     top = sorted(p.name for p in PIPELINE.glob("*.py"))
-    assert len(top) <= 8, top
+    assert len(top) <= 9, top  # the two front doors (cli, api) among them
     packages = {p.parent.name for p in PIPELINE.glob("*/__init__.py")}
     assert STAGES <= packages, STAGES - packages
 
@@ -109,11 +109,7 @@ def test_the_cycle_finder_finds_a_cycle():
 # metrology, the report), the run, and the commands built on it.
 LAYERS = ("rotcal", "errors", "jsontext", "parallel", "config", "tables", "model",
           "ingest", "timebase", "noise", "fit", "segment", "combine", "diagnose", "metrology", "report",
-          "run", "batch", "simulate", "apply", "cli", "__main__")
-# arrows that another change removes: the block reader of ingest reads the time base block by block
-# until the streamed path has its one home
-PENDING = {("rotcal.ingest.stream", "rotcal.timebase.check"), ("rotcal.ingest.stream", "rotcal.timebase.stream_grid"),
-           ("rotcal.ingest.stream", "rotcal.timebase.streamed")}
+          "run", "batch", "simulate", "apply", "cli", "api", "__main__")
 
 
 def _layer(module: str) -> str:
@@ -131,8 +127,13 @@ def backward_arrows(graph: dict[str, set[str]], layers: tuple[str, ...] = LAYERS
                              if _layer(v) in rank and _layer(w) in rank and rank[_layer(w)] > rank[_layer(v)])
 
 
+# the one arrow down by design: `import rotcal` offers the Python API (rotcal.api, the top layer) as
+# rotcal.calibrate, ..., imported when first used (the package's __getattr__)
+FRONT_DOOR = {("rotcal", "rotcal.api")}
+
+
 def test_no_import_from_a_later_stage():
-    assert [a for a in backward_arrows(import_graph()) if a not in PENDING] == []
+    assert [a for a in backward_arrows(import_graph()) if a not in FRONT_DOOR] == []
 
 
 def test_the_direction_check_finds_a_backward_arrow():

@@ -41,6 +41,7 @@ from rotcal.diagnose.scans import (
     Residuals,
     Unexplained,
     harmonic_scan,
+    p_is,
     segment_scan,
     static_step_scan,
     step_scan,
@@ -224,11 +225,9 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
         "rate_dependence", f"rate {rate:g} Hz against rate {final.obs.rates[0]:g} Hz, channel {CHANNELS[rc // 3]}",
         f"the responsivity changes with rate beyond its uncertainty: component {AXES[rc % 3]} of {CHANNELS[rc // 3]} "
         f"at {rate:g} Hz differs by {diff[k]:+.3g} ± {sd[k]:.2g} {output_unit} per g "
-        f"(chi-square {stat:.0f} on {diff.size}; p = {_fmt_p(p)})", p, np.zeros(3), 0)]
+        f"(chi-square {stat:.0f} on {diff.size}; {p_is(p)})", p, np.zeros(3), 0)]
 
 
-def _fmt_p(p: float) -> str:
-    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
 
 
 def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tuple[IntrinsicResult, ...]:

@@ -66,8 +66,9 @@ OUTPUTS: tuple[Output, ...] = (
     _table("poses", "input"),
     _table("noise"),
     Output("noise_allan_png", "noise_allan.png", "result", None),
-    # a view of the files published before it: last
+    # views of the files published before them: last
     Output("certificate", "certificate.html", "result", None),
+    Output("certificate_pdf", "certificate.pdf", "result", None),
 )
 
 

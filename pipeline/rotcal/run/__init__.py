@@ -20,14 +20,16 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
+from rotcal.ingest.site import load_site, site_path
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.identification import Identification
 from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
 from rotcal.run.outputs import (
     calibration_document,
     calibration_output,
-    certificate_output,
+    certificate_outputs,
     diagnosis_outputs,
     noise_outputs,
     publish,
@@ -72,12 +74,13 @@ def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None
     on small matrices competing with it costs more than it gives. A bare
     path ``out`` replaces only what a rotcal listing there names. ``known``:
     the inputs' SHA-256s the caller has computed (``ingest.duplicates.content_hashes``)."""
+    site = load_site(site_path(Path(path), config.report.site))  # the site file checked before any work
     with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known)
+        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known, site)
 
 
 def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
-         known: Mapping[tuple[int, ...], str] | None) -> RunOutcome:
+         known: Mapping[tuple[int, ...], str] | None, site: Identification) -> RunOutcome:
     """Run the pipeline on one dataset and publish its tables as ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
@@ -100,11 +103,11 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    calibration = calibration_document(chosen, ds, config, known)
+    calibration = calibration_document(chosen, ds, config, known, site)
     noise, calibration, noise_notes = noise_outputs(seg, ds, config, calibration)
     outputs = [*noise, *_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(calibration), certificate_output(config, calibration)]
+               calibration_output(calibration), *certificate_outputs(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes
                       + noise_notes,
