@@ -21,120 +21,112 @@ m bins is Gamma(m, 1/m): F is applied only where it lies outside that
 law's central 1 - ``SIGNIFICANCE`` interval, so white noise leaves fits as
 they were.
 
-A wander slower than a segment (a bias instability, a random walk, a
-Gauss-Markov term of long time constant) moves each segment's offset as a
-whole, and a segment's residuals cannot see it. Under the model every
-segment's C of a channel measures one offset O_r (Geist 2017 Eq. 5: the
-gravity projection on a horizontal table axis is zero), so their scatter
-beyond the fits' uncertainties measures the wander at the segments' scale:
-the between-segment variance tau^2 of a random-effects model, estimated by
-DerSimonian & Laird (1986, Control. Clin. Trials 7, 177), is added to every
-segment's offset variance where Cochran's Q rejects equal offsets. With
-fewer than ``MIN_FLOOR_SEGMENTS`` segments it cannot be identified: the
-fits say so (``noise_note``). Measured in docs/method.md ("Coloured noise").
+A wander slower than a segment is measured between segments (``fit.wander``).
+Measured in docs/method.md ("Coloured noise").
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2, gamma
+from scipy.stats import gamma
 
 if TYPE_CHECKING:
     from rotcal.fit.segments import SegmentFit
 
-LOW_BINS = 6
-MIN_BINS = 4
+# periodogram ordinates are pooled in bands of a quarter octave on one frequency axis (Hz) for all segments
+BANDS_PER_OCTAVE = 4
+MIN_ORDINATES = 16
 NOTCH_BINS = 1.0
-# two-sided, per (rate, channel): white noise keeps its uncertainties in 999 groups of 1000
+# two-sided, per (segment group, channel): white noise keeps its uncertainties in 999 groups of 1000
 SIGNIFICANCE = 1e-3
-MIN_FLOOR_SEGMENTS = 4
-FLOOR_UNIDENTIFIED = ("offset floor not identified (fewer than {k} segments of this channel): the offset's "
-                      "uncertainty holds the noise seen within segments only and may understate a slow wander")
 
 
-def band(target_bin: float, n: int) -> np.ndarray:
-    """The Fourier bins (1 .. n // 2) whose density stands for the regressor
-    at bin ``target_bin`` (cycles per segment; 0 for the offset)."""
-    bins = np.arange(1, n // 2 + 1)
-    eligible = bins[np.abs(bins - target_bin) >= NOTCH_BINS]
-    if target_bin < 1.0:
-        return eligible[:LOW_BINS]
-    chosen = eligible[(eligible >= target_bin / 2) & (eligible <= 2 * target_bin)]
-    if chosen.size >= MIN_BINS:
-        return chosen
-    return np.sort(eligible[np.argsort(np.abs(np.log(eligible / target_bin)), kind="stable")[:MIN_BINS]])
+@dataclass(frozen=True, eq=False)
+class Periodogram:
+    """One segment's residual periodogram over its mean square, summed in
+    quarter-octave bands (``band_index``) of frequency: ``sums`` (bands,
+    channels) and ``counts``; with the frequencies (Hz) its offset and sine
+    terms stand at (``targets_hz``: 0 and the rotation's, or one cycle per
+    segment for static steps) and its lowest resolved frequency 1 / T."""
+
+    bands: np.ndarray
+    sums: np.ndarray
+    counts: np.ndarray
+    targets_hz: tuple[float, float]
+    resolution_hz: float
 
 
-def band_power(resid: np.ndarray, target_bins: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Per target, the sum over its band of each channel's periodogram over
-    the residuals' mean square (targets x channels), and the band's bin count."""
+def band_index(f_hz: np.ndarray) -> np.ndarray:
+    """The quarter-octave band of each frequency (band k holds [2^(k/4), 2^((k+1)/4)) Hz)."""
+    return np.floor(BANDS_PER_OCTAVE * np.log2(f_hz)).astype(np.int64)
+
+
+def periodogram(resid: np.ndarray, dt_s: float, sine_cycles: float) -> Periodogram:
+    """The banded periodogram of residuals (samples x channels) at sample
+    interval ``dt_s`` whose sine terms make ``sine_cycles`` cycles over the
+    segment; the bins within ``NOTCH_BINS`` of them, which the fit emptied,
+    and zero frequency are left out."""
     n = resid.shape[0]
-    power = np.abs(np.fft.rfft(resid, axis=0)) ** 2
+    power = np.abs(np.fft.rfft(resid, axis=0)[1:]) ** 2
     ss = np.einsum("ij,ij->j", resid, resid)
-    norm = np.where(ss > 0, ss, 1.0)
-    chosen = [band(t, n) for t in target_bins]
-    return np.stack([power[j].sum(axis=0) / norm for j in chosen]), np.array([j.size for j in chosen], float)
+    power /= np.where(ss > 0, ss, 1.0)  # P_j / (n sigma^2): 1 on average for white noise
+    bins = np.arange(1, power.shape[0] + 1)
+    keep = np.abs(bins - sine_cycles) >= NOTCH_BINS
+    f_hz = bins[keep] / (n * dt_s)
+    index = band_index(f_hz)
+    bands, where = np.unique(index, return_inverse=True)
+    sums = np.stack([np.bincount(where, power[keep, r], bands.size) for r in range(power.shape[1])], axis=1)
+    resolution = 1.0 / (n * dt_s)
+    return Periodogram(bands, sums, np.bincount(where, minlength=bands.size).astype(float), (0.0, sine_cycles * resolution),
+                       resolution)
 
 
-def pooled_ratio(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """F from pooled band sums (targets, channels) over ``counts`` bins, 1
-    where it is consistent with white noise (Gamma(m, 1/m))."""
-    m = np.maximum(counts, 1.0)[:, None]
-    ratio = sums / m
-    low, high = gamma.ppf(SIGNIFICANCE / 2, m, scale=1 / m), gamma.isf(SIGNIFICANCE / 2, m, scale=1 / m)
-    return np.where((ratio < low) | (ratio > high), ratio, 1.0)
+def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, low_hz: float) -> np.ndarray:
+    """Each channel's F at ``f_hz`` from the pooled bands (band -> (sums,
+    count)): the mean ordinate over [f/2, 2f] (exact for a density falling
+    as 1/f^2, 0.92 of it for 1/f), widened an octave at a time until it
+    holds ``MIN_ORDINATES``; zero frequency is read in [low/4, low], low
+    the segment's 1 / T. 1 where white noise explains it (Gamma(m, 1/m))."""
+    low, high = (f_hz / 2, 2 * f_hz) if f_hz > 0 else (low_hz / 4, low_hz)
+    keys = np.array(sorted(pooled))
+    for _ in range(12):
+        chosen = keys[(keys >= band_index(np.array([low]))[0]) & (keys <= band_index(np.array([high]))[0])]
+        m = sum(pooled[k][1] for k in chosen)
+        if m >= MIN_ORDINATES:
+            break
+        low, high = low / 2, high * 2
+    if m == 0:
+        return np.ones(len(next(iter(pooled.values()))[0]))
+    ratio = sum(pooled[k][0] for k in chosen) / m
+    lo, hi = gamma.ppf(SIGNIFICANCE / 2, m, scale=1 / m), gamma.isf(SIGNIFICANCE / 2, m, scale=1 / m)
+    return np.where((ratio < lo) | (ratio > hi), ratio, 1.0)
 
 
-def spectrum_widened(fits: list[SegmentFit], groups: list[object]) -> list[SegmentFit]:
-    """``fits`` with covariance and rate uncertainty scaled by F at zero
-    (C) and at the rotation's frequency (A, B), pooled over fits of one
-    group (a rate and kind); fits without band sums stay as they are."""
-    pooled: dict[object, list[np.ndarray]] = {}
-    for fit, key in zip(fits, groups):
+def spectrum_widened(fits: list[SegmentFit]) -> list[SegmentFit]:
+    """``fits`` with covariance and rate uncertainty scaled by each
+    channel's F at zero frequency (C) and at the sine terms' (A, B), read
+    from the periodograms of all fits pooled on one frequency axis (the
+    long rotations resolve the low frequencies a short static sequence's
+    terms stand at); fits without a periodogram stay as they are."""
+    pooled: dict[int, tuple[np.ndarray, float]] = {}
+    for fit in fits:
         if fit.status == "ok" and fit.spectrum is not None:
-            sums, counts = fit.spectrum
-            acc = pooled.setdefault(key, [np.zeros_like(sums), np.zeros_like(counts)])
-            acc[0] += sums
-            acc[1] += counts
+            for k, sums, count in zip(fit.spectrum.bands, fit.spectrum.sums, fit.spectrum.counts):
+                old = pooled.get(int(k), (0.0, 0.0))
+                pooled[int(k)] = (old[0] + sums, old[1] + count)
+    if not pooled:
+        return fits
     out = []
-    for fit, key in zip(fits, groups):
-        if key not in pooled or fit.status != "ok":
+    for fit in fits:
+        if fit.status != "ok" or fit.spectrum is None:
             out.append(fit)
             continue
-        ratio = pooled_ratio(*pooled[key])  # (2 targets, channels)
+        spec = fit.spectrum
+        ratio = np.stack([density_ratio_at(pooled, f, spec.resolution_hz) for f in spec.targets_hz])
         scale = np.sqrt(np.column_stack([ratio[0], ratio[1], ratio[1]]).ravel())
         out.append(replace(fit, cov=fit.cov * np.outer(scale, scale), u_rate_fit_hz=fit.u_rate_fit_hz * float(np.sqrt(ratio[1].max())),
-                           noise_ratio=np.stack([ratio[0], ratio[1]])))
-    return out
-
-
-def offset_floor(fits: list[SegmentFit]) -> list[SegmentFit]:
-    """``fits`` with each channel's between-segment offset variance tau^2
-    (DerSimonian-Laird, applied where Cochran's Q rejects one offset at
-    ``SIGNIFICANCE``) added to every segment's C variance; where too few
-    segments identify it, the fits carry the note instead."""
-    ok = [k for k, f in enumerate(fits) if f.status == "ok"]
-    if not ok:
-        return fits
-    if len(ok) < MIN_FLOOR_SEGMENTS:
-        note = FLOOR_UNIDENTIFIED.format(k=MIN_FLOOR_SEGMENTS)
-        return [replace(f, noise_note=note) if f.status == "ok" else f for f in fits]
-    c = np.array([fits[k].coef[:, 0] for k in ok])  # (segments, channels)
-    var = np.array([np.diag(fits[k].cov)[0::3] for k in ok])
-    w = 1.0 / np.maximum(var, 1e-300)
-    mean = (w * c).sum(axis=0) / w.sum(axis=0)
-    q = (w * (c - mean) ** 2).sum(axis=0)
-    dof = len(ok) - 1
-    spread = w.sum(axis=0) - (w**2).sum(axis=0) / w.sum(axis=0)
-    tau2 = np.where(q > chi2.isf(SIGNIFICANCE, dof), np.maximum(q - dof, 0.0) / spread, 0.0)
-    if not np.any(tau2 > 0):
-        return fits
-    out = list(fits)
-    for k in ok:
-        cov = fits[k].cov.copy()
-        cov[np.arange(0, 9, 3), np.arange(0, 9, 3)] += tau2
-        out[k] = replace(fits[k], cov=cov, offset_floor=np.sqrt(tau2))
+                           noise_ratio=ratio))
     return out
