@@ -39,6 +39,8 @@ if TYPE_CHECKING:
 # periodogram ordinates are pooled in bands of a quarter octave on one frequency axis (Hz) for all segments
 BANDS_PER_OCTAVE = 4
 MIN_ORDINATES = 16
+# zero frequency: the lowest bins only (a wander's density rises steeply there), fewer ordinates
+MIN_ORDINATES_AT_ZERO = 8
 NOTCH_BINS = 1.0
 # two-sided, per (segment group, channel): white noise keeps its uncertainties in 999 groups of 1000
 SIGNIFICANCE = 1e-3
@@ -92,10 +94,11 @@ def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, l
     the segment's 1 / T. 1 where white noise explains it (Gamma(m, 1/m))."""
     low, high = (f_hz / 2, 2 * f_hz) if f_hz > 0 else (low_hz / 4, low_hz)
     keys = np.array(sorted(pooled))
+    enough = MIN_ORDINATES if f_hz > 0 else MIN_ORDINATES_AT_ZERO
     for _ in range(12):
         chosen = keys[(keys >= band_index(np.array([low]))[0]) & (keys <= band_index(np.array([high]))[0])]
         m = sum(pooled[k][1] for k in chosen)
-        if m >= MIN_ORDINATES:
+        if m >= enough:
             break
         low, high = low / 2, high * 2
     if m == 0:
