@@ -5,7 +5,8 @@ the normalised errors z = (estimate - truth) / u and the fraction |z| <= 2
 (baseline results; the simultaneous solution's too), and the clean
 datasets' finding rates (any catalogue finding; any finding at all).
 
-    python scripts/noise_coverage.py [--datasets 50] [--diagnosed 50] [--workers 2] [--shapes white,ar09,...] [--out FILE]
+    python scripts/noise_coverage.py [--datasets 50] [--diagnosed 50] [--workers 2] [--shapes white,ar09,...] [--out FILE.jsonl]
+    python scripts/noise_coverage.py --summarise FILE.jsonl
 
 The shapes are drawn by the simulator's noise model (``rotcal simulate
 --noise``, ``rotcal.simulate.noise``) over the DUT's 8 counts of white
@@ -138,18 +139,30 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--shapes", default=",".join(SHAPES))
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--out", type=Path, help="the per-dataset figures, one JSON line each, written as they come")
+    parser.add_argument("--summarise", type=Path, help="print the tables of such a file (of a run still going, too)")
     args = parser.parse_args()
-    jobs = [(shape, args.first_seed + k, k < args.diagnosed) for shape in args.shapes.split(",") for k in range(args.datasets)]
+    if args.summarise:
+        report([json.loads(line) for line in args.summarise.read_text().splitlines() if line.strip()], 0.0)
+        return
+    shapes = args.shapes.split(",")
+    # seed by seed across the shapes: a run stopped early still covers every shape alike
+    jobs = [(shape, args.first_seed + k, k < args.diagnosed) for k in range(args.datasets) for shape in shapes]
     start = time.perf_counter()
-    if args.workers <= 1:
-        rows = [case(j) for j in jobs]
-    else:  # spawned: a fork after polars' thread pool started deadlocks
-        with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            rows = list(pool.map(case, jobs, chunksize=2))
-    if args.out:
-        args.out.write_text(json.dumps(rows) + "\n")
-    print(f"{len(rows)} datasets in {time.perf_counter() - start:.0f} s\n")
+    out = args.out.open("w") if args.out else None
+    rows = []
+    with ProcessPoolExecutor(max(args.workers, 1), mp_context=multiprocessing.get_context("spawn")) as pool:
+        # spawned: a fork after polars' thread pool started deadlocks
+        for row in pool.map(case, jobs):
+            rows.append(row)
+            if out:
+                out.write(json.dumps(row) + "\n")
+                out.flush()
+    report(rows, time.perf_counter() - start)
+
+
+def report(rows: list[dict], seconds: float) -> None:
+    print(f"{len(rows)} datasets in {seconds:.0f} s\n")
     print("Baseline (per-segment fits, combined):\n")
     print(markdown(rows, "baseline"))
     print("\nSimultaneous solution:\n")

@@ -35,6 +35,7 @@ from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
+from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.diagnose.observed import observations
 from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
@@ -307,6 +308,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())
+    # offset effects against the offsets' measured wander (``wander``)
+    final, wander = against_wander(final, OffsetNoise.from_fits(fits), alpha, output_unit)
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
@@ -319,7 +322,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
                 before[effect.name] = obs.y - unclipped
         else:
             row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit,
-                                               effect.name in absorbed)
+                                               effect.name in absorbed, wander.get(effect.name))
             if reduced is not None:
                 before[effect.name] = reduced.residuals
         rows.append(row)

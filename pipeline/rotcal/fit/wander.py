@@ -18,9 +18,10 @@ by restricted maximum likelihood (Patterson & Thompson 1971, Biometrika 58,
 545) on a grid. The stages after the fits take segments as independent, so
 each segment of a group combined together (one rate and kind) carries the
 variance that makes its group's mean right: s^2 times the mean of the
-correlations over the group's pairs, itself included. A time constant at
-the grid's top (slower than the record) is flagged: the wander's size is
-then the record's scatter, not a stationary sd. With fewer than
+correlations over the group's pairs, itself included. Where the time
+constant is longer than the record, the record cannot tell the wander's
+size from the offset: s^2 is then taken at its upper 95 % profile-
+likelihood bound (conservative), and the fits say so. With fewer than
 ``MIN_FLOOR_SEGMENTS`` segments nothing is identified, and the fits say so.
 """
 
@@ -41,8 +42,8 @@ TAU_GRID = 25
 VARIANCE_GRID = 41
 UNIDENTIFIED = ("offset floor not identified (fewer than {k} segments of this channel): the offset's uncertainty "
                 "holds the noise seen within segments only and may understate a slow wander")
-SLOWER_THAN_RECORD = ("the offset wanders more slowly than the record lasts: its time constant is not identified "
-                      "and the floor is the record's scatter (a longer record would measure it)")
+SLOWER_THAN_RECORD = ("the offset wanders more slowly than the record lasts: its size is not identified, and the "
+                      "floor is its upper 95 % likelihood bound (a longer record would measure it)")
 
 
 def restricted_loglik(c: np.ndarray, v: np.ndarray, corr: np.ndarray, s2: np.ndarray) -> np.ndarray:
@@ -60,21 +61,26 @@ def restricted_loglik(c: np.ndarray, v: np.ndarray, corr: np.ndarray, s2: np.nda
 
 
 def wander_fit(c: np.ndarray, v: np.ndarray, t_s: np.ndarray, tau_range: tuple[float, float]
-               ) -> tuple[np.ndarray, float]:
-    """(s^2 per channel, tau) by REML over a grid: ``c``, ``v``
-    (segments, channels) offsets and their fit variances, ``t_s`` mid-times."""
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(s^2 per channel, its upper 95 % profile-likelihood bound, tau) by
+    REML over a grid: ``c``, ``v`` (segments, channels) offsets and their
+    fit variances, ``t_s`` mid-times."""
     lag = np.abs(t_s[:, None] - t_s[None, :])
     taus = np.geomspace(*tau_range, TAU_GRID)
     spread = np.maximum(np.var(c, axis=0, ddof=1), np.mean(v, axis=0))
-    grids = [np.r_[0.0, np.geomspace(1e-4, 10.0, VARIANCE_GRID - 1) * sd2] for sd2 in spread]
-    best = (-np.inf, taus[0], np.zeros(c.shape[1]))
+    grids = [np.r_[0.0, np.geomspace(1e-4, 100.0, VARIANCE_GRID - 1) * sd2] for sd2 in spread]
+    best: tuple[float, float, list[np.ndarray]] = (-np.inf, taus[0], [])
     for tau in taus:
         corr = np.exp(-lag / tau)
         ll = [restricted_loglik(c[:, r], v[:, r], corr, grids[r]) for r in range(c.shape[1])]
         total = sum(float(x.max()) for x in ll)
         if total > best[0]:
-            best = (total, tau, np.array([grids[r][int(np.argmax(x))] for r, x in enumerate(ll)]))
-    return best[2], float(best[1])
+            best = (total, tau, ll)
+    ll = best[2]
+    s2 = np.array([grids[r][int(np.argmax(x))] for r, x in enumerate(ll)])
+    # chi^2(1) 95 %: 3.84 / 2 below the profile's top
+    upper = np.array([grids[r][np.flatnonzero(x >= x.max() - 1.92).max()] for r, x in enumerate(ll)])
+    return s2, upper, float(best[1])
 
 
 def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.ndarray, groups: list[object]) -> list[SegmentFit]:
@@ -97,11 +103,12 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     t = t_mid_s[ok]
     span = float(t.max() - t.min())
     tau_top = 10.0 * max(span, 1e-9)
-    s2, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top))
-    s2 = np.where(wanders, s2, 0.0)
+    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top))
+    slower = tau >= span  # the record shows no wander's decorrelation: its size is a lower bound, the bound taken
+    s2 = np.where(wanders, upper if slower else s2, 0.0)
     corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
     key = [groups[k] for k in ok]
-    note = SLOWER_THAN_RECORD if tau >= tau_top * 0.999 else None
+    note = SLOWER_THAN_RECORD if slower else None
     out = list(fits)
     for i, k in enumerate(ok):
         members = [j for j in range(len(ok)) if key[j] == key[i]]
