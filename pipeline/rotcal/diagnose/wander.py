@@ -7,9 +7,9 @@ axis). So does a slow wander of the sensor's bias (a Gauss-Markov term,
 flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
-fits), each selected extension of these effects whose fitted part is
-mostly constant within segments (``SEGMENT_CONSTANT`` of its sum of
-squares) is tested again where the two compete: the segment means of the
+fits), each selected extension of these effects whose removal changes
+the residuals mostly by segment (``SEGMENT_CONSTANT`` of the change's sum
+of squares in its segment means) is tested again where the two compete: the segment means of the
 residuals without it, c, against its segment means d, by generalised least
 squares with each segment mean's variance under the noise model (its fit's
 u(C)^2, which holds the wander's floor):
@@ -35,7 +35,9 @@ from rotcal.diagnose.scans import _fmt
 from rotcal.model.physics import CHANNELS
 
 WANDER_RIVALS = ("offset_drift", "centripetal", "axis_tilt")
-SEGMENT_CONSTANT = 0.8
+# these effects are constant within a segment (a drift nearly so), but dropping one refits the rest, whose
+# readjustment varies within segments: a third of the difference constant marks a segment-level pattern
+SEGMENT_CONSTANT = 0.3
 
 
 @dataclass(frozen=True, eq=False)
