@@ -108,12 +108,12 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     s2 = np.where(wanders, upper if slower else s2, 0.0)
     corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
     key = [groups[k] for k in ok]
-    note = SLOWER_THAN_RECORD if slower else None
+    flag = SLOWER_THAN_RECORD if slower else None
     out = list(fits)
     for i, k in enumerate(ok):
         members = [j for j in range(len(ok)) if key[j] == key[i]]
         floor = s2 * corr[np.ix_(members, members)].mean()
         cov = fits[k].cov.copy()
         cov[np.arange(0, 9, 3), np.arange(0, 9, 3)] += floor
-        out[k] = replace(fits[k], cov=cov, offset_floor=np.sqrt(floor), noise_note=note)
+        out[k] = replace(fits[k], cov=cov, offset_floor=np.sqrt(floor), noise_note=flag)
     return out
