@@ -28,13 +28,13 @@ Measured in docs/method.md ("Coloured noise").
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy.stats import gamma
 
-if TYPE_CHECKING:
-    from rotcal.fit.segments import SegmentFit
+# the fits are ``fit.segments.SegmentFit`` records (not imported: that module imports this one)
+SegmentFit = Any
 
 # periodogram ordinates are pooled in bands of a quarter octave on one frequency axis (Hz) for all segments
 BANDS_PER_OCTAVE = 4

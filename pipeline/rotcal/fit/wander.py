@@ -28,13 +28,13 @@ likelihood bound (conservative), and the fits say so. With fewer than
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
 
-if TYPE_CHECKING:
-    from rotcal.fit.segments import SegmentFit
+# the fits are ``fit.segments.SegmentFit`` records (not imported: that module imports this one)
+SegmentFit = Any
 
 SIGNIFICANCE = 1e-3
 MIN_FLOOR_SEGMENTS = 4
