@@ -41,6 +41,8 @@ BANDS_PER_OCTAVE = 4
 MIN_ORDINATES = 16
 # zero frequency: the lowest bins only (a wander's density rises steeply there), fewer ordinates
 MIN_ORDINATES_AT_ZERO = 8
+# the wider window that decides whether the noise is coloured where the narrow one holds few ordinates
+WIDE_ORDINATES = 64
 NOTCH_BINS = 1.0
 # two-sided, per (segment group, channel): white noise keeps its uncertainties in 999 groups of 1000
 SIGNIFICANCE = 1e-3
@@ -86,26 +88,45 @@ def periodogram(resid: np.ndarray, dt_s: float, sine_cycles: float) -> Periodogr
                        resolution)
 
 
-def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, low_hz: float) -> np.ndarray:
-    """Each channel's F at ``f_hz`` from the pooled bands (band -> (sums,
-    count)): the mean ordinate over [f/2, 2f] (exact for a density falling
-    as 1/f^2, 0.92 of it for 1/f), widened an octave at a time until it
-    holds ``MIN_ORDINATES``; zero frequency is read in [low/4, low], low
-    the segment's 1 / T. 1 where white noise explains it (Gamma(m, 1/m))."""
-    low, high = (f_hz / 2, 2 * f_hz) if f_hz > 0 else (low_hz / 4, low_hz)
+def _window(pooled: dict[int, tuple[np.ndarray, float]], low: float, high: float, enough: float
+            ) -> tuple[np.ndarray, float]:
+    """The mean ordinate per channel over [low, high] Hz widened an octave
+    either side at a time until it holds ``enough`` ordinates, and their count."""
     keys = np.array(sorted(pooled))
-    enough = MIN_ORDINATES if f_hz > 0 else MIN_ORDINATES_AT_ZERO
-    for _ in range(12):
+    m = 0.0
+    for _ in range(16):
         chosen = keys[(keys >= band_index(np.array([low]))[0]) & (keys <= band_index(np.array([high]))[0])]
         m = sum(pooled[k][1] for k in chosen)
         if m >= enough:
             break
         low, high = low / 2, high * 2
     if m == 0:
-        return np.ones(len(next(iter(pooled.values()))[0]))
-    ratio = sum(pooled[k][0] for k in chosen) / m
+        return np.ones(len(next(iter(pooled.values()))[0])), 0.0
+    return sum(pooled[k][0] for k in chosen) / m, m
+
+
+def _coloured(ratio: np.ndarray, m: float) -> np.ndarray:
+    """Where a mean of m ordinates departs from white noise's Gamma(m, 1/m)."""
     lo, hi = gamma.ppf(SIGNIFICANCE / 2, m, scale=1 / m), gamma.isf(SIGNIFICANCE / 2, m, scale=1 / m)
-    return np.where((ratio < lo) | (ratio > hi), ratio, 1.0)
+    return (ratio < lo) | (ratio > hi)
+
+
+def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, low_hz: float) -> np.ndarray:
+    """Each channel's F at ``f_hz`` from the pooled bands (band -> (sums,
+    count)): the mean ordinate over [f/2, 2f] (exact for a density falling
+    as 1/f^2, 0.92 of it for 1/f), widened an octave at a time until it
+    holds ``MIN_ORDINATES``; zero frequency is read in [low/4, low], low
+    the segment's 1 / T, from at least ``MIN_ORDINATES_AT_ZERO``. 1 where
+    white noise explains it (Gamma(m, 1/m)) there and in the window widened
+    to ``WIDE_ORDINATES``, which tests with more power; where only the wide
+    window departs, the larger of the two (the narrow one is then noisy)."""
+    low, high = (f_hz / 2, 2 * f_hz) if f_hz > 0 else (low_hz / 4, low_hz)
+    narrow, m = _window(pooled, low, high, MIN_ORDINATES if f_hz > 0 else MIN_ORDINATES_AT_ZERO)
+    if m == 0:
+        return narrow
+    wide, m_wide = _window(pooled, low, high, WIDE_ORDINATES)
+    on, on_wide = _coloured(narrow, m), _coloured(wide, m_wide)
+    return np.where(on, narrow, np.where(on_wide, np.maximum(narrow, wide), 1.0))
 
 
 def spectrum_widened(fits: list[SegmentFit]) -> list[SegmentFit]:
