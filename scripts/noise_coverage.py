@@ -115,6 +115,21 @@ def markdown(rows: list[dict], source: str) -> str:
     return "\n".join(lines)
 
 
+def compact_markdown(rows: list[dict], source: str) -> str:
+    """One row per shape: each class's sd of z at every rate (rates ascending) and its fraction within 2 u."""
+    table = summary(rows, source)
+    rates = sorted({t[2] for t in table}, key=float)
+    lines = [f"| shape | datasets | s: sd of z at {', '.join(rates)} Hz | phi | O |", "|---|---|---|---|---|"]
+    for shape in dict.fromkeys(t[0] for t in table):
+        cells = []
+        for cls in CLASSES:
+            mine = [t for t in table if t[0] == shape and t[1] == cls]
+            cells.append(" ".join(f"{t[4]:.2f}" for t in mine) + f" ({100 * np.mean([t[5] for t in mine]):.0f} % within 2 u)")
+        n = max(t[3] for t in table if t[0] == shape)
+        lines.append(f"| {shape} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def findings_markdown(rows: list[dict]) -> str:
     lines = ["| shape | datasets | any catalogue finding | any finding | effects named (count) |", "|---|---|---|---|---|"]
     for shape in dict.fromkeys(r["shape"] for r in rows):
@@ -163,7 +178,11 @@ def main() -> None:
 
 def report(rows: list[dict], seconds: float) -> None:
     print(f"{len(rows)} datasets in {seconds:.0f} s\n")
-    print("Baseline (per-segment fits, combined):\n")
+    print("Per shape (sd of z per rate; fraction within 2 u over the rates), baseline:\n")
+    print(compact_markdown(rows, "baseline"))
+    print("\nSimultaneous solution:\n")
+    print(compact_markdown(rows, "simultaneous"))
+    print("\nBaseline (per-segment fits, combined):\n")
     print(markdown(rows, "baseline"))
     print("\nSimultaneous solution:\n")
     print(markdown(rows, "simultaneous"))
