@@ -36,7 +36,8 @@ from rotcal.ingest.dataset import load_dataset
 from rotcal.metrology.simultaneous import simultaneous
 from rotcal.model.physics import INTRINSIC
 from rotcal.model.results import IntrinsicResult
-from rotcal.run.stages import determined, diagnose_stage, reduce, segment_and_fit
+from rotcal.run.recommended import diagnose_stage
+from rotcal.run.stages import determined, reduce, segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 WHITE_SD = 8.0  # the default DUT's white noise (counts)

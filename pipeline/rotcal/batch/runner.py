@@ -28,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn
 from rotcal import __version__
 from rotcal.batch.jobs import Job, JobResult, execute, open_executor
 from rotcal.batch.manifest import DatasetRecord, Layout, Manifest, now, run_lock
-from rotcal.batch.plan import Plan, config_json, discover, plan_dataset
+from rotcal.batch.plan import Plan, batch_site, config_json, discover, plan_dataset, shared_certificate_numbers
 from rotcal.config import RunConfig, RunSection
 from rotcal.errors import ExitCode, InputError, printable
 from rotcal.parallel import share
@@ -104,6 +104,7 @@ class BatchSummary:
     combined: str
     wall_s: float
     notes: tuple[str, ...]
+    findings: tuple[dict, ...] = ()  # this run's datasets whose diagnosis found something: dataset_path, effects
 
     @property
     def exit_status(self) -> ExitCode:
@@ -114,13 +115,17 @@ class BatchSummary:
         return ExitCode.QUARANTINED if self.quarantined or self.still_quarantined else ExitCode.OK
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "exit_status": int(self.exit_status)}
+        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "findings": list(self.findings),
+                "exit_status": int(self.exit_status)}
 
     def text(self) -> str:
         lines = [f"{self.discovered} datasets: {self.processed} processed ({self.ok} ok, {self.quarantined} quarantined, "
                  f"{self.errors} errors), {self.unchanged} unchanged ({self.still_quarantined} still quarantined); "
                  f"{self.wall_s:.1f} s"]
         lines += [f"{p['status']}: {printable(p['dataset_path'])}: {p['reason']}" for p in self.problems]
+        if self.findings:  # the datasets to look at: their report.md says what was found and modelled
+            lines.append(f"{len(self.findings)} dataset{'s' if len(self.findings) > 1 else ''} with findings (see each one's report.md):")
+            lines += [f"finding: {printable(f['dataset_path'])}: {', '.join(f['effects'])}" for f in self.findings]
         lines.append(f"combined dataset: {self.combined}")
         return "\n".join(lines)
 
@@ -144,11 +149,12 @@ def _checked_dirs(root: Path, out: Path) -> tuple[Path, Path]:
 def run_batch(root: Path, out: Path, config: RunConfig = RunConfig(), reporter: Reporter | None = None) -> BatchSummary:
     """Process every new or changed dataset under ``root`` into ``out``.
 
-    Raises ``InputError`` for a bad ROOT, ``ConfigError`` for a Dask scheduler it cannot reach,
+    Raises ``InputError`` for a bad ROOT or site file, ``ConfigError`` for a Dask scheduler it cannot reach,
     ``manifest.LockedError`` when another run holds ``out``'s lock. Bad
     datasets do not raise: they are quarantined with their reason.
     """
     root, out = _checked_dirs(root, out)
+    config = batch_site(root, config)
     reporter = reporter or Reporter()
     clock = time.perf_counter()
     with run_lock(out) as stale:
@@ -198,6 +204,9 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
         plans, todo, refused, unchanged = _plan(root, out, config, config_text, manifest, layout, previous, lambda most: opened.append(
             stack.enter_context(open_executor(config.batch, most))))
         local, workers = config.batch.executor == "local", 0
+        for note in shared_certificate_numbers(plans):
+            notes += (note,)
+            reporter.note(note)
         dead = manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
         if dead:
             were = "runs were" if len(dead) > 1 else "run was"
@@ -210,7 +219,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             if result.status == "ok" and result.rotcal_version != __version__:
                 result = replace(result, status="error", reason=f"the worker runs rotcal {result.rotcal_version}, this run {__version__}")
             output = None
-            if result.status == "ok":
+            if result.status == "ok" and work is not None:  # a refused plan settles with no work folder
                 output = layout.publish(plan.dataset_id, plan.fingerprint, work)
             else:
                 layout.withdraw(plan.dataset_id)
@@ -236,7 +245,8 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
                 settle(plan, result, layout.work / f"{plan.dataset_id}.{run_id}")
     records = manifest.records()
     combined = layout.publish_combined({r.dataset_id: r.output for r in records.values()
-                                        if r.status == "ok" and layout.published(r.dataset_id) == r.output})
+                                        if r.status == "ok" and r.output is not None
+                                        and layout.published(r.dataset_id) == r.output})
     layout.sweep()
     seen = {p.found.dataset_path for p in plans}
     problems = [{"dataset_path": p.found.dataset_path, "status": r.status, "reason": r.reason}
@@ -251,6 +261,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
         still_quarantined=sum(previous[p.found.dataset_path].status == "quarantined" for p in unchanged),
         not_found=sum(key not in seen for key in records), problems=tuple(problems), combined=str(combined),
         wall_s=round(time.perf_counter() - clock, 3), notes=notes,
+        findings=tuple({"dataset_path": p.found.dataset_path, "effects": list(r.findings)} for p, r in outcomes if r.findings),
     )
     manifest.finish_run(run_id, now(), json.dumps(summary.as_dict()))
     return summary

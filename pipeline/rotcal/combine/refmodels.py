@@ -41,6 +41,7 @@ from dataclasses import replace
 import numpy as np
 import polars as pl
 
+from rotcal.combine.heldout import compare, press
 from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
 from rotcal.combine.posemodels import MIN_CONE_DEG, SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
@@ -134,7 +135,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     rotation, s = u @ vt, np.linalg.norm(C, axis=1)  # polar decomposition C = P Q: Q, and C's row lengths
     scale = float(np.abs(m).max())
     own = isinstance(full, Failure)
-    excess = np.zeros((3, 3)) if own else full.excess_cov
+    excess = full.excess_cov if isinstance(full, ReferenceFit) else np.zeros((3, 3))
     for _ in range(2 if own else 1):  # with its own T: once with the noise, once more with T
         root_w = np.sqrt(_weights(cov, excess, scale))
         s, rotation, offsets, converged = _gauss_newton(s, rotation, offsets, ref, m, root_w)
@@ -168,7 +169,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     dof = 3 * n - 9
     # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result states)
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(dof if own else full.dof)), state_cov)])
+                                        [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) else dof)), state_cov)])
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 
@@ -198,7 +199,23 @@ def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: f
     known = not np.any(full.excess_cov)
     f, p, dof = f_test(orthogonal.sum_sq - s_full, 3, 1.0 if known else s_full / full.dof,
                        float("inf") if known else float(full.dof))
-    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
+    held = compare(_held_out_orthogonal(orthogonal, poses), _held_out_full(full, poses, orthogonal.weights))
+    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL and held.better else "orthogonal", f, p, dof, held)
+
+
+def _held_out_full(full: ReferenceFit, poses: pl.DataFrame, weights: np.ndarray) -> np.ndarray:
+    """Each position's squared leave-one-out prediction error under the
+    12-parameter fit (one design for every channel: e_k / (1 - h_kk))."""
+    design = np.column_stack([references(poses), np.ones(poses.height)])
+    return press((full.residuals * np.sqrt(weights)).ravel(), np.kron(design, np.eye(3)) * np.tile(np.sqrt(weights), len(design))[:, None], 3)
+
+
+def _held_out_orthogonal(fit: OrthogonalReferenceFit, poses: pl.DataFrame) -> np.ndarray:
+    """Each position's squared leave-one-out prediction error under the orthogonal fit."""
+    s = np.linalg.norm(fit.result.state[:9].reshape(3, 3), axis=1)  # the rows of C = D R: output per g
+    e, jac = _residuals_and_jacobian(s, fit.rotation, fit.result.state[9:], references(poses), pose_arrays(poses)[0])
+    root_w = np.sqrt(fit.weights)
+    return press((e * root_w).ravel(), (jac * root_w[None, :, None]).reshape(-1, 9), 3)
 
 
 

@@ -21,7 +21,10 @@ The statistic is chi-square on k degrees of freedom when the poses' scatter
 is their noise; when the static fit estimated an excess scatter (hand poses
 rarely rest perfectly) it is Fisher's F on (k, dof) with the scatter
 estimated from the larger model, so that the false-alarm rate holds either
-way. Where nothing is found, ``detection_limits`` gives the size of each
+way. An effect so selected is modelled only when the model with it also
+predicts poses left out one at a time better than the baseline by more
+than chance (``combine.heldout``); the comparison is the diagnosis's
+``heldout`` sentence, which the recommendation quotes. Where nothing is found, ``detection_limits`` gives the size of each
 parameter whose expected statistic reaches the threshold (50 % power) with
 this recording's poses and noise: "nothing found" with a size.
 """
@@ -35,13 +38,14 @@ import polars as pl
 from scipy.special import chdtri, fdtrc, fdtri
 
 from rotcal.combine import StaticReduction
+from rotcal.combine.heldout import HeldOut, compare, press
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import report_parameters
 from rotcal.diagnose.fitting import chi2_sf
-from rotcal.diagnose.scans import _fmt
+from rotcal.diagnose.scans import counted, p_is
 from rotcal.diagnose.static_model import PoseModel, pose_model
 from rotcal.fit.lsq import nonlinear
-from rotcal.model.effects import listed
+from rotcal.model.effects import effect_named, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
@@ -65,6 +69,7 @@ class StaticDiagnosis:
     limits: dict[str, float]
     poses: int
     method: str
+    heldout: str = ""  # the held-out comparison of the model with the effects found against the baseline
 
     def channel(self, residuals: np.ndarray, r: int) -> np.ndarray:
         """Each pose's residual in channel r (the |a| residual when orientation-free)."""
@@ -209,9 +214,10 @@ def _against(model: PoseModel, theta: np.ndarray, cand: Candidate) -> tuple[str,
     """What an effect's residuals follow, per pose: the channel's output in g
     (the nonlinearities), the time (drift) or the temperature (thermal)."""
     r = "uvw".index(cand.scope)
-    if cand.effect == "offset_drift" and model.elapsed_s is not None:
+    at_rest = effect_named(cand.effect).at_rest
+    if at_rest == "time" and model.elapsed_s is not None:
         return "time since the first sample (s)", model.elapsed_s, r
-    if cand.effect == "thermal" and model.excursion_k is not None:
+    if at_rest == "temperature" and model.excursion_k is not None:
         return "temperature - T_ref (K)", model.excursion_k, r
     state, _ = model.state(theta)
     rows = state[:9].reshape(3, 3)
@@ -244,9 +250,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
         row = {"dataset": dataset, "effect": effect.name, "rms_before": rms_final, "rms_after": rms_final}
         if not granules:
             rows.append(row | {"detected": False, "where": "not testable here", "delta_bic": 0.0, "p_value": 1.0,
-                               "evidence": "static poses do not show it (it needs rotation, a table angle or "
-                                           "time stamps)" if effect.name != "clipping" else
-                                           "not tested on static poses"})
+                               "evidence": effect.not_at_rest})
             continue
         found = tuple(c for c in active if c.effect == effect.name)
         if not found:
@@ -260,7 +264,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
                 "rms_after": _rms(model, lin.solve(active + granules)[0]),
                 "evidence": f"not detected: modelling it on every channel lowers chi-square by {joint.chi2:.1f} "
                             f"(BIC change {joint.delta_bic:+.1f}); the strongest single test ({singles[0][1]}) has "
-                            f"p = {_fmt(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
+                            f"{p_is(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
                             f"level (50 % power): {_limits_text(limit)}"})
             continue
         reduced = tuple(c for c in active if c.effect != effect.name)
@@ -278,7 +282,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
             "detected": True, "where": "; ".join(f"channel {c.scope}" for c in found) + f" ({where_poses})",
             "rms_before": _rms(model, lin.solve(reduced)[0]), "delta_bic": test.delta_bic, "p_value": test.p_value,
             "evidence": f"the static poses' residuals follow it: modelling it lowers chi-square by {test.chi2:.0f} on "
-                        f"{sum(len(c.names) for c in found)} parameters (p = {_fmt(test.p_value)}, BIC change "
+                        f"{counted(sum(len(c.names) for c in found), 'parameter')} ({p_is(test.p_value)}, BIC change "
                         f"{test.delta_bic:+.0f}); {text}"})
     return rows, params, before, against, limits
 
@@ -304,6 +308,9 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
         return None
     alpha = config.false_alarm
     active = select(lin, alpha)
+    heldout = _held_out(lin, active) if active else None
+    if heldout is not None and not heldout.better:  # fits these poses, but does not predict the next: not modelled
+        active = ()
     theta, cov, cols = refit(lin, active) if active else (lin.theta0, np.zeros((0, 0)), lin.cols(()))
     rows, params, before, against, limits = _rows(lin, active, theta, cov, cols, alpha, dataset, output_unit)
     refined = (_refined(model, theta, cov, lin.dof(active), g_uncertainty),) if active else ()
@@ -311,4 +318,16 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
     return StaticDiagnosis(findings, parameters, refined, before, against, model.residuals(theta), limits,
-                           len(model.means), static.method)
+                           len(model.means), static.method, "" if heldout is None else heldout.text("baseline", "refined"))
+
+
+def _held_out(lin: Linearised, active: tuple[Candidate, ...]) -> HeldOut:
+    """The baseline and the model with ``active`` compared on poses left out
+    one at a time (``combine.heldout``), both linearised at the static fit."""
+    size = lin.n // len(lin.model.means)
+    errors = []
+    for model in ((), active):
+        cols = lin.cols(model)
+        residuals = lin.r0 + lin.jac[:, cols] @ (lin.solve(model)[0][cols] - lin.theta0[cols])
+        errors.append(press(residuals, lin.jac[:, cols], size))
+    return compare(*errors)

@@ -31,7 +31,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
-from rotcal.diagnose.scans import _fmt
+from rotcal.diagnose.scans import p_is
 from rotcal.model.physics import CHANNELS
 
 WANDER_RIVALS = ("offset_drift", "centripetal", "axis_tilt")
@@ -86,10 +86,10 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
         if p >= alpha:
             final = reduced
             text = (f"{cand.key} set aside: {size}, and that wander explains its pattern in the segments' offsets "
-                    f"(chi-square {stat:.1f} on {k} against the wander, p = {_fmt(p)})")
+                    f"(chi-square {stat:.1f} on {k} against the wander, {p_is(p)})")
         else:
             text = (f"for {cand.key} the evidence favours the effect over the wander ({size}; against the wander "
-                    f"chi-square {stat:.1f} on {k}, p = {_fmt(p)})")
+                    f"chi-square {stat:.1f} on {k}, {p_is(p)})")
         texts[cand.effect] = f"{texts[cand.effect]}; {text}" if cand.effect in texts else text
     return final, texts
 

@@ -7,17 +7,17 @@ Polars: the batch process finds a dataset's captures with it."""
 
 from __future__ import annotations
 
+import io
 import os
 import stat
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING
 
 from rotcal.errors import InputError
+from rotcal.ingest.formats import is_capture, patterns
 
 if TYPE_CHECKING:
     from rotcal.ingest.meta import CaptureSpec, DatasetMeta
-
-CAPTURE_SUFFIXES = (".csv", ".mcap")
 
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
@@ -38,7 +38,7 @@ def require_regular(path: Path) -> None:
         raise InputError(f"cannot be read: {exc.strerror}", path=path) from None
 
 
-def open_capture(path: Path) -> BinaryIO:
+def open_capture(path: Path) -> io.BufferedReader:
     """``path`` opened for binary reading, refused unless a regular file.
 
     Opened without blocking (a FIFO's open would wait for a writer) and
@@ -86,15 +86,15 @@ def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec
         specs = {c.file: c for c in meta.captures}
         return [(path, specs.get(path.name))]
     if meta.captures:
-        files = [(inside(path, c.file, meta.source), c) for c in meta.captures]
+        files: list[tuple[Path, CaptureSpec | None]] = [(inside(path, c.file, meta.source), c) for c in meta.captures]
         for file, _ in files:
             if not os.path.exists(file):  # False, not OSError, for a name too long to exist
                 raise InputError("capture file named in dataset.toml does not exist", path=file)
             require_regular(file)
         return files
-    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir())
+    found = sorted(p for p in path.iterdir() if is_capture(p) and not p.is_dir())
     if not found:
-        raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
+        raise InputError(f"no capture files ({patterns()}) in the dataset directory", path=path)
     resolved = path.resolve()
     for file in found:  # an entry that is no link lies in the directory: only a link can lead out of it
         if file.is_symlink() and not file.resolve().is_relative_to(resolved):

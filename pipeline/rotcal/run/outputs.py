@@ -1,7 +1,8 @@
 """What a run publishes: its output items (``Table``s and ``Figure``s: the
 intrinsic and cross-sensitivity tables of the recommended model,
 calibration.json, the diagnosis's tables and report, the certificate) and
-the one writer, ``publish``, in ``PUBLISH_ORDER``."""
+the one writer, ``publish``, in the order of the outputs registry
+(``model.outputs.OUTPUTS``), which names every item."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from rotcal.metrology import (
     cross_sensitivity_frame,
 )
 from rotcal.model.calibration import Calibration, Recommended, recommended_calibration
+from rotcal.model.identification import Identification
+from rotcal.model.outputs import output, publish_rank
 from rotcal.model.results import IntrinsicResult, Table
 from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.tables import contract_table, write_table
@@ -28,6 +31,7 @@ if TYPE_CHECKING:
 
     from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.static import StaticDiagnosis
+    from rotcal.report.certificate_blocks import Document
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,16 +42,9 @@ class Figure:
     name: str
     draw: Callable[[Path], Path | None]
 
-
-# the run's files in the order they are published (and listed in RunOutcome.written)
-PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
-                 "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
-                 "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
-                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
-
-
-# the tables that describe the input rather than a result: published even when no rate can be determined
-INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
+    def __post_init__(self) -> None:
+        if output(self.name).is_table:
+            raise KeyError(f"{self.name!r} is a table, published as a Table")
 
 
 def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> list[Table]:
@@ -60,11 +57,14 @@ def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> 
 
 
 def calibration_document(chosen: Recommended, ds: Dataset, config: RunConfig,
-                         known: Mapping[tuple[int, ...], str] | None = None) -> Calibration:
+                         known: Mapping[tuple[int, ...], str] | None = None,
+                         site: Identification = Identification()) -> Calibration:
     """The run's ``calibration.json``: the recommended result per rate,
     g_local and its source, the inputs' hashes (those ``known`` not read
-    again: ``content_hashes``) and every configuration key."""
-    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config))
+    again: ``content_hashes``), every configuration key and the
+    certificate's fields (``dataset.toml``'s over the ``site`` file's)."""
+    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config),
+                                   site)
 
 
 def calibration_output(calibration: Calibration) -> Figure:
@@ -102,25 +102,46 @@ class View:
     name: str
     draw: Callable[[Path, Mapping[str, pa.Table]], Path | None]
 
+    def __post_init__(self) -> None:
+        if output(self.name).is_table:
+            raise KeyError(f"{self.name!r} is a table, published as a Table")
 
-def certificate_output(config: RunConfig, calibration: Calibration) -> View:
+
+def certificate_outputs(config: RunConfig, calibration: Calibration) -> list[View]:
     """The certificate (``report.certificate``), published last: a view of
-    the files published before it, drawn when they include calibration.json."""
-    def draw(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
+    the files published before it, drawn when they include calibration.json,
+    as HTML and (``[report] pdf``) as PDF, both from one document."""
+    built: dict[str, Document] = {}
+
+    def document(out: Path, published: Mapping[str, pa.Table]) -> Document | None:
         if not (out / "calibration.json").is_file():
             return None
+        if "doc" not in built:
+            from rotcal.report.certificate import document as certificate_document
+
+            # calibration_output wrote and validated this document in this same
+            # publish, and the tables are those just written: neither is read back
+            built["doc"] = certificate_document(out, config.report.figures, calibration=calibration, published=published)
+        return built["doc"]
+
+    def html(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
         from rotcal.report.certificate import write_certificate
 
-        # calibration_output wrote and validated this document in this same
-        # publish, and the tables are those just written: neither is read back
-        return write_certificate(out, config.report.figures, calibration=calibration, published=published)
+        doc = document(out, published)
+        return None if doc is None else write_certificate(out, doc=doc)
 
-    return View("certificate", draw)
+    def pdf(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
+        from rotcal.report.certificate import write_certificate_pdf
+
+        doc = document(out, published)
+        return None if doc is None or not config.report.pdf else write_certificate_pdf(out, config.report.paper, doc=doc)
+
+    return [View("certificate", html), View("certificate_pdf", pdf)]
 
 
 def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[Path, ...]:
-    """Publish what the run produced as the whole of ``out``, in
-    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
+    """Publish what the run produced as the whole of ``out``, in the
+    registry's order (``model.outputs.OUTPUTS``, which names every item): each
     table as Parquet under its schema (``tables.contract_table``; handed to
     ``out.on_table`` too), each figure drawn, each view drawn from the
     tables before it, staged beside ``out``, listed and swapped in
@@ -128,8 +149,7 @@ def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[P
     published: dict[str, pa.Table] = {}
 
     def write(staging: Path) -> list[Path]:
-        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
-        paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: order.get(o.name, len(order))))
+        paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: publish_rank(o.name)))
         return [path for path in paths if path is not None]
 
     def write_item(item: Table | Figure | View, staging: Path) -> Path | None:

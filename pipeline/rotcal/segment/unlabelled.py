@@ -18,14 +18,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import pose_table
+from rotcal.fit.means import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
 from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.tables import conform, schema
-from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
+from rotcal.timebase.rates import PLAN_MATCH, ClockDrift, clock_drift, nominal_rate, rate_classes
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +42,8 @@ class Inference:
     findings: tuple[dict, ...]
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
+    clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``ClockDrift.factor``)
+    route: str = ""  # what the signals showed: rotations, step sequences, chains by hand, dwells (the route's evidence)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +73,7 @@ class _Found:
     rows: list[dict] = field(default_factory=list)
     rotations: list[_Rotation] = field(default_factory=list)
     dwells: list[pl.DataFrame] = field(default_factory=list)
-    counts: np.ndarray = field(default_factory=lambda: np.zeros(3, int))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(4, int))
 
 
 def _segment_row(dataset: str, key: int, capture: str, kind: str, axis: str | None, rate: float, t0: int, t1: int,
@@ -95,10 +97,11 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
                                          r.chi2_reduced))
         segment[r.start : r.stop] = found.key
         found.key += 1
-    found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells)]
+    found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells), blind.hand_chains]
     if not len(blind.dwells):
         return segment
-    spread = np.array([y[s:e].std(axis=0, ddof=1) for s, e in blind.dwells])
+    # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
+    spread = np.array([y[s:e].std(axis=0, ddof=1) if e - s > 1 else np.full(y.shape[1], np.nan) for s, e in blind.dwells])
     chi2 = (spread**2 / blind.noise_sd**2).mean(axis=1)
     group = np.full(len(blind.dwells), -1)
     for q in blind.sequences:
@@ -126,10 +129,10 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
 
 
 def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[float, ...]
-                    ) -> tuple[list[dict], list[dict], list[SegmentFit], dict, list[str]]:
+                    ) -> tuple[list[dict], list[dict], list[SegmentFit], ClockDrift]:
     """Rates of the rotations without an angle reference against the nominal
     ones: segment rows of the inferred ones, the fitted columns of the
-    labelled ones, every own-phase fit, the clock-drift finding and warnings."""
+    labelled ones, every own-phase fit and the logger clock's drift."""
     usable = np.array([r.fit is not None and r.reason is None and r.fit.determined for r in rotations], bool)
     measured = np.array([r.fit.rate_hz if r.fit else np.nan for r in rotations])
     u = np.array([r.fit.rate_u_hz if r.fit else np.nan for r in rotations])
@@ -156,7 +159,7 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
         fits.append(replace(fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if fit is not None else
                     SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}" if r.reason else
                                       "its own-phase fit is not determined (too few samples for ten parameters)", float("nan")))
-    return rows, updates, fits, drift.finding(dataset), drift.warnings()
+    return rows, updates, fits, drift
 
 
 def _outputs(samples: pl.DataFrame, rows: np.ndarray) -> np.ndarray:
@@ -193,15 +196,19 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         if idx.size >= 10:
             seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], _outputs(samples, idx),
                                             unrepairable.get(capture), config)
-    notes = ([f"segments inferred from the signals of {len(captures)} capture(s): {found.counts[0]} constant "
-              f"rotations, {found.counts[1]} static step sequences, {found.counts[2]} dwells in all"] if captures else [])
+    hand = (f", {found.counts[3]} chain(s) of dwells about one axis without a table's steps (directions off one great "
+            "circle, or unequal steps: poses turned by hand)") if found.counts[3] else ""
+    route = (f"{found.counts[0]} constant rotations, {found.counts[1]} static step sequences{hand}, {found.counts[2]} dwells "
+             "in all") if captures else ""
+    notes = [f"segments inferred from the signals of {len(captures)} capture(s): {route}"] if captures else []
     for row in kept.filter((pl.col("kind") == "rotation") & (pl.col("angle_source") == "none")).iter_rows(named=True):
         on = seg_col == row["segment"]
         reason = unrepairable.get(row["capture"])
         fit = None if reason else fit_sine(t_all[on], _outputs(samples, np.flatnonzero(on)), abs(row["rate_hz"]))
         found.rotations.append(_Rotation(row["segment"], row["capture"], row["axis"], row["label_source"],
                                          row["rate_hz"], fit, reason, row["t_start_ns"], row["t_end_ns"], int(on.sum())))
-    rows, updates, fits, finding, warnings = _own_phase_fits(found.rotations, dataset, plan_rates)
+    rows, updates, fits, drift = _own_phase_fits(found.rotations, dataset, plan_rates)
+    warnings = drift.warnings()
     if updates:
         kept = kept.update(pl.DataFrame(updates, schema_overrides={"segment": pl.Int32}), on="segment")
     new = pl.DataFrame(found.rows + rows, schema=schema("segments").polars_schema) if found.rows or rows else schema("segments").empty()
@@ -224,5 +231,5 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
     return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
-                     (finding,) if found.rotations else (), tuple(warnings), tuple(notes))
+                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor, route)
 

@@ -35,10 +35,10 @@ from mcap.records import Schema
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_chunks import tiles
-from rotcal.ingest.mcap_columns import DecodedTopic, Records, decode_messages
-from rotcal.ingest.mcap_records import McapFile, Unsupported, chunk_data, chunk_records, parse_channel, parse_schema, top_records
-from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.ingest.formats.mcap.chunks import tiles
+from rotcal.ingest.formats.mcap.columns import DecodedTopic, Records, decode_messages
+from rotcal.ingest.formats.mcap.records import McapFile, Unsupported, chunk_data, chunk_records, parse_channel, parse_schema, top_records
+from rotcal.ingest.formats.mcap.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
 # Chunks are read and handed to the thread pool together up to this many
@@ -315,7 +315,7 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
 
 def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: int = 0,
                        only: frozenset[int] = frozenset()) -> Generator[dict[str, DecodedTopic], None, dict[str, DecodedTopic]]:
-    """``read_topics`` a batch of chunks at a time (issue 16, item 1): after
+    """``read_topics`` a batch of chunks at a time: after
     each batch (at most ``BATCH_BYTES`` of chunks, decompressed on
     ``parallel.cores(workers)`` threads), the kept channels' messages in it,
     each a finished ``DecodedTopic`` holding that batch's columns only, by

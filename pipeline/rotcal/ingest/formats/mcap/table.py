@@ -15,11 +15,11 @@ import numpy as np
 import polars as pl
 
 from rotcal.errors import InputError
+from rotcal.ingest.formats.mcap.columns import DecodedTopic
+from rotcal.ingest.formats.mcap.json_lines import NUMBER_FIELDS, TEXT_FIELDS
+from rotcal.ingest.formats.mcap.messages import MessageTopic, decoder
+from rotcal.ingest.formats.mcap.records import Unsupported
 from rotcal.ingest.labels import MAX_ABS_TIME_S
-from rotcal.ingest.mcap_columns import DecodedTopic
-from rotcal.ingest.mcap_json import NUMBER_FIELDS, TEXT_FIELDS
-from rotcal.ingest.mcap_messages import MessageTopic, decoder
-from rotcal.ingest.mcap_records import Unsupported
 from rotcal.model.physics import AXES, JOINT_SIGN
 from rotcal.parallel import cores
 
@@ -246,7 +246,7 @@ def _axis_code(labels: np.ndarray, axes: list) -> np.ndarray:
 
 def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
     if topic.kind == "json":
-        return _json_track(finite_numbers(topic.frame), topic.columns["log_ns"], topic.channel.topic, path)
+        return _json_track(finite_numbers(topic.parsed), topic.columns["log_ns"], topic.channel.topic, path)
     elif topic.kind == "joint":
         c = topic.take()
         if c["position"].shape[1] == 1:
