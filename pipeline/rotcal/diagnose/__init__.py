@@ -35,7 +35,6 @@ from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
-from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.diagnose.observed import observations
 from rotcal.diagnose.reconstructed import with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
@@ -48,6 +47,7 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
+from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES, CHANNELS
