@@ -102,7 +102,7 @@ def _window(pooled: dict[int, tuple[np.ndarray, float]], low: float, high: float
         low, high = low / 2, high * 2
     if m == 0:
         return np.ones(len(next(iter(pooled.values()))[0])), 0.0
-    return sum(pooled[k][0] for k in chosen) / m, m
+    return np.asarray(sum(pooled[k][0] for k in chosen), float) / m, m
 
 
 def _coloured(ratio: np.ndarray, m: float) -> np.ndarray:
