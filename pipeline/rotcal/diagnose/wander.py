@@ -1,9 +1,9 @@
 """Effects that act on the segments' offsets, tested against the offset's
 wander.
 
-``offset_drift``, ``centripetal`` and ``axis_tilt`` move each segment's
-offset (a trend in time, a shift growing with the rate squared, a shift per
-axis). So does a slow wander of the sensor's bias (a Gauss-Markov term,
+Some effects move each segment's offset as a whole (``offset_drift``,
+``centripetal``, ``axis_tilt``: a trend in time, a shift growing with the
+rate squared, a shift per axis; the effects' ``moves_segment_offsets``). So does a slow wander of the sensor's bias (a Gauss-Markov term,
 flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
@@ -32,9 +32,9 @@ import polars as pl
 
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
 from rotcal.diagnose.scans import p_is
+from rotcal.model.effects import catalogue
 from rotcal.model.physics import CHANNELS
 
-WANDER_RIVALS = ("offset_drift", "centripetal", "axis_tilt")
 # these effects are constant within a segment (a drift nearly so), but dropping one refits the rest, whose
 # readjustment varies within segments: a third of the difference constant marks a segment-level pattern
 SEGMENT_CONSTANT = 0.3
@@ -75,7 +75,8 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
     texts: dict[str, str] = {}
     if not noise.wanders:
         return final, texts
-    for cand in [c for c in final.active if c.effect in WANDER_RIVALS]:
+    rivals = {e.name for e in catalogue() if e.moves_segment_offsets}
+    for cand in [c for c in final.active if c.effect in rivals]:
         reduced = without(final, (cand,))
         stat, constant = _segment_test(final, reduced, noise)
         if stat is None or constant < SEGMENT_CONSTANT:

@@ -283,7 +283,7 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     first, last = (np.array([rows[r["segment"]][0] + k * (rows[r["segment"]][1] - 1) for r in todo_rows], np.int64) for k in (0, 1))
     t_first, t_last = (t_ns[i] / 1e9 if len(t_ns) else np.zeros(0) for i in (first, last))
     return offset_floor(spectrum_widened(fits), (t_first + t_last) / 2, t_last - t_first,
-                        [(r["kind"], r["rate_hz"]) for r in todo_rows])
+                        [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows])
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

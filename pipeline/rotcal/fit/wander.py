@@ -6,14 +6,20 @@ Gauss-Markov term of long time constant) moves each segment's offset as a
 whole, and a segment's residuals cannot see it. Under the model every
 segment's C of a channel measures one offset O_r (Geist 2017 Eq. 5: the
 gravity projection on a horizontal table axis is zero), so their scatter
-beyond the fits' uncertainties measures the wander. Where Cochran's Q
-rejects one common offset (at ``SIGNIFICANCE``: white noise leaves the fits
-as they were), the offsets are taken as
+beyond the fits' uncertainties measures the wander, once the deterministic
+effects that move whole segments' offsets are allowed for (``offset_pattern``:
+a linear drift in time, a shift per table axis and one growing with the
+rate squared per axis, i.e. offset_drift, axis_tilt, centripetal; the
+diagnosis tests those). Where the generalised Cochran's Q, the weighted
+residual sum of squares of the offsets beyond that pattern, rejects it (at
+``SIGNIFICANCE`` on n - rank degrees of freedom: white noise, with or
+without those effects, leaves the fits as they were), the offsets are taken as
 
-    C_i = O_r + w(t_i) + e_i,   cov(w(t_i), w(t_j)) = s^2 exp(-|t_i - t_j| / tau),
+    C_i = x_i^T b_r + w(t_i) + e_i,   cov(w(t_i), w(t_j)) = s^2 exp(-|t_i - t_j| / tau),
 
 a first-order Gauss-Markov wander at the segments' mid-times beside each
-fit's own noise e_i, with s^2 per channel and tau shared by the channels,
+fit's own noise e_i and the pattern x_i^T b_r, with s^2 per channel and tau
+shared by the channels,
 by restricted maximum likelihood (Patterson & Thompson 1971, Biometrika 58,
 545) on a grid. The stages after the fits take segments as independent, so
 each segment of a group combined together (one rate and kind) carries the
@@ -31,7 +37,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi-square isf; scipy.stats costs every batch worker 0.3 s to import
 
 # the fits are ``fit.segments.SegmentFit`` records (not imported: that module imports this one)
 SegmentFit = Any
@@ -46,25 +52,41 @@ SLOWER_THAN_RECORD = ("the offset wanders more slowly than the record lasts: its
                       "floor is its upper 95 % likelihood bound (a longer record would measure it)")
 
 
-def restricted_loglik(c: np.ndarray, v: np.ndarray, corr: np.ndarray, s2: np.ndarray) -> np.ndarray:
+def restricted_loglik(c: np.ndarray, v: np.ndarray, corr: np.ndarray, s2: np.ndarray, x: np.ndarray) -> np.ndarray:
     """REML log-likelihood (up to a constant) of offsets ``c`` with fit
-    variances ``v`` under a common mean and wander variances ``s2`` (each)."""
+    variances ``v`` under fixed effects ``x`` (segments, full column rank)
+    and wander variances ``s2`` (each)."""
     out = np.empty(s2.size)
-    ones = np.ones_like(c)
     for k, s in enumerate(s2):
         chol = np.linalg.cholesky(np.diag(v) + s * corr)
-        a, b = np.linalg.solve(chol, ones), np.linalg.solve(chol, c)
-        aa = a @ a
-        rss = b @ b - (a @ b) ** 2 / aa
-        out[k] = -np.sum(np.log(np.diag(chol))) - 0.5 * np.log(aa) - 0.5 * rss
+        a, b = np.linalg.solve(chol, x), np.linalg.solve(chol, c)
+        q, r = np.linalg.qr(a)
+        rss = b @ b - np.sum((q.T @ b) ** 2)
+        out[k] = -np.sum(np.log(np.diag(chol))) - np.sum(np.log(np.abs(np.diag(r)))) - 0.5 * rss
     return out
 
 
-def wander_fit(c: np.ndarray, v: np.ndarray, t_s: np.ndarray, tau_range: tuple[float, float]
+def offset_pattern(t_s: np.ndarray, rate_hz: np.ndarray, axis: list[object]) -> np.ndarray:
+    """The deterministic offset pattern's design (segments, columns), full
+    column rank: a common offset, a drift linear in time, and per table axis
+    a shift and one proportional to the rate squared (a pose's rate is 0)."""
+    t = t_s - t_s.mean()
+    cols = [np.ones_like(t), t / max(float(np.abs(t).max()), 1e-9)]
+    w2 = np.nan_to_num(np.asarray(rate_hz, float)) ** 2
+    for a in sorted({str(a) for a in axis}):
+        on = np.array([str(b) == a for b in axis], float)
+        cols += [on, on * w2 / max(float(w2.max()), 1e-9)]
+    x = np.column_stack(cols)
+    # keep a basis of its column space (the axis shifts sum to the common offset; a rate may be single)
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    return u[:, sv > sv[0] * 1e-9]
+
+
+def wander_fit(c: np.ndarray, v: np.ndarray, t_s: np.ndarray, tau_range: tuple[float, float], x: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, float]:
     """(s^2 per channel, its upper 95 % profile-likelihood bound, tau) by
     REML over a grid: ``c``, ``v`` (segments, channels) offsets and their
-    fit variances, ``t_s`` mid-times."""
+    fit variances, ``t_s`` mid-times, ``x`` the offsets' fixed effects."""
     lag = np.abs(t_s[:, None] - t_s[None, :])
     taus = np.geomspace(*tau_range, TAU_GRID)
     spread = np.maximum(np.var(c, axis=0, ddof=1), np.mean(v, axis=0))
@@ -72,7 +94,7 @@ def wander_fit(c: np.ndarray, v: np.ndarray, t_s: np.ndarray, tau_range: tuple[f
     best: tuple[float, float, list[np.ndarray]] = (-np.inf, taus[0], [])
     for tau in taus:
         corr = np.exp(-lag / tau)
-        ll = [restricted_loglik(c[:, r], v[:, r], corr, grids[r]) for r in range(c.shape[1])]
+        ll = [restricted_loglik(c[:, r], v[:, r], corr, grids[r], x) for r in range(c.shape[1])]
         total = sum(float(x.max()) for x in ll)
         if total > best[0]:
             best = (total, tau, ll)
@@ -83,10 +105,12 @@ def wander_fit(c: np.ndarray, v: np.ndarray, t_s: np.ndarray, tau_range: tuple[f
     return s2, upper, float(best[1])
 
 
-def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.ndarray, groups: list[object]) -> list[SegmentFit]:
+def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.ndarray, groups: list[tuple[str, float]],
+                 axis: list[object]) -> list[SegmentFit]:
     """``fits`` with each channel's offset wander added to their C
     variances (module docstring): ``t_mid_s``, ``duration_s`` each fit's
-    mid-time and length, ``groups`` the key of the fits combined together."""
+    mid-time and length, ``groups`` the key (kind, rate in Hz) of the fits
+    combined together, ``axis`` each fit's table axis."""
     ok = [k for k, f in enumerate(fits) if f.status == "ok"]
     if not ok:
         return fits
@@ -95,15 +119,23 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
         return [replace(f, noise_note=note) if f.status == "ok" else f for f in fits]
     c = np.array([fits[k].coef[:, 0] for k in ok])
     v = np.array([np.diag(fits[k].cov)[0::3] for k in ok])
-    w = 1.0 / np.maximum(v, 1e-300)
-    q = (w * (c - (w * c).sum(axis=0) / w.sum(axis=0)) ** 2).sum(axis=0)
-    wanders = q > chi2.isf(SIGNIFICANCE, len(ok) - 1)
+    x = offset_pattern(t_mid_s[ok], np.array([groups[k][1] if groups[k][0] == "rotation" else 0.0 for k in ok], float),
+                       [axis[k] for k in ok])
+    dof = len(ok) - x.shape[1]
+    if dof < 1:
+        return fits  # the pattern takes every segment: nothing left to measure a wander by
+    sw = 1.0 / np.sqrt(np.maximum(v, 1e-300))
+    q = np.empty(c.shape[1])
+    for r in range(c.shape[1]):
+        a, b = x * sw[:, r, None], c[:, r] * sw[:, r]
+        q[r] = float(np.sum((b - a @ np.linalg.lstsq(a, b, rcond=None)[0]) ** 2))
+    wanders = q > chdtri(dof, SIGNIFICANCE)
     if not wanders.any():
         return fits
     t = t_mid_s[ok]
     span = float(t.max() - t.min())
     tau_top = 10.0 * max(span, 1e-9)
-    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top))
+    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top), x)
     slower = tau >= span  # the record shows no wander's decorrelation: its size is a lower bound, the bound taken
     s2 = np.where(wanders, upper if slower else s2, 0.0)
     corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)

@@ -245,7 +245,8 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
                                       float(np.max(np.abs(np.r_[r.low, r.high]))))
     angled = [r for r in runs if r.has_angle]  # the offsets' wander between segments, as in memory (``fit.wander``)
     fits = offset_floor(fits, np.array([(r.t_start_ns / 1e9 + r.t_end_ns / 1e9) / 2 for r in angled]),
-                        np.array([r.t_end_ns / 1e9 - r.t_start_ns / 1e9 for r in angled]), [(r.kind, r.rate_hz) for r in angled])
+                        np.array([r.t_end_ns / 1e9 - r.t_start_ns / 1e9 for r in angled]), [(r.kind, r.rate_hz) for r in angled],
+                        [AXES[r.axis] if r.axis >= 0 else None for r in angled])
     sizes = {r.segment: (r.first, r.n) for r in runs}
     return StreamedSegments(blocks, segments, fits, sums, with_segments(gathered, sizes), frozenset(r.segment for r in fitted),
                             sizes, n_samples)

@@ -22,6 +22,7 @@ from rotcal.model.effects.base import (
 
 class AxisTilt(GravityEffect):
     name = "axis_tilt"
+    moves_segment_offsets = True
     physics = "the rotation axis is tilted from horizontal: a -> cos(tilt) a + g sin(tilt) s_hat"
     parameters = (Parameter("tilt_deg", "degree", "tilt, positive when gravity gains a component along +s_hat"),)
     options = frozenset({"axis", "tilt_deg"})

@@ -205,6 +205,9 @@ class Effect:
     # A rotation fitted against its own phase absorbs it (the fitted rate is the true one,
     # ``rotcal.diagnose.reconstructed``): not tested on angles reconstructed from solved phases.
     absorbed_by_own_phase: ClassVar[bool] = False
+    # It moves each segment's offset as a whole (a trend in time, a shift per rate or axis), as a
+    # slow wander of the bias does: tested against a measured wander (``rotcal.diagnose.wander``).
+    moves_segment_offsets: ClassVar[bool] = False
 
     # --- the simulator -------------------------------------------------
     def complete(self, params: dict, rng: np.random.Generator) -> dict:

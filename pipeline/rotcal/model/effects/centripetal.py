@@ -30,6 +30,7 @@ def across(axis: str) -> tuple[str, str]:
 
 class Centripetal(ForceEffect):
     name = "centripetal"
+    moves_segment_offsets = True
     physics = "the DUT sits at d off the rotation axis: a -> a - w^2 d (Gaitan 2021 Sec. 4)"
     parameters = (Parameter("radius_m", "m", "distance from the axis, abs(d)"), Parameter("d_x_m", "m", "component x of d"),
                   Parameter("d_y_m", "m", "component y of d"), Parameter("d_z_m", "m", "component z of d"))

@@ -12,6 +12,7 @@ from rotcal.model.effects.families import PerChannelEffect
 
 class OffsetDrift(PerChannelEffect, OffsetEffect):
     name = "offset_drift"
+    moves_segment_offsets = True
     physics = "offsets drift during the recording: O_r -> O_r + rho_r (t - t0)"
     parameters = tuple(Parameter(f"drift_{c}", "output unit per s", f"drift rho of {c}") for c in CHANNELS)
     options = frozenset(p.name for p in parameters)
