@@ -1,0 +1,130 @@
+"""MCAP files that are valid but unusual, or damaged where the chunk pool is
+busiest: empty chunks and chunks of definitions alone before the last one,
+a damaged chunk while the next batch is in flight, one topic over several
+channels. Every read runs in a subprocess with a timeout, so a deadlock in
+the chunk pool fails the test instead of hanging the suite."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, Chunk, DataEnd, Footer, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from rotcal.config import Limits
+from rotcal.ingest import mcap_messages, ros2_msgdefs
+from rotcal.simulate.mcap_writer import MAGIC
+
+IMU_MESSAGES = 3000
+
+
+def _record(record) -> bytes:
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.end()
+
+
+def _imu_capture(path: Path) -> Path:
+    """Imu messages in chunks of about 4 kB (many chunks, several batches once
+    ``BATCH_BYTES`` is made small)."""
+    with path.open("wb") as fh:
+        writer = Ros2Writer(fh, chunk_size=4096, compression=CompressionType.ZSTD)
+        imu = writer.register_msgdef(ros2_msgdefs.IMU_SCHEMA, ros2_msgdefs.IMU)
+        for k in range(IMU_MESSAGES):
+            t = 1_000_000_000 + 10_000_000 * k
+            writer.write_message("/imu", imu, {
+                "header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}, "frame_id": "imu"},
+                "linear_acceleration": {"x": float(k), "y": 1.0, "z": 2.0}}, log_time=t, publish_time=t)
+        writer.finish()
+    return path
+
+
+def _empty_chunk(compression: str) -> Chunk:
+    data = zstandard.compress(b"") if compression == "zstd" else b""
+    return Chunk(compression=compression, data=data, message_start_time=0, message_end_time=0,
+                 uncompressed_crc=0, uncompressed_size=0)
+
+
+def _definitions_chunk() -> Chunk:
+    body = (_record(Schema(id=77, name="other/msg/Thing", encoding="ros2msg", data=b"int32 a"))
+            + _record(Channel(id=77, schema_id=77, topic="/other", message_encoding="cdr", metadata={})))
+    return Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
+                 uncompressed_crc=0, uncompressed_size=len(body))
+
+
+def _rebuilt(source: Path, path: Path, before_last: list[Chunk] = (), damaged: int | None = None) -> Path:
+    """``source``'s records with ``before_last`` chunks inserted before its
+    last chunk and the CRC of chunk ``damaged`` spoiled (no summary)."""
+    records = list(StreamReader(source.open("rb"), emit_chunks=True).records)
+    chunks = [k for k, r in enumerate(records) if isinstance(r, Chunk)]
+    if damaged is not None:
+        records[chunks[damaged]].uncompressed_crc ^= 1
+    with path.open("wb") as fh:
+        fh.write(MAGIC)
+        for k, record in enumerate(records):
+            if isinstance(record, DataEnd):
+                fh.write(_record(record) + _record(Footer(0, 0, 0)) + MAGIC)
+                break
+            if k == chunks[-1]:
+                fh.write(b"".join(map(_record, before_last)))
+            fh.write(_record(record))
+    return path
+
+
+_READ = """
+import json, sys
+from pathlib import Path
+from rotcal.config import Limits
+from rotcal.ingest import mcap_fast
+from rotcal.ingest.mcap_records import Unsupported
+mcap_fast.BATCH_BYTES = 64 * 1024  # many batches, each launched while the one before is decoded
+out = {}
+for workers in (1, 2, 3, 4):
+    try:
+        found = mcap_fast.read_topics(Path(sys.argv[1]), {"/imu"}, Limits(), workers)
+        out[workers] = found["/imu"].count
+    except Unsupported as exc:
+        out[workers] = str(exc)
+print(json.dumps(out))
+"""
+
+
+def _fast_reads(path: Path) -> dict[str, int | str]:
+    """The fast path's reads on 1 to 4 threads, in a subprocess that a
+    deadlock cannot hang (it fails at the timeout)."""
+    done = subprocess.run([sys.executable, "-c", _READ, str(path)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    return _imu_capture(tmp_path_factory.mktemp("chunks") / "imu.mcap")
+
+
+@pytest.mark.parametrize("inserted", [[_empty_chunk("")], [_empty_chunk("zstd")], [_definitions_chunk()],
+                                      [_empty_chunk("zstd"), _definitions_chunk(), _empty_chunk("")]])
+def test_empty_and_definition_only_chunks_read_in_full_on_any_thread_count(capture, tmp_path, inserted):
+    path = _rebuilt(capture, tmp_path / "inserted.mcap", inserted)
+    assert _fast_reads(path) == {str(w): IMU_MESSAGES for w in (1, 2, 3, 4)}
+    assert mcap_messages.read_records(path, {"/imu"}, Limits())["/imu"].count == IMU_MESSAGES
+
+
+@pytest.mark.parametrize("damaged", [0, 3, 20])
+def test_a_damaged_chunk_while_the_next_batch_is_in_flight_is_declined_not_hung(capture, tmp_path, damaged):
+    """A chunk failing its CRC in one batch while the next batch is queued
+    behind it: the rest of its batch is cancelled, and the next batch's
+    first chunk waits on one of them (a deadlock before every chunk's event
+    was set as the read ends). Declined on every thread count, so that the
+    per-message path words the error."""
+    path = _rebuilt(capture, tmp_path / "damaged.mcap", [_empty_chunk("zstd")], damaged=damaged)
+    reads = _fast_reads(path)
+    assert all("fails its CRC check" in str(reads[str(w)]) for w in (1, 2, 3, 4)), reads
