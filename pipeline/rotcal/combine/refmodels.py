@@ -209,6 +209,9 @@ def reference_advice(ref: np.ndarray) -> list[str]:
     spanning three dimensions every angle is determined, best by the faces:
     pose +u measures r_v's u component, the cross-axis reading, with
     weight 1, a pose between +u and +v with weight 0.71.)"""
+    spread = np.linalg.svd(np.column_stack([ref, np.ones(len(ref))]), compute_uv=False)
+    if len(ref) >= 4 and spread[-1] > 1e-9 * spread[0]:
+        return []  # the references span three dimensions: the 12 parameters failed for another reason
     normal = np.linalg.svd(ref)[2][-1]
     normal = normal * np.sign(normal[np.argmax(np.abs(normal))])
     axis = ", ".join(f"{c:.2f}" for c in normal + 0.0)

@@ -9,7 +9,7 @@ from rich.table import Table
 from rich.text import Text
 
 from rotcal.combine.labelled import units
-from rotcal.combine.poses import ReferenceFit
+from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit
 from rotcal.combine.static import StaticReduction
 from rotcal.errors import ExitCode
 from rotcal.model.calibration import Recommended, rate_calibration
@@ -50,6 +50,10 @@ def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
     freedom, noise-only reduced chi-square and excess scatter."""
     fit = static.fit
     n = static.positions.height
+    if isinstance(fit, OrthogonalReferenceFit):
+        return (f"9-parameter fit of orthogonal axes to {n} positions of known reference ({static.frame} frame): "
+                f"residual dof {fit.dof}, excess scatter per position (u, v, w) "
+                f"{', '.join(f'{e:.3g}' for e in np.sqrt(np.diag(fit.excess_cov)))} {output_unit}")
     if isinstance(fit, ReferenceFit):
         excess = ", ".join(f"{e:.3g}" for e in fit.excess_std)
         return (f"12-parameter fit to {n} positions of known reference ({static.frame} frame): residual dof {fit.dof}, "
