@@ -25,6 +25,7 @@ from typing import TypeAlias
 import numpy as np
 import polars as pl
 
+from rotcal.combine.channels import channel_fault
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.posemodels import ModelChoice, advice, choose_model, determines, gravity_cone
 from rotcal.combine.poses import (
@@ -140,6 +141,9 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         positions = still_poses(samples)
         if positions.height == 0:
             return Failure(0.0, "no still intervals found")
+    fault = channel_fault(positions)
+    if fault is not None:
+        return Failure(0.0, fault)
     source = positions["source"][0]
     if source != "stillness":
         return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty), "reference",
