@@ -53,6 +53,7 @@ from rotcal.run.outputs import Figure
 from rotcal.run.streamed import StreamedDataset, corrected_blocks, streamed_fits, streamed_segments
 from rotcal.run.streaming import StreamedSegments
 from rotcal.segment import infer_segments, segment_by_labels
+from rotcal.segment.angles import check_angle_rates
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
@@ -133,6 +134,7 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
         ds = replace(whole, notes=whole.notes + notes)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
+    check_angle_rates(samples, ds.root)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
     timebase = classify_gaps(timebase, inferred.samples, inferred.segments)  # gaps between segments: pauses
     # a table recording (labelled or found in the signals); otherwise a static one (``reduce``)
