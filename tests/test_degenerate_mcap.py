@@ -20,6 +20,7 @@ from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from rotcal.config import Limits
+from rotcal.errors import InputError
 from rotcal.ingest import mcap_messages, ros2_msgdefs
 from rotcal.simulate.mcap_writer import MAGIC
 
@@ -83,6 +84,7 @@ _READ = """
 import json, sys
 from pathlib import Path
 from rotcal.config import Limits
+from rotcal.errors import InputError
 from rotcal.ingest import mcap_fast
 from rotcal.ingest.mcap_records import Unsupported
 mcap_fast.BATCH_BYTES = 64 * 1024  # many batches, each launched while the one before is decoded
@@ -128,3 +130,57 @@ def test_a_damaged_chunk_while_the_next_batch_is_in_flight_is_declined_not_hung(
     path = _rebuilt(capture, tmp_path / "damaged.mcap", [_empty_chunk("zstd")], damaged=damaged)
     reads = _fast_reads(path)
     assert all("fails its CRC check" in str(reads[str(w)]) for w in (1, 2, 3, 4)), reads
+
+
+
+def _split_capture(path: Path, second_encoding: str = "cdr") -> Path:
+    """Imu messages on /imu alternating between two channels (a second
+    channel of the same schema, or of JSON messages), in chunks of 4 kB."""
+    with path.open("wb") as fh:
+        ros2 = Ros2Writer(fh, chunk_size=4096, compression=CompressionType.ZSTD)
+        imu = ros2.register_msgdef(ros2_msgdefs.IMU_SCHEMA, ros2_msgdefs.IMU)
+        raw, other = ros2._writer, None  # the same file: a second channel on the topic
+        for k in range(IMU_MESSAGES):
+            t = 1_000_000_000 + 10_000_000 * k
+            message = {"header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}, "frame_id": "imu"},
+                       "linear_acceleration": {"x": float(k), "y": 1.0, "z": 2.0}}
+            if other is None or k % 2 == 0:
+                ros2.write_message("/imu", imu, message, log_time=t, publish_time=t)
+                other = other or raw.register_channel("/imu", second_encoding, imu.id if second_encoding == "cdr" else 0)
+            elif second_encoding == "cdr":
+                raw.add_message(other, log_time=t, data=ros2._encoders[imu.id](message), publish_time=t)
+            else:
+                raw.add_message(other, log_time=t, publish_time=t,
+                                data=json.dumps({"u": float(k), "v": 1.0, "w": 2.0}).encode())
+        ros2.finish()
+    return path
+
+
+def test_a_topic_split_over_two_channels_of_one_schema_is_read_whole(tmp_path):
+    """Only the first channel was read (half the samples, no note); both
+    are now, on every thread count (the fast path leaves it to the
+    per-message path), in time order."""
+    from rotcal.ingest import mcap_source
+    from rotcal.ingest.meta import load_meta
+
+    path = _split_capture(tmp_path / "split.mcap")
+    official = sum(1 for _ in __import__("mcap.reader", fromlist=["make_reader"]).make_reader(path.open("rb"))
+                   .iter_messages(topics=["/imu"]))
+    assert official == IMU_MESSAGES
+    for workers in (1, 2, 3, 4):
+        frame, _ = mcap_source.read_mcap_capture(path, load_meta(None), None, Limits(), workers)
+        assert frame.height == IMU_MESSAGES and frame["t_ns"].is_sorted()
+        assert frame["u"].to_list() == [float(k) for k in range(IMU_MESSAGES)]
+
+
+def test_a_topic_split_over_channels_of_different_messages_is_refused_naming_both(tmp_path):
+    """A JSON channel beside the Imu one on /imu: refused in one line that
+    names both channels (before: the first channel read alone, "channel u
+    holds 1e+06 in every sample" for a JSON channel registered first)."""
+    from rotcal.ingest import mcap_source
+    from rotcal.ingest.meta import load_meta
+
+    path = _split_capture(tmp_path / "mixed.mcap", "json")
+    with pytest.raises(InputError, match=r"topic '/imu' is split over channels of different messages: channel 1 "
+                                         r"\(cdr, schema 'sensor_msgs/msg/Imu'\) and channel 2 \(json, schema None\)"):
+        mcap_source.read_mcap_capture(path, load_meta(None), None, Limits())

@@ -97,10 +97,14 @@ class _State:
         self.schemas[record.id] = record
 
     def channel(self, body: bytes | memoryview) -> int | None:
-        """Register a channel as the per-message path does (the first per
-        topic); returns its id if its messages are to be decoded."""
+        """Register a channel as the per-message path does; returns its id
+        if its messages are to be decoded. A second channel of a decoded
+        topic is left to the per-message path, which reads every channel
+        of a topic."""
         record = parse_channel(body, self.where)
         if record.topic in self.found:
+            if self.found[record.topic].channel.id in self.keep:
+                raise Unsupported("a topic over several channels")  # the per-message path reads them all
             return None
         topic = DecodedTopic(self.schemas.get(record.schema_id), record, self.counts.get(record.id, 0))
         self.found[record.topic] = topic
