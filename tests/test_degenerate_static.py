@@ -34,8 +34,8 @@ def jig():
 @pytest.mark.parametrize("fault, expected", [
     ("dead", "channel w reads 0 in every one of the 12 poses (dead, stuck or disconnected)"),
     ("stuck", "channel w reads 1234 in every one of the 12 poses (dead, stuck or disconnected)"),
-    ("saturated", "channel u reads 32767 without scatter in 6 of the 12 poses where the others put it beyond that "
-                  "(saturated at its upper limit)")])
+    ("saturated", "channel u reads 32767 without scatter in 6 of the 12 poses, where gravity's projection differs between "
+                  "them (saturated at its limit)")])
 def test_a_dead_stuck_or_saturated_channel_is_refused_with_the_reason(jig, tmp_path, fault, expected):
     """With jig references: a LinAlgError (dead), s_w = 4.6e-13 (stuck) or a
     published result (saturated) before; now one line saying why."""

@@ -1,8 +1,9 @@
 """Channels a static recording cannot calibrate, recognised from its poses:
 a channel that reads one value in every pose (dead, stuck or disconnected:
-no sensitivity to find), or one value throughout several poses at its
-extreme where the other poses' linear model puts them beyond it
-(saturated: pinned at the converter's limit). Either makes a fit claim a
+no sensitivity to find), or poses pinned without scatter at its extremes
+where the other poses' linear model puts them beyond (or, where the others
+do not determine it, while every other pose scatters): saturated at the
+converter's limit. Either makes a fit claim a
 sensitivity or an offset the channel never showed; the reduction is
 refused with the reason. (The table path refuses the same fault per
 segment: ``fit.segments.stuck_from``.)"""
@@ -36,20 +37,31 @@ def channel_fault(positions: pl.DataFrame) -> str | None:
         return None  # without references a pinned pose cannot be told from a quiet one
     design = np.column_stack([reference, np.ones(len(means))])
     for r, channel in enumerate(CHANNELS):
-        for sign, side in ((1.0, "upper"), (-1.0, "lower")):
-            extreme = (sign * means[:, r]).max()
-            # at the extreme, with no more scatter than the quietest pose (identical samples)
-            pinned = (sign * means[:, r] == extreme) & (var[:, r] <= 1.01 * var[:, r].min())
-            free = ~pinned
-            if np.count_nonzero(pinned) < MIN_PINNED_POSES or np.linalg.matrix_rank(design[free]) < 4:
-                continue
-            # saturated: the other poses' linear model puts the pinned ones beyond the value they hold
-            # (by more than the poses' spread about that model); a coarse output step does not
-            coef, *_ = np.linalg.lstsq(design[free], means[free, r], rcond=None)
-            spread = np.sqrt(np.mean((design[free] @ coef - means[free, r]) ** 2))
-            beyond = sign * (design[pinned] @ coef) - extreme
-            if np.all(beyond > 3 * spread + np.sqrt(var[:, r].max())):
-                return (f"channel {channel} reads {sign * extreme:g} without scatter in {np.count_nonzero(pinned)} of "
-                        f"the {len(means)} poses where the others put it beyond that (saturated at its {side} limit); "
-                        "poses within its range, or a range setting that holds 1 g, would calibrate it")
+        # at an extreme, with no more scatter than the quietest pose (identical samples)
+        quiet = var[:, r] <= 1.01 * var[:, r].min()
+        upper, lower = (means[:, r] == means[:, r].max()) & quiet, (means[:, r] == means[:, r].min()) & quiet
+        pinned = upper | lower
+        if np.count_nonzero(pinned) < MIN_PINNED_POSES or not _saturated(design, means[:, r], var[:, r], upper, lower):
+            continue
+        held = sorted({f"{v:g}" for v in means[pinned, r]})
+        return (f"channel {channel} reads {' or '.join(held)} without scatter in {np.count_nonzero(pinned)} of the "
+                f"{len(means)} poses, where gravity's projection differs between them (saturated at its limit); "
+                "poses within its range, or a range setting that holds 1 g, would calibrate it")
     return None
+
+
+def _saturated(design: np.ndarray, means: np.ndarray, var: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> bool:
+    """Whether poses pinned at the channel's extremes are a limit's, not a
+    coarse output step's. Where the other poses determine the channel's
+    linear model, saturated poses lie beyond the value they hold by more
+    than the model's spread; where they do not, the pinned poses must be
+    quieter than every other (a coarse step quiets them all)."""
+    pinned = upper | lower
+    free = ~pinned
+    if np.linalg.matrix_rank(design[free]) < 4:
+        return bool(free.any() and var[pinned].max() < var[free].min())
+    coef, *_ = np.linalg.lstsq(design[free], means[free], rcond=None)
+    spread = np.sqrt(np.mean((design[free] @ coef - means[free]) ** 2))
+    sign = np.where(upper, 1.0, -1.0)[pinned]
+    beyond = sign * (design[pinned] @ coef - means[pinned])
+    return bool(np.all(beyond > 3 * spread + np.sqrt(var.max())))
