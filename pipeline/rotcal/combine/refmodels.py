@@ -166,9 +166,11 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     state_cov = lift @ params_cov @ lift.T
     state = np.concatenate([(s[:, None] * rotation).ravel(), offsets])
     dof = 3 * n - 9
-    # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result states)
+    # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result
+    # states; its own where that one is exact and estimated none)
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(dof if own else full.dof)), state_cov)])
+                                        [(whole_fit_input("positions", float(dof if own or not full.dof else full.dof)),
+                                          state_cov)])
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 
