@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from rotcal.config import ReportConfig, RunConfig
 from rotcal.errors import RotcalError
 from rotcal.model.physics import CHANNELS
 from rotcal.run import run_dataset
@@ -131,10 +132,14 @@ def draw(rng: np.random.Generator, path: Path) -> Drawn:
     return table_recording(rng, str(rng.choice(TABLE_KINDS)), path)
 
 
+# the run as a batch runs it (figures off; the diagnosis and its report on)
+CONFIG = RunConfig(report=ReportConfig(figures=False))
+
+
 def violation(drawn: Drawn, out: Path) -> str | None:
     """The invariant checked on one recording: None, or what broke it."""
     try:
-        run_dataset(drawn.path, out)
+        run_dataset(drawn.path, out, config=CONFIG)
     except RotcalError as exc:
         return f"a refusal of {len(str(exc).splitlines())} lines: {exc}" if "\n" in str(exc) else None
     except Exception as exc:  # noqa: BLE001  (any other exception is the violation reported)
