@@ -47,3 +47,22 @@ def test_labels_in_the_wrong_unit_are_refused_with_the_likely_cause(make_dataset
     with pytest.raises(InputError, match=r"capture 01_x_0\.01hz\.csv: the table angle advances .*" + cause.replace("(", r"\(")
                        .replace(")", r"\)").replace("?", r"\?")):
         run_dataset(ds, tmp_path / "out")
+
+
+@pytest.mark.parametrize("step, noise", [(1.0, 0.0), (100.0, 8.0), (1000.0, 8.0)])
+def test_a_coarse_output_step_is_not_read_as_effects(tmp_path, step, noise):
+    """Outputs rounded to 1 count without noise, or to 100 or 1000 counts
+    with 8 counts of noise: the rounding error follows the signal, and the
+    diagnosis read it as effects (a centripetal radius, a channel delay,
+    clipping: the refined model recommended). Now the diagnosis is not run,
+    with the reason, and the baseline is published."""
+    from rotcal.simulate import DutSpec, SimulationSpec, simulate, write_dataset
+
+    spec = SimulationSpec(dut=DutSpec(noise_std=noise))
+    ds = write_dataset(simulate(spec, 5), spec, tmp_path / "ds", "csv")
+    for path in ds.glob("*.csv"):
+        frame = pl.read_csv(path)
+        frame.with_columns(**{c: (pl.col(c) / step).round() * step for c in ("u", "v", "w")}).write_csv(path)
+    outcome = run_dataset(ds, tmp_path / "out")
+    assert any(n.startswith("diagnosis not run: channel u moves in steps of " + f"{step:g} bit") for n in outcome.notes)
+    assert outcome.recommended.model == "baseline" and not (tmp_path / "out" / "diagnosis.parquet").exists()

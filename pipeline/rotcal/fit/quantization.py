@@ -15,6 +15,9 @@ rounding error falls as exp(-2 pi^2 sigma^2 / Delta^2)).
 from __future__ import annotations
 
 import numpy as np
+import polars as pl
+
+from rotcal.model.physics import CHANNELS
 
 # a channel's levels are taken from at most this many samples (evenly spread): enough to see every level
 MAX_LEVEL_SAMPLES = 1_000_000
@@ -61,3 +64,23 @@ def mean_rounding_variance(step: np.ndarray, sample_var: np.ndarray) -> np.ndarr
         sigma2 = np.maximum(sample_var - step**2 / 12.0, 0.0)
         decay = np.where(step > 0, np.exp(-4.0 * np.pi**2 * sigma2 / np.where(step > 0, step, 1.0) ** 2), 0.0)
     return step**2 / 12.0 * decay
+
+
+def coarse_steps(samples: pl.DataFrame, fits: pl.DataFrame, unit: str) -> str | None:
+    """Why a model-mismatch diagnosis cannot read a table recording's
+    outputs, or None: a channel whose output step exceeds twice its noise
+    before rounding (from the ok fits' median residual standard deviation,
+    which holds the rounding's Delta^2 / 12 besides the noise). Its
+    rounding error then follows the signal: a diagnosis would read its
+    pattern as effects (a centripetal radius, a delay, clipping)."""
+    ok = fits.filter(pl.col("status") == "ok")
+    sigma = np.array([ok.filter(pl.col("channel") == c)["sigma"].median() or 0.0 for c in CHANNELS], float)
+    step = output_step(samples.select(CHANNELS).to_numpy())
+    noise = np.sqrt(np.maximum(sigma**2 - step**2 / 12.0, 0.0))
+    coarse = np.flatnonzero((step > 0) & (noise < step / 2))
+    if coarse.size == 0:
+        return None
+    r = int(coarse[0])
+    return (f"diagnosis not run: channel {CHANNELS[r]} moves in steps of {step[r]:g} {unit} and its noise before rounding "
+            f"({noise[r]:.2g} {unit}) is below half a step, so its rounding error follows the signal and would be read as "
+            "effects")

@@ -107,7 +107,14 @@ class Gaps:
                     f"in all (the logger rested while the table moved: not a defect)"),
         )
         warning = (f"{self.capture}: {missing} samples missing ({share}), {inside.size} gaps, longest {longest:.3g} s"
-                   if missing else None)
+                   if missing > 0 else None)
+        if missing < 0:
+            # more samples than slots: stamps that jitter by half a period or more fill slots twice
+            found = (replace(found[0], detected=False, value=0.0,
+                             evidence=f"{-missing} more samples than the {total} grid slots: the stamps jitter by half a "
+                                      "sampling period or more, so missing samples cannot be counted"),) + found[1:]
+            warning = (f"{self.capture}: {-missing} more samples ({-100 * missing / max(total, 1):.3g} %) than the "
+                       "sampling grid has slots: the time stamps jitter by half a period or more")
         return found, warning
 
 
