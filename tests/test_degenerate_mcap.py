@@ -184,3 +184,17 @@ def test_a_topic_split_over_channels_of_different_messages_is_refused_naming_bot
     with pytest.raises(InputError, match=r"topic '/imu' is split over channels of different messages: channel 1 "
                                          r"\(cdr, schema 'sensor_msgs/msg/Imu'\) and channel 2 \(json, schema None\)"):
         mcap_source.read_mcap_capture(path, load_meta(None), None, Limits())
+
+
+def test_a_channel_record_repeated_keeps_the_fast_path(capture, tmp_path):
+    """A writer may repeat a channel's record (same id) in later chunks: one
+    channel, not a split topic, so the fast path reads it (declining sent a
+    half-million-sample capture to the per-message path, 1.5 GB)."""
+    from rotcal.ingest import mcap_fast
+
+    channel = next(r for r in StreamReader(capture.open("rb")).records if isinstance(r, Channel) and r.topic == "/imu")
+    body = _record(channel)
+    repeated = Chunk(compression="", data=body, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                     uncompressed_size=len(body))
+    path = _rebuilt(capture, tmp_path / "repeated.mcap", [repeated])
+    assert mcap_fast.read_topics(path, {"/imu"}, Limits())["/imu"].count == IMU_MESSAGES  # decodes, does not decline
