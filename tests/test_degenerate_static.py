@@ -89,3 +89,17 @@ def test_a_pose_of_identical_samples_is_uncertain_by_the_step():
     _, _, cov = group_statistics(y, np.repeat([0, 1, 2], 50), 3)
     np.testing.assert_allclose(np.einsum("kii->ki", cov), 100.0**2 / 12)
     assert mean_rounding_variance(np.array(1.0), np.array(9.0)) < 1e-100
+
+
+def test_a_dead_channel_without_references_is_named_not_the_pose_geometry(tmp_path):
+    """Hand-placed poses without references, channel w all zero: "gravity
+    directions lie near one circle" before (the geometry blamed)."""
+    from posesim import samples_frame
+
+    sim = hand_placed(4, n_poses=12, samples=300, move_samples=100)
+    path = tmp_path / "ds"
+    path.mkdir()
+    samples_frame(sim).with_columns(w=pl.lit(0.0)).write_csv(path / "session.csv")
+    (path / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
+    with pytest.raises(UndeterminedError, match=r"static dwells: channel w reads 0 in every one of the \d+ poses \(dead"):
+        run_dataset(path, tmp_path / "out")

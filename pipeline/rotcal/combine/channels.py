@@ -32,6 +32,8 @@ def channel_fault(positions: pl.DataFrame) -> str | None:
         if np.all(means[:, r] == means[0, r]):
             return (f"channel {channel} reads {means[0, r]:g} in every one of the {len(means)} poses (dead, stuck or "
                     "disconnected): it shows no sensitivity to calibrate, so no result is given")
+    if "ref_x" not in positions.columns:
+        return None  # dwells of unknown orientation
     reference = positions.select("ref_x", "ref_y", "ref_z").to_numpy()
     if not np.isfinite(reference).all():
         return None  # without references a pinned pose cannot be told from a quiet one
