@@ -66,3 +66,16 @@ def test_a_coarse_output_step_is_not_read_as_effects(tmp_path, step, noise):
     outcome = run_dataset(ds, tmp_path / "out")
     assert any(n.startswith("diagnosis not run: channel u moves in steps of " + f"{step:g} bit") for n in outcome.notes)
     assert outcome.recommended.model == "baseline" and not (tmp_path / "out" / "diagnosis.parquet").exists()
+
+
+def test_one_empty_angle_cell_is_named(make_dataset, tmp_path):
+    """One empty angle_deg cell drops the table angles of its whole segment:
+    silently before, now with a warning naming the capture and the count."""
+    ds = _copy(make_dataset(3), tmp_path / "ds")
+    path = ds / "04_x_0.5hz.csv"
+    frame = pl.read_csv(path)
+    frame.with_columns(angle_deg=pl.when(pl.int_range(pl.len()) == 100).then(None).otherwise(pl.col("angle_deg"))) \
+        .write_csv(path)
+    outcome = run_dataset(ds, tmp_path / "out")
+    assert any(w.startswith("capture 04_x_0.5hz.csv, segment 4: 1 of 4200 samples have no angle_deg, so the segment is "
+                            "fitted without the table's angles") for w in outcome.warnings)

@@ -54,3 +54,20 @@ def check_angle_rates(samples: pl.DataFrame, root: Path) -> None:
     raise InputError(f"capture {steps['capture'][k]}: the table angle advances {steps['speed'][k]:.4g} deg/s where "
                      f"rate_hz {steps['rate_hz'][k]:g} commands {360.0 * steps['rate_hz'][k]:.4g} deg/s "
                      f"({r:.3g} times): {cause}", path=root)
+
+
+def partial_angles(samples: pl.DataFrame, segments: pl.DataFrame) -> tuple[str, ...]:
+    """A warning per table segment whose angles are missing in some samples
+    only (an empty ``angle_deg`` cell): such a segment is fitted without
+    the table's angles, which should not pass unsaid."""
+    if "angle_deg" not in samples.columns:
+        return ()
+    table = segments.filter(pl.col("kind").is_in(["static", "rotation"]) & (pl.col("angle_source") == "none"))["segment"]
+    if table.is_empty():
+        return ()
+    counts = (samples.lazy().filter(pl.col("segment").is_in(table.to_list()))
+              .group_by("segment").agg(pl.col("capture").first(), missing=pl.col("angle_deg").null_count(), n=pl.len())
+              .filter((pl.col("missing") > 0) & (pl.col("missing") < pl.col("n"))).sort("segment").collect())
+    return tuple(f"capture {capture}, segment {segment}: {missing} of {n} samples have no angle_deg, so the segment is "
+                 "fitted without the table's angles (fill the empty cells, or leave the column out)"
+                 for segment, capture, missing, n in counts.iter_rows())
