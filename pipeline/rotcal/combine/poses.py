@@ -223,7 +223,7 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
                            "exactly, with no residual degree of freedom: their uncertainty is undetermined (the "
                            "AN4399 correction gives the exact values); record at least 5 positions")
     # the positions' noise alone where the fit is exact: its degrees of freedom are the pose means' own
-    noise_dof = float(dof) if dof else float(max(poses["n_samples"].min() - 1, 1))
+    noise_dof = float(dof) if dof else float(max(int(poses["n_samples"].to_numpy().min()) - 1, 1))
     # the positions' noise and excess scatter together: the sandwich covariance of one fit
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
                                         [(whole_fit_input("positions", noise_dof), state_cov)])
