@@ -43,8 +43,7 @@ def test_more_samples_than_grid_slots_are_not_reported_as_negative_missing():
     found, warning = gaps.findings()
     missing = next(f for f in found if f.check == "missing_samples")
     assert missing.value == 0.0 and not missing.detected
-    assert warning == ("jitter.csv: 104 more samples (27.5 %) than the sampling grid has slots: the time stamps jitter by "
-                       "half a period or more")
+    assert warning == "jitter.csv: 104 more samples than the 378 grid slots: the stamps jitter by half a period or more"
 
 
 def test_a_library_warning_during_a_run_becomes_a_note(monkeypatch, tmp_path):

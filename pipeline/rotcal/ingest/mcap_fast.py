@@ -75,12 +75,9 @@ class _State:
     failed: bool = False
 
     def release(self, failed: bool) -> None:
-        """Set every chunk's event as the read ends: a chunk whose job
-        raised, was cancelled (a pool's map cancels the rest of its batch
-        when one raises) or never ran (a batch run in this thread stops at
-        its first failure) leaves later chunks waiting on it, and the pool
-        could not be joined. Those chunks then see the read failed and skip
-        their decoding."""
+        """Set every chunk's event as the read ends: a chunk whose job raised, was cancelled (a pool's map
+        cancels the rest of its batch when one raises) or never ran (a batch run in this thread stops at its
+        first failure) leaves later chunks waiting on it; they then see the read failed and skip decoding."""
         self.failed = self.failed or failed
         for event in self.launched:
             event.set()
@@ -97,10 +94,8 @@ class _State:
         self.schemas[record.id] = record
 
     def channel(self, body: bytes | memoryview) -> int | None:
-        """Register a channel as the per-message path does; returns its id
-        if its messages are to be decoded. A second channel of a decoded
-        topic is left to the per-message path, which reads every channel
-        of a topic."""
+        """Register a channel as the per-message path does; returns its id if its messages are to be
+        decoded. A second channel of a decoded topic is left to the per-message path (it reads them all)."""
         record = parse_channel(body, self.where)
         if record.topic in self.found:
             first = self.found[record.topic].channel.id
@@ -273,21 +268,19 @@ def _reading(path: Path, where: McapFile, topics: set[str], workers: int) -> Ite
     of ``parallel.cores(workers)`` threads, or this thread for one), and the
     state of the read, sized from the message index records.
 
-    Free of deadlock at any thread count: a pool thread blocks only until
-    the chunk before its own is decoded, and that chunk was launched before
-    it (on the pool, whose queue is first in, first out, or in this thread,
-    landed first); should the read end early (a damaged or unsupported
-    chunk, an interrupt), every chunk's event is set (``_State.release``)
-    before the pool is joined."""
+    Free of deadlock at any thread count: a pool thread blocks only until the chunk before its own is
+    decoded, and that chunk was launched before it (on the pool, whose queue is first in, first out, or in
+    this thread, landed first); should the read end early (a damaged or unsupported chunk, an interrupt),
+    every chunk's event is set (``_State.release``) before the pool is joined."""
     threads = cores(workers)
     with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
         state = _State(where, topics, *_message_counts(fh, where))
-        ended = False
         try:
             yield fh, map if pool is None else pool.map, state
-            ended = True
-        finally:
-            state.release(failed=not ended)
+        except BaseException:
+            state.release(failed=True)
+            raise
+        state.release(failed=False)
 
 
 def _handovers(fh, state: _State, batch: _Batch) -> Iterator[bool]:

@@ -28,7 +28,6 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit import fit_segments, fits_frame
 from rotcal.fit.normal import SineSums
-from rotcal.fit.quantization import coarse_steps
 from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.metrology import (
@@ -54,7 +53,6 @@ from rotcal.run.outputs import Figure
 from rotcal.run.streamed import StreamedDataset, corrected_blocks, streamed_fits, streamed_segments
 from rotcal.run.streaming import StreamedSegments
 from rotcal.segment import infer_segments, segment_by_labels
-from rotcal.segment.angles import check_angle_rates, partial_angles
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 if TYPE_CHECKING:
@@ -135,8 +133,6 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
         ds = replace(whole, notes=whole.notes + notes)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
-    check_angle_rates(samples, ds.root)
-    partial = partial_angles(samples, segments)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
     timebase = classify_gaps(timebase, inferred.samples, inferred.segments)  # gaps between segments: pauses
     # a table recording (labelled or found in the signals); otherwise a static one (``reduce``)
@@ -150,7 +146,7 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
                           findings_frame(list(inferred.findings) if table else [])])
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
-                     tuple(timebase.warnings) + partial + (inferred.warnings if table else ()),
+                     tuple(timebase.warnings) + (inferred.warnings if table else ()),
                      ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None})
 
 
@@ -244,9 +240,6 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
                      "segment(s) without one; rate_error not tested (the fitted rates absorb it)")
     diagnosed = tuple(r for r in results if r.rate_hz in in_table)
     samples = seg.samples if seg.streamed is None else _diagnosed_samples(seg.streamed, seg.fits, diagnosed, config)
-    coarse = coarse_steps(samples, seg.fits, ds.meta.output_unit)  # a step is not physics
-    if coarse is not None:
-        return None, (coarse,)
     diagnose_with = partial(diagnose, samples, seg.segments, seg.fits,
                             diagnosed, ds.name, ds.meta.output_unit,
                             ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
