@@ -3,7 +3,7 @@ default-plan datasets clean and with a catalogue effect (the mix of
 bench/batch_e2e.py: two thirds carry one effect, sizes across its range).
 
 Each dataset is read, segmented, fitted and reduced once (not timed); then
-``run.stages.diagnose_stage`` and ``recommended_fits`` (the refined model's
+``run.recommended.diagnose_stage`` and ``recommended_fits`` (the refined model's
 segment fits) are timed with ``time.process_time`` (CPU, so a shared machine
 disturbs it little), under cProfile when ``--profile`` is given (its
 overhead inflates the totals; the per-function shares, CPU seconds as well, are what it is for).

@@ -40,10 +40,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from rotcal.combine.multiposition import pose_arrays, pose_table  # noqa: E402
+from rotcal.combine.multiposition import pose_arrays  # noqa: E402
 from rotcal.combine.posemodels import advice, choose_model  # noqa: E402
 from rotcal.combine.poses import correct_poses  # noqa: E402
 from rotcal.combine.refmodels import choose_reference_model  # noqa: E402
+from rotcal.fit.means import pose_table  # noqa: E402
 from rotcal.model.physics import rotation_matrix  # noqa: E402
 from rotcal.model.results import Failure  # noqa: E402
 

@@ -43,7 +43,8 @@ from rotcal.ingest.dataset import load_dataset
 from rotcal.model.effects import effect_named, names
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult
-from rotcal.run.stages import Reductions, determined, diagnose_stage, reduce, segment_and_fit
+from rotcal.run.recommended import diagnose_stage
+from rotcal.run.stages import Reductions, determined, reduce, segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 SPAN = (2.5, 4.0)   # the grid from this factor below to this factor above the GLR's estimated 50 % size

@@ -25,7 +25,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diagnosis_acceptance import arguments, run_cases, summarise_refined  # noqa: E402 (the script beside this one)
 
-from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE  # noqa: E402
 from rotcal.diagnose.scenarios import draw_effect  # noqa: E402
 from rotcal.model.effects import effect_named, names  # noqa: E402
 
@@ -38,7 +37,7 @@ def shown() -> tuple[str, ...]:
     """The catalogue effects an unlabelled recording of t, u, v, w can show:
     not those the reconstructed angles absorb, nor those needing a logged
     column it lacks (``thermal``: temperature_c)."""
-    return tuple(n for n in names() if n not in ABSORBED_BY_OWN_PHASE and not effect_named(n).needs)
+    return tuple(n for n in names() if not effect_named(n).absorbed_by_own_phase and not effect_named(n).needs)
 
 
 def scenarios(n_seeds: int, n_clean: int, workdir: str, recording: str) -> list[tuple]:

@@ -97,7 +97,7 @@ def tilted(directions: np.ndarray, seed: int, tilt_deg: float = 3.0) -> np.ndarr
 def reference_pose_table(sim: HandPlaced, reference: np.ndarray) -> pl.DataFrame:
     """The pose table of ``sim`` with each pose's known reference
     (``ref_x, ref_y, ref_z``; the nominal direction a label or jig states)."""
-    from rotcal.combine.multiposition import pose_table
+    from rotcal.fit.means import pose_table
 
     poses = pose_table(sim.t_ns, sim.y, *pose_bounds(sim))
     return poses.with_columns(**{name: reference[:, i] for i, name in enumerate(("ref_x", "ref_y", "ref_z"))})

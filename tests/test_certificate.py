@@ -19,12 +19,13 @@ import pytest
 from rotcal.config import RunConfig
 from rotcal.errors import InputError
 from rotcal.model.calibration import Calibration, Quantity, RateCalibration
+from rotcal.model.outputs import OUTPUTS
 from rotcal.model.physics import CHANNELS, INTRINSIC
 from rotcal.report.certificate import CERTIFICATE, render, write_certificate
 from rotcal.report.certificate_checks import main_contributions, segment_norms
 from rotcal.report.rounding import decimals_for, gum_round, gum_text
 from rotcal.run import run_dataset
-from rotcal.run.outputs import PUBLISH_ORDER, certificate_output
+from rotcal.run.outputs import certificate_output
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 from posesim import hand_placed, samples_frame
@@ -258,7 +259,7 @@ def test_bad_run_directories_are_one_line_errors(runs, tmp_path, cli):
 
 
 def test_the_run_publishes_it_last_when_calibration_json_is_there(runs, tmp_path):
-    assert PUBLISH_ORDER[-1] == "certificate"
+    assert OUTPUTS[-1].name == "certificate"
     calibration = Calibration.read(runs["static"] / "calibration.json")
     item = certificate_output(replace(RunConfig(), report=replace(RunConfig().report, figures=False)), calibration)
     assert item.draw(tmp_path, {}) is None  # no calibration.json: nothing to certify

@@ -6,12 +6,12 @@ import polars as pl
 import pytest
 
 from rotcal.combine.labelled import SegmentCoefficients, combine_rate, segment_coefficients
-from rotcal.metrology.coverage import simulate_errors
 from rotcal.model.results import intrinsic_jacobian
 from rotcal.run import run_dataset
 from rotcal.simulate import DutSpec, SimulationSpec
 
 from testdata import truth_of
+from uncertainty_coverage import simulate_errors
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
 
@@ -62,7 +62,7 @@ def test_budget_adds_up_to_the_variance(make_dataset, tmp_path):
 def test_normalised_errors_over_ten_seeded_datasets():
     """Issue 2 acceptance: z = (estimate - truth) / u of all nine parameters
     at all five rates over 10 clean datasets: RMS in [0.8, 1.25], none
-    beyond 4.5. (The stages in memory: ``rotcal.metrology.coverage``.)"""
+    beyond 4.5. (The stages in memory: ``tests/uncertainty_coverage.py``.)"""
     z = simulate_errors(10, first_seed=100)
     assert z.shape == (10, 5, 9)
     rms = float(np.sqrt(np.mean(z**2)))

@@ -6,7 +6,8 @@ import polars as pl
 from scipy.stats import chi2 as chi2_dist
 
 from rotcal.metrology.consistency import FAMILY_ALPHA, consistency_frame, consistency_note
-from rotcal.metrology.coverage import reduce_dataset
+
+from uncertainty_coverage import reduce_dataset
 
 
 def test_clean_dataset_is_consistent_and_statistics_add_up(make_dataset):

@@ -78,7 +78,7 @@ def test_pose_means_widened_for_correlated_noise():
     normalised errors have sd 0.96 to 1.10, within 0.15 of 1 (sd of the sd
     0.03; each pose's factor comes from its own 500 samples, and its scatter
     leaves the sd a little above 1); with the white-noise covariance 1.6 to 1.8."""
-    from rotcal.combine.multiposition import group_statistics
+    from rotcal.fit.means import group_statistics
 
     rng = np.random.default_rng(8)
     poses, n = 600, 500

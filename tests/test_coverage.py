@@ -9,7 +9,7 @@ run is ``ROTCAL_SLOW=1`` (and ``scripts/coverage.py``)."""
 import numpy as np
 import pytest
 
-from rotcal.metrology.coverage import coverage_frame, simulate_errors
+from uncertainty_coverage import coverage_frame, simulate_errors
 
 
 def test_acceptance_accepts_honest_and_rejects_dishonest_uncertainties():

@@ -8,8 +8,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.combine.multiposition import group_statistics
 from rotcal.errors import UndeterminedError
+from rotcal.fit.means import group_statistics
 from rotcal.fit.quantization import mean_rounding_variance, output_step
 from rotcal.run import run_dataset
 

@@ -321,7 +321,7 @@ def test_diagnosis_can_be_switched_off(make_dataset, tmp_path):
 def test_demo_with_an_effect_shows_the_finding(cli, tmp_path):
     status, out, err = cli("demo", "--dir", tmp_path, "--effect", "cubic_nonlinearity:k3_v=8e-4")
     assert status == 0, err
-    assert "cubic_nonlinearity" in out and "refined intrinsic parameters" in out
+    assert "cubic_nonlinearity" in out and "recommended model (refined)" in out
 
 
 def _white_residuals(rng, rotating: bool, n_segments: int = 6, n: int = 1200):

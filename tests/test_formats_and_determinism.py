@@ -76,7 +76,7 @@ def test_parquet_files_record_their_schema(make_dataset, tmp_path):
 def test_demo_prints_the_summary(cli, tmp_path):
     status, out, err = cli("demo", "--dir", tmp_path)
     assert status == 0, err
-    assert "value ± U (95 %)" in out and "k from each value's effective dof: 1.96 to 1.9" in out and "s_u" in out and "0.5 Hz" in out
+    assert "value ± U (95 %)" in out and "k = 1.96 for every value" in out and "s_u" in out and "0.5 Hz" in out
     assert (tmp_path / "results" / "intrinsic.parquet").exists()
 
 

@@ -8,9 +8,10 @@ import polars as pl
 import pytest
 
 from rotcal.combine.labelled import SegmentCoefficients, linear_stage
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.gaitan import PHASE_PAIRS, gaitan_frame, gaitan_rate
 from rotcal.model.physics import COS_COMPONENT, SIN_COMPONENT, intrinsic_from_vectors, rotation_matrix, unit_vectors_from_angles
+
+from uncertainty_coverage import reduce_dataset
 
 G = 9.80101
 DUT = unit_vectors_from_angles(90.1, 89.9, 90.05) * np.array([[1669.0], [1672.0], [1665.0]])

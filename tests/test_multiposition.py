@@ -6,7 +6,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from rotcal.combine.multiposition import ORTHOGONAL, magnitude_and_gradient, orientation_free, pose_table
+from rotcal.combine.multiposition import ORTHOGONAL, magnitude_and_gradient, orientation_free
+from rotcal.fit.means import pose_table
 from rotcal.model.physics import INTRINSIC, rotation_matrix
 from rotcal.model.results import Failure
 from rotcal.simulate import DutSpec, SimulationSpec, simulate

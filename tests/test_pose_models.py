@@ -7,8 +7,8 @@ pose (scripts/poses_acceptance.py runs the 100-seed figures)."""
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import pose_table
 from rotcal.combine.posemodels import advice, choose_model, determines
+from rotcal.fit.means import pose_table
 from rotcal.model.results import Failure
 from rotcal.run import run_dataset
 

@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from rotcal.combine.multiposition import pose_arrays, pose_table
+from rotcal.combine.multiposition import pose_arrays
 from rotcal.combine.poses import LABEL_REFERENCE, correct_poses, labelled_poses, reference_fit
+from rotcal.fit.means import pose_table
 from rotcal.ingest.dataset import load_dataset
 from rotcal.model.results import Failure
 from rotcal.segment.labelled import segment_by_labels

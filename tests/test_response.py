@@ -7,11 +7,11 @@ import polars as pl
 import pytest
 
 from rotcal.combine.labelled import combine
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.response import frequency_response_frame
 from rotcal.report.plot import frequency_response_png
 
 from testdata import truth_of
+from uncertainty_coverage import reduce_dataset
 
 
 def test_clean_dataset_shows_no_frequency_dependence(make_dataset):

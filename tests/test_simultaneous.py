@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from rotcal.config import FitConfig
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.simultaneous import simultaneous, simultaneous_frame
 from rotcal.model.physics import INTRINSIC
 from rotcal.simulate import DutSpec, SimulationSpec
 
 from testdata import truth_of
+from uncertainty_coverage import reduce_dataset
 
 NOISE_FREE = SimulationSpec(dut=DutSpec(noise_std=0.0, integer_output=False))
 

@@ -10,10 +10,10 @@ import pytest
 from rotcal.config import FitConfig, load_config
 from rotcal.errors import ConfigError
 from rotcal.fit.segments import design, fit_segment
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.model.physics import INTRINSIC
 
 from testdata import truth_of
+from uncertainty_coverage import reduce_dataset
 
 FOUR = FitConfig(sine_fit="four_parameter")
 

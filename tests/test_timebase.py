@@ -191,7 +191,7 @@ def test_repaired_table_keeps_rows_in_time_and_capture_order():
     the rows came in."""
     import polars as pl
 
-    from rotcal.timebase.check import repair_timebase
+    from rotcal.timebase.repair import repair_timebase
     a = _samples("a.csv", 1_000_000_000 + np.arange(400) * PERIOD_NS, np.arange(400.0))
     assert repair_timebase(a, "ds").samples.equals(a)
     b_t = 1_000_000_000 + 200 * PERIOD_NS + np.arange(300) * PERIOD_NS
@@ -214,7 +214,7 @@ def test_captures_one_after_another_are_repaired_each_on_its_own_rows():
     as when that capture is checked alone, and the first keeps its rows."""
     import polars as pl
 
-    from rotcal.timebase.check import repair_timebase
+    from rotcal.timebase.repair import repair_timebase
     a_t = 1_000_000_000 + np.arange(400) * PERIOD_NS
     b_grid = a_t[-1] + 50 * PERIOD_NS + np.arange(500) * PERIOD_NS
     b_t = b_grid + np.rint(np.random.default_rng(5).normal(0, 0.01 * PERIOD_NS, 500)).astype(np.int64)

@@ -7,9 +7,10 @@ import pytest
 
 from rotcal.combine.labelled import SegmentCoefficients, combine_rate, linear_stage
 from rotcal.config import UncertaintyConfig
-from rotcal.metrology.coverage import reduce_dataset
 from rotcal.metrology.uncertainty import budget_frame, monte_carlo, monte_carlo_frame, monte_carlo_rate, numerical_tolerance
 from rotcal.model.physics import INTRINSIC
+
+from uncertainty_coverage import reduce_dataset
 
 
 @pytest.fixture(scope="module")

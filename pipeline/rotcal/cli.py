@@ -11,20 +11,56 @@ import os
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.console import Console
 from rich.markup import escape
+from typer import _click as click
+from typer.core import TyperCommand, TyperGroup
 
 from rotcal.config import load_config, with_options
-from rotcal.errors import RotcalError, printable
+from rotcal.errors import ExitCode, RotcalError, printable
 
 if TYPE_CHECKING:
     from rotcal.report.publish import OutputDir
     from rotcal.simulate import SimulationSpec
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+class _Command(TyperCommand):
+    """A command's help as users of other command lines expect it: the usage
+    line names its arguments (``rotcal run [OPTIONS] DATASET``, not typer's
+    ``{dataset}``), and a flag shows no ``<bool>`` value it does not take."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        for param in self.params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = ""
+
+    def get_help_option(self, ctx):
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for param in self.get_params(ctx):
+            if param.param_type_name == "argument":
+                name = param.metavar or param.name.upper()
+                pieces.append(name if param.required else f"[{name}]")
+        return pieces
+
+
+class _Group(TyperGroup):
+    def get_help_option(self, ctx):
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+
+app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   context_settings={"help_option_names": ["-h", "--help"]},
                   help="Rotation-table calibration of three-axis accelerometers.")
 # Piped or logged output has no terminal width to honour: tables are printed
@@ -45,11 +81,14 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _options(
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="print rotcal's version and exit")] = False,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, metavar="", help="print rotcal's version and exit")] = False,
 ) -> None:
     """Rotation-table calibration of three-axis accelerometers."""
 
-FORMATS = "csv, csv-unlabelled, mcap-cdr or mcap-json"
+# choices the CLI checks and its help lists (the simulator and the exporter check them again for the API)
+SimulatedFormat = Literal["csv", "csv-unlabelled", "mcap-cdr", "mcap-json"]
+ExportFormat = Literal["ardupilot", "px4", "yaml", "json"]
+EFFECT = "NAME:KEY=VALUE,..."
 
 
 REPLACE_HELP = "replace files in the output directory that no rotcal listing (rotcal-files.json) names"
@@ -71,19 +110,19 @@ def _writable(path: Path) -> Path:
     return path
 
 
-def _print_diagnosis(diagnosis, output_unit: str) -> None:
-    from rotcal.report import findings_table, summary_table
+def _print_diagnosis(diagnosis) -> None:
+    from rotcal.report import findings_table
 
     found = int(diagnosis.findings["detected"].sum())
     if not found:
         out.print("diagnosis: no finding; the recording agrees with the papers' model within its noise")
         return
     out.print(findings_table(diagnosis.findings, f"diagnosis: {found} finding{'s' if found > 1 else ''}"))
-    out.print(summary_table(diagnosis.refined, output_unit, "refined intrinsic parameters (diagnosed effects modelled), value ± U (95 %)"))
 
 
 def _print_outcome(outcome, quiet: bool = False) -> None:
     # the stages and their tables load when a command needs them: rotcal batch's start-up stays short
+    from rotcal.model.calibration import BASELINE
     from rotcal.report import pose_check_table, recommendation_line, static_fit_summary, summary_table
 
     for note in outcome.notes:
@@ -92,25 +131,30 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         err.print(f"[yellow]warning:[/] {escape(warning)}", highlight=False)
     if not quiet:
         unit = escape(outcome.output_unit)  # dataset.toml's text, printed inside the table's rich markup
-        out.print(summary_table(outcome.results, unit, f"{outcome.dataset}: intrinsic parameters, baseline model, value ± U (95 %)"))
+        chosen = outcome.recommended  # the results calibration.json holds: the table shows them, not the baseline's
+        out.print(summary_table(chosen.results, unit, f"{outcome.dataset}: intrinsic parameters of the recommended model "
+                                                      f"({chosen.model}), value ± U (95 %)"))
+        out.print(recommendation_line(chosen), highlight=False, markup=False)
+        if chosen.model != BASELINE:
+            out.print(f"the baseline model's parameters are beside them in intrinsic.parquet (model = {BASELINE})",
+                      highlight=False, markup=False)
         if outcome.diagnosis is not None:
-            _print_diagnosis(outcome.diagnosis, unit)
+            _print_diagnosis(outcome.diagnosis)
         if outcome.static is not None:
             out.print(static_fit_summary(outcome.static, unit), highlight=False)
             out.print(pose_check_table(outcome.static.check, outcome.static.result.g_local,
                                        f"{escape(outcome.dataset)}: |a| check, g_local = {outcome.static.result.g_local:g} m/s^2"))
-        out.print(recommendation_line(outcome.recommended), highlight=False, markup=False)
     folder = outcome.written[0].parent if outcome.written else None
     out.print(f"tables written to {folder}: {', '.join(p.name for p in outcome.written)}", highlight=False, markup=False)
 
 
-@app.command()
+@app.command(cls=_Command)
 def run(
-    dataset: Annotated[Path, typer.Argument(help="dataset directory or single capture file")],
-    out_dir: Annotated[Path, typer.Option("--out", help="directory for the result tables")],
-    meta: Annotated[Path | None, typer.Option(help="dataset.toml kept outside the dataset")] = None,
-    config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml")] = None,
-    workers: Annotated[int | None, typer.Option(min=0, help="cores the run uses ([run] workers); 0 = every core it may run on")] = None,
+    dataset: Annotated[Path, typer.Argument(metavar="DATASET", help="dataset directory or single capture file")],
+    out_dir: Annotated[Path, typer.Option("--out", metavar="DIR", help="directory for the result tables")],
+    meta: Annotated[Path | None, typer.Option(metavar="FILE", help="dataset.toml kept outside the dataset")] = None,
+    config: Annotated[Path | None, typer.Option(metavar="FILE", help="run configuration overriding configs/defaults.toml")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, metavar="N", help=r"cores the run uses (\[run] workers); 0 = every core it may run on")] = None,
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary (the recommended result per rate, warnings, files written) as JSON on stdout")] = False,
     replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
@@ -150,17 +194,17 @@ def _spec(config: Path | None, effect: list[str] | None) -> SimulationSpec:
     return spec.with_effects(*(effect or ()))
 
 
-@app.command(name="simulate")
+@app.command(name="simulate", cls=_Command)
 def simulate_cmd(
-    directory: Annotated[Path, typer.Argument(help="where to write the dataset")],
+    directory: Annotated[Path, typer.Argument(metavar="DIR", help="where to write the dataset")],
     seed: Annotated[int, typer.Option(help="random seed; the same seed gives the same files")] = 1,
-    fmt: Annotated[str, typer.Option("--format", help=FORMATS)] = "csv",
-    effect: Annotated[list[str] | None, typer.Option(help="NAME:key=value,... (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = None,
+    fmt: Annotated[SimulatedFormat, typer.Option("--format", help="the captures' form")] = "csv",
+    effect: Annotated[list[str] | None, typer.Option(metavar=EFFECT, help="an effect switched on (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = None,
     # rich reads [name] in help text as markup: the backslashes keep the table names
-    config: Annotated[Path | None, typer.Option(help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
+    config: Annotated[Path | None, typer.Option(metavar="FILE", help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
-    timebase: Annotated[str | None, typer.Option(help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
-    plan: Annotated[str | None, typer.Option(help="plan numbers key=value,..., e.g. step_move_s=0,dt_s=0.05 (steps faster than a sample)")] = None,
+    timebase: Annotated[str | None, typer.Option(metavar="KEY=VALUE,...", help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
+    plan: Annotated[str | None, typer.Option(metavar="KEY=VALUE,...", help="plan numbers key=value,..., e.g. step_move_s=0,dt_s=0.05 (steps faster than a sample)")] = None,
     replace_files: Annotated[bool, typer.Option("--replace", help="replace DIR's contents; without it a DIR that is not empty is refused")] = False,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
@@ -189,11 +233,11 @@ def simulate_cmd(
     out.print(f"dataset written to {directory} (truth in {directory / 'truth.json'})", highlight=False, markup=False)
 
 
-@app.command()
+@app.command(cls=_Command)
 def demo(
-    directory: Annotated[Path, typer.Option("--dir", help="where the demo writes data and results")] = Path("rotcal-demo"),
+    directory: Annotated[Path, typer.Option("--dir", metavar="DIR", help="where the demo writes data and results")] = Path("rotcal-demo"),
     seed: Annotated[int, typer.Option(help="random seed of the simulated DUT")] = 1,
-    effect: Annotated[list[str] | None, typer.Option(help="NAME:key=value,... to switch an effect on")] = None,
+    effect: Annotated[list[str] | None, typer.Option(metavar=EFFECT, help="an effect switched on (repeatable), e.g. centripetal:axis=y,radius_m=0.22")] = None,
     replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
 ) -> None:
     """Simulate a default dataset and run the pipeline on it, in DIR (replaced whole: data/, results/)."""
@@ -216,11 +260,11 @@ def demo(
     _print_outcome(replace(outcomes[0], written=published[:-1]))
 
 
-@app.command()
+@app.command(cls=_Command)
 def intrinsic(
-    matrix: Annotated[Path, typer.Option(help="CSV of P: rows x, y, z, columns u, v, w, optionally 3 rows of standard uncertainties")],
-    out_dir: Annotated[Path, typer.Option("--out", help="directory for FILESTEM_intrinsic.parquet")] = Path("."),
-    unit: Annotated[str, typer.Option(help="the DUT's output unit (P is in m/s^2 per output unit)")] = "output unit",
+    matrix: Annotated[Path, typer.Option(metavar="FILE", help="CSV of P: rows x, y, z, columns u, v, w, optionally 3 rows of standard uncertainties")],
+    out_dir: Annotated[Path, typer.Option("--out", metavar="DIR", help="directory for FILESTEM_intrinsic.parquet")] = Path("."),
+    unit: Annotated[str, typer.Option(metavar="UNIT", help="the DUT's output unit (P is in m/s^2 per output unit)")] = "output unit",
 ) -> None:
     """Intrinsic sensitivities and angles of a cross-sensitivity matrix another lab reports."""
     from rotcal.metrology import matrix_intrinsic
@@ -231,16 +275,16 @@ def intrinsic(
     out.print(f"written to {path}", highlight=False, markup=False)
 
 
-@app.command(name="apply")
+@app.command(name="apply", cls=_Command)
 def apply_cmd(
-    calibration: Annotated[Path, typer.Argument(help="calibration.json, or a run's output directory holding one")],
-    recording: Annotated[Path, typer.Argument(help="dataset directory or single capture file to calibrate")],
-    out_file: Annotated[Path, typer.Option("--out", help="output file: .parquet, .csv or .mcap (sensor_msgs/msg/Imu)")],
-    rate: Annotated[float | None, typer.Option(help="the calibration's rate (Hz) to apply; default DC")] = None,
+    calibration: Annotated[Path, typer.Argument(metavar="CALIBRATION", help="calibration.json, or a run's output directory holding one")],
+    recording: Annotated[Path, typer.Argument(metavar="RECORDING", help="dataset directory or single capture file to calibrate")],
+    out_file: Annotated[Path, typer.Option("--out", metavar="FILE", help="output file: .parquet, .csv or .mcap (sensor_msgs/msg/Imu)")],
+    rate: Annotated[float | None, typer.Option(metavar="HZ", help="the calibration's rate (Hz) to apply; default DC")] = None,
     uncertainty: Annotated[bool, typer.Option("--uncertainty", help="each sample's standard uncertainty from the calibration's covariance")] = False,
-    meta: Annotated[Path | None, typer.Option(help="the recording's dataset.toml kept outside it")] = None,
+    meta: Annotated[Path | None, typer.Option(metavar="FILE", help="the recording's dataset.toml kept outside it")] = None,
 ) -> None:
-    """Calibrate a recording: a = P (R - O) in m/s^2 in the calibration's frame (docs/apply.md)."""
+    """Calibrate a recording: a = P (R - O) in m/s^2 in the calibration's frame (documentation: Using a calibration)."""
     from rotcal.apply import apply_calibration
 
     done = apply_calibration(calibration, recording, out_file, rate, uncertainty, meta)
@@ -250,15 +294,15 @@ def apply_cmd(
               highlight=False, markup=False)
 
 
-@app.command(name="export")
+@app.command(name="export", cls=_Command)
 def export_cmd(
-    calibration: Annotated[Path, typer.Argument(help="calibration.json, or a run's output directory holding one")],
-    fmt: Annotated[str, typer.Option("--format", help="ardupilot, px4, yaml (imu_tk's T, K, B) or json")],
-    rate: Annotated[float | None, typer.Option(help="the calibration's rate (Hz) to export; default DC")] = None,
-    out_file: Annotated[Path | None, typer.Option("--out", help="file to write; default standard output")] = None,
-    nominal_scale: Annotated[float | None, typer.Option(help="ardupilot, px4: the driver's m/s^2 per output unit (needed unless the unit is m/s^2)")] = None,
+    calibration: Annotated[Path, typer.Argument(metavar="CALIBRATION", help="calibration.json, or a run's output directory holding one")],
+    fmt: Annotated[ExportFormat, typer.Option("--format", help="a flight stack's parameters, imu_tk's T, K, B (yaml) or plain json")],
+    rate: Annotated[float | None, typer.Option(metavar="HZ", help="the calibration's rate (Hz) to export; default DC")] = None,
+    out_file: Annotated[Path | None, typer.Option("--out", metavar="FILE", help="file to write; default standard output")] = None,
+    nominal_scale: Annotated[float | None, typer.Option(metavar="SCALE", help="ardupilot, px4: the driver's m/s^2 per output unit (needed unless the unit is m/s^2)")] = None,
 ) -> None:
-    """Write the calibration in a flight stack's or IMU tool's form (docs/apply.md)."""
+    """Write the calibration in a flight stack's or IMU tool's form (documentation: Using a calibration)."""
     from rotcal.apply import export_calibration, writable_file
     from rotcal.model.calibration import Calibration
 
@@ -271,9 +315,9 @@ def export_cmd(
     else:
         out.print(f"{result.format} export written to {result.write(target)}", highlight=False, markup=False)
 
-@app.command()
+@app.command(cls=_Command)
 def certificate(
-    run_dir: Annotated[Path, typer.Argument(help="a run's output directory (calibration.json and its tables)")],
+    run_dir: Annotated[Path, typer.Argument(metavar="RUN_DIR", help="a run's output directory (calibration.json and its tables)")],
 ) -> None:
     """Render a run's calibration certificate (RUN_DIR/certificate.html) again from its published files."""
     from rotcal.report.certificate import write_certificate
@@ -284,25 +328,41 @@ def certificate(
 def main() -> None:
     """Console entry point: a user's error exits with a one-line message."""
     try:
-        app()
+        # not standalone: the command line's own errors (a missing option, a
+        # value not among the choices) come here too, for the one message style
+        status = app(prog_name="rotcal", standalone_mode=False)
     except RotcalError as exc:
-        # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
-        # control characters in a path must not reach the terminal (errors.printable)
-        err.print(f"rotcal: error: {printable(str(exc))}", highlight=False, markup=False, soft_wrap=True)
-        sys.exit(exc.exit_code)  # errors.ExitCode, the one table of exit statuses
+        _fail(str(exc), exc.exit_code)  # errors.ExitCode, the one table of exit statuses
+    except click.exceptions.NoArgsIsHelpError as exc:  # `rotcal`, `rotcal run` alone: the help, as typer prints it
+        out.print(exc.ctx.get_help() if exc.ctx else "", highlight=False, markup=False)
+        sys.exit(ExitCode.BAD_INPUT)
+    except click.exceptions.UsageError as exc:
+        command = exc.ctx.command_path if exc.ctx else "rotcal"
+        message = exc.format_message().replace(": Value error, ", ": ").rstrip(".")
+        _fail(f"{message}; see '{command} -h'", ExitCode.BAD_INPUT)
+    except typer.Abort:  # end of input at a prompt
+        sys.exit(130)
+    sys.exit(status if isinstance(status, int) else 0)
 
 
-@app.command()
+def _fail(message: str, status: int) -> None:
+    # markup off: messages quote dataset.toml tables ([format], [plan]) and paths as they are
+    # control characters in a path must not reach the terminal (errors.printable)
+    err.print(f"rotcal: error: {printable(message)}", highlight=False, markup=False, soft_wrap=True)
+    sys.exit(status)
+
+
+@app.command(cls=_Command)
 def batch(
-    root: Annotated[Path, typer.Argument(help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
-    out_dir: Annotated[Path, typer.Option("--out", help="output directory: per-dataset tables, combined dataset, manifest")],
-    config: Annotated[Path | None, typer.Option(help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
-    workers: Annotated[int | None, typer.Option(min=0, help="cores in all, shared by the datasets processed at once on the local pool; 0 = every core it may run on")] = None,
-    executor: Annotated[str | None, typer.Option(help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
+    root: Annotated[Path, typer.Argument(metavar="ROOT", help="folder searched for datasets: directories holding dataset.toml, and single capture files")],
+    out_dir: Annotated[Path, typer.Option("--out", metavar="DIR", help="output directory: per-dataset tables, combined dataset, manifest")],
+    config: Annotated[Path | None, typer.Option(metavar="FILE", help="run configuration overriding configs/defaults.toml; its batch table may set workers and executor")] = None,
+    workers: Annotated[int | None, typer.Option(min=0, metavar="N", help="cores in all, shared by the datasets processed at once on the local pool; 0 = every core it may run on")] = None,
+    executor: Annotated[str | None, typer.Option(metavar="local|dask://HOST:PORT", help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
-    figures: Annotated[bool, typer.Option(help="draw each dataset's PNG figures too ([report] figures); off, a batch writes the tables and report.md")] = False,
+    figures: Annotated[bool, typer.Option(help=r"draw each dataset's PNG figures too (\[report] figures); off, a batch writes the tables and report.md")] = False,
 ) -> None:
-    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (docs/batch.md)."""
+    """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (documentation: Batch runs)."""
     from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}

@@ -161,7 +161,7 @@ def contract_table(frame: pl.DataFrame, name: str) -> pa.Table:
 # codec, where zstd cost about twice the encoding for files a tenth larger.
 # Tables read back the same whatever the encoding; these fixed options keep the
 # bytes deterministic. Measured per dataset of 15 tables: 3.9 ms against
-# 10 ms with zstd, dictionaries and statistics (docs/measured.md, issue 16 item 3).
+# 10 ms with zstd, dictionaries and statistics (docs/measured.md).
 PARQUET_OPTIONS: dict[str, object] = {"compression": "snappy", "use_dictionary": False, "write_statistics": False}
 
 

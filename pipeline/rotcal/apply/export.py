@@ -135,7 +135,8 @@ def _ardupilot(cal: Calibration, rc: RateCalibration, c: float) -> Export:
 
 def _px4(cal: Calibration, rc: RateCalibration, c: float) -> Export:
     notes, warnings, scale, offset = _flight_stack(cal, rc, c, "PX4")
-    notes.append("PX4 applies CAL_ACC0_* to the sensor whose device id is CAL_ACC0_ID: keep the vehicle's own")
+    notes.append("PX4 applies CAL_ACC0_* to the sensor whose device id is CAL_ACC0_ID, which this file does not set: "
+                 "keep the vehicle's own CAL_ACC0_ID, and check that it names the calibrated sensor")
     lines = ["# Onboard parameters for Vehicle 1", "#", "# Stack: PX4 Pro", *(f"# {n}" for n in notes), "#",
              "# Vehicle-Id Component-Id Name Value Type"]
     values = [*(("OFF", x, v) for x, v in zip("XYZ", offset)), *(("SCALE", x, v) for x, v in zip("XYZ", scale))]

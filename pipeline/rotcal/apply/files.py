@@ -95,7 +95,7 @@ WRITERS: dict[str, Callable[[Calibrated, BinaryIO], None]] = {
     "parquet": _write_parquet, "csv": _write_csv, "mcap": _write_mcap}
 
 
-def atomic_write(path: Path, write: Callable[[BinaryIO], None], what: str) -> Path:
+def atomic_write(path: Path, write: Callable[[BinaryIO], object], what: str) -> Path:
     """``write`` the file through ``tables.atomic_write``; an error writing
     it is the user's (a full disk, a folder gone): one line naming it."""
     def to_file(tmp: Path) -> None:

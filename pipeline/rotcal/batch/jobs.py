@@ -53,6 +53,7 @@ class JobResult:
     started_at: str
     duration_s: float
     rotcal_version: str = __version__
+    findings: tuple[str, ...] = ()  # the diagnosis's detected effects (``unexplained`` included), in its order
 
 
 def _write_part(table: pa.Table, part_path: Path, dataset_path: str) -> None:
@@ -79,6 +80,13 @@ def _write_part(table: pa.Table, part_path: Path, dataset_path: str) -> None:
     write_table(pa.Table.from_arrays(columns, schema=pa.schema(fields, metadata=metadata)), part_path)
 
 
+def detected_effects(diagnosis) -> tuple[str, ...]:
+    """The effects a run's diagnosis detected, each once, in its order (none when not diagnosed)."""
+    if diagnosis is None:
+        return ()
+    return tuple(dict.fromkeys(diagnosis.findings.filter(diagnosis.findings["detected"])["effect"].to_list()))
+
+
 def run_job(job: Job) -> JobResult:
     """One dataset into ``job.work`` (``tables/`` and ``parts/``), on whatever
     worker runs it; the folder is removed unless the result is ok."""
@@ -92,7 +100,8 @@ def run_job(job: Job) -> JobResult:
         outcome = run_dataset(Path(job.source), OutputDir(work / "tables", on_table=lambda name, table: _write_part(
             table, parts / f"{name}.parquet", job.dataset_path)), None, job.config, known=job.known)
         tables = [path for path in outcome.written if path.suffix == ".parquet"]  # not the report and its figures
-        return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock)
+        return JobResult("ok", None, tuple(p.stem for p in tables), started, time.perf_counter() - clock,
+                         findings=detected_effects(outcome.diagnosis))
     except RotcalError as exc:  # one line, but for control characters in its path, escaped when printed
         status, reason = "quarantined", str(exc)
     except Exception as exc:  # a bug or the machine, not the data: retried on the next run

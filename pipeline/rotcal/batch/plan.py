@@ -174,7 +174,7 @@ def plan_dataset(found: Found, root: Path, config: RunConfig, manifest: Manifest
             raise InputError("the path is not valid UTF-8 (rename it)", path=found.dataset_path)
         files = dataset_inputs(found.source, config.limits)
         digests = [(f, *manifest.digest(f)) for f in files]
-        inputs = [[decoded(f.relative_to(root).as_posix()), sha] for f, sha, _ in digests]
+        inputs: list[list[object]] = [[decoded(f.relative_to(root).as_posix()), sha] for f, sha, _ in digests]
         known = {identity: sha for _, sha, identity in digests if identity is not None}
         refusal = None
     except Exception as exc:  # the one guard around a dataset's planning: nothing in it stops the others

@@ -104,6 +104,7 @@ class BatchSummary:
     combined: str
     wall_s: float
     notes: tuple[str, ...]
+    findings: tuple[dict, ...] = ()  # this run's datasets whose diagnosis found something: dataset_path, effects
 
     @property
     def exit_status(self) -> ExitCode:
@@ -114,13 +115,17 @@ class BatchSummary:
         return ExitCode.QUARANTINED if self.quarantined or self.still_quarantined else ExitCode.OK
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "exit_status": int(self.exit_status)}
+        return {**asdict(self), "problems": list(self.problems), "notes": list(self.notes), "findings": list(self.findings),
+                "exit_status": int(self.exit_status)}
 
     def text(self) -> str:
         lines = [f"{self.discovered} datasets: {self.processed} processed ({self.ok} ok, {self.quarantined} quarantined, "
                  f"{self.errors} errors), {self.unchanged} unchanged ({self.still_quarantined} still quarantined); "
                  f"{self.wall_s:.1f} s"]
         lines += [f"{p['status']}: {printable(p['dataset_path'])}: {p['reason']}" for p in self.problems]
+        if self.findings:  # the datasets to look at: their report.md says what was found and modelled
+            lines.append(f"{len(self.findings)} dataset{'s' if len(self.findings) > 1 else ''} with findings (see each one's report.md):")
+            lines += [f"finding: {printable(f['dataset_path'])}: {', '.join(f['effects'])}" for f in self.findings]
         lines.append(f"combined dataset: {self.combined}")
         return "\n".join(lines)
 
@@ -210,7 +215,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
             if result.status == "ok" and result.rotcal_version != __version__:
                 result = replace(result, status="error", reason=f"the worker runs rotcal {result.rotcal_version}, this run {__version__}")
             output = None
-            if result.status == "ok":
+            if result.status == "ok" and work is not None:  # a refused plan settles with no work folder
                 output = layout.publish(plan.dataset_id, plan.fingerprint, work)
             else:
                 layout.withdraw(plan.dataset_id)
@@ -236,7 +241,8 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
                 settle(plan, result, layout.work / f"{plan.dataset_id}.{run_id}")
     records = manifest.records()
     combined = layout.publish_combined({r.dataset_id: r.output for r in records.values()
-                                        if r.status == "ok" and layout.published(r.dataset_id) == r.output})
+                                        if r.status == "ok" and r.output is not None
+                                        and layout.published(r.dataset_id) == r.output})
     layout.sweep()
     seen = {p.found.dataset_path for p in plans}
     problems = [{"dataset_path": p.found.dataset_path, "status": r.status, "reason": r.reason}
@@ -251,6 +257,7 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
         still_quarantined=sum(previous[p.found.dataset_path].status == "quarantined" for p in unchanged),
         not_found=sum(key not in seen for key in records), problems=tuple(problems), combined=str(combined),
         wall_s=round(time.perf_counter() - clock, 3), notes=notes,
+        findings=tuple({"dataset_path": p.found.dataset_path, "effects": list(r.findings)} for p, r in outcomes if r.findings),
     )
     manifest.finish_run(run_id, now(), json.dumps(summary.as_dict()))
     return summary

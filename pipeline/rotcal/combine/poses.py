@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import group_statistics, pose_arrays
+from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
+from rotcal.fit.means import group_statistics
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input

@@ -134,7 +134,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     rotation, s = u @ vt, np.linalg.norm(C, axis=1)  # polar decomposition C = P Q: Q, and C's row lengths
     scale = float(np.abs(m).max())
     own = isinstance(full, Failure)
-    excess = np.zeros((3, 3)) if own else full.excess_cov
+    excess = full.excess_cov if isinstance(full, ReferenceFit) else np.zeros((3, 3))
     for _ in range(2 if own else 1):  # with its own T: once with the noise, once more with T
         root_w = np.sqrt(_weights(cov, excess, scale))
         s, rotation, offsets, converged = _gauss_newton(s, rotation, offsets, ref, m, root_w)
@@ -169,8 +169,8 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result
     # states; its own where that one is exact and estimated none)
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(dof if own or not full.dof else full.dof)),
-                                          state_cov)])
+                                        [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof
+                                                                             else dof)), state_cov)])
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 

@@ -36,17 +36,18 @@ from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, 
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
-from rotcal.diagnose.reconstructed import ABSORBED_BY_OWN_PHASE, with_phases_free, with_reconstructed_angles
+from rotcal.diagnose.reconstructed import with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
     Unexplained,
     harmonic_scan,
+    p_is,
     segment_scan,
     static_step_scan,
     step_scan,
     tone_scan,
 )
-from rotcal.model.effects import LimitEffect, listed
+from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult, whole_fit_input
@@ -224,11 +225,9 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
         "rate_dependence", f"rate {rate:g} Hz against rate {final.obs.rates[0]:g} Hz, channel {CHANNELS[rc // 3]}",
         f"the responsivity changes with rate beyond its uncertainty: component {AXES[rc % 3]} of {CHANNELS[rc // 3]} "
         f"at {rate:g} Hz differs by {diff[k]:+.3g} ± {sd[k]:.2g} {output_unit} per g "
-        f"(chi-square {stat:.0f} on {diff.size}; p = {_fmt_p(p)})", p, np.zeros(3), 0)]
+        f"(chi-square {stat:.0f} on {diff.size}; {p_is(p)})", p, np.zeros(3), 0)]
 
 
-def _fmt_p(p: float) -> str:
-    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
 
 
 def refined_results(final: ModelFit, g_local: float, g_uncertainty: float) -> tuple[IntrinsicResult, ...]:
@@ -288,7 +287,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     absorbed: frozenset[str] = frozenset()
     if phases is not None and phases.height:
         samples, segments = with_reconstructed_angles(samples, segments, phases)
-        absorbed = ABSORBED_BY_OWN_PHASE
+        absorbed = frozenset(e.name for e in catalogue() if e.absorbed_by_own_phase)
     built = observations(samples, segments, fits, [r.rate_hz for r in results], g_local, config.max_samples)
     if built is None:
         return None

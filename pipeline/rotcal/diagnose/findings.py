@@ -10,7 +10,7 @@ from rotcal.diagnose.candidates import STEP, report_parameters
 from rotcal.diagnose.clipping import StuckValue
 from rotcal.diagnose.fitting import ModelFit, bic, chi2_sf, score, without
 from rotcal.diagnose.model import predict
-from rotcal.diagnose.scans import Unexplained, _fmt
+from rotcal.diagnose.scans import Unexplained, counted, p_is
 from rotcal.model.effects import effect_named
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES
@@ -47,8 +47,8 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
         singles = sorted((score(final, (c,)).p_value, c.key) for c in granules)
         rms_after = float(np.sqrt(s.rss.sum() / final.n_total))
         evidence = (f"not detected: modelling it everywhere it could act lowers chi-square by {s.chi2:.1f} on "
-                    f"{sum(len(c.names) for c in granules)} parameters (BIC change {s.delta_bic:+.1f}); the strongest "
-                    f"single test ({singles[0][1]}) has p = {_fmt(singles[0][0])}, above the false-alarm rate {alpha:g}")
+                    f"{counted(sum(len(c.names) for c in granules), 'parameter')} (BIC change {s.delta_bic:+.1f}); the strongest "
+                    f"single test ({singles[0][1]}) has {p_is(singles[0][0])}, above the false-alarm rate {alpha:g}")
         return _row(dataset, effect, False, "tested: " + _where(granules), evidence, final.rms, rms_after,
                     s.delta_bic, singles[0][0]), [], None
     reduced = without(final, tuple(found))
@@ -68,7 +68,7 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
     own = final.bic - reduced.bic
     versus = (f"; the best other explanation, {rival.candidate.key}, would change BIC by {rival.delta_bic:+.0f}"
               if rival is not None else "")
-    evidence = (f"modelling it lowers chi-square by {lr:.0f} on {k} parameters (p = {_fmt(p)}, BIC change "
+    evidence = (f"modelling it lowers chi-square by {lr:.0f} on {counted(k, 'parameter')} ({p_is(p)}, BIC change "
                 f"{own:+.0f}); {_param_text(params)}{versus}")
     return _row(dataset, effect, True, _where(found), evidence, reduced.rms, final.rms, own, p), rows, reduced
 
@@ -90,8 +90,8 @@ def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alph
     p = min(1.0, strongest.p_value * len(evidence))
     if not k:
         return _row(dataset, effect, False, "tested: every channel's extremes",
-                    f"not detected: no extreme value is repeated beyond chance (largest run {strongest.count} samples at "
-                    f"{strongest.value:g} in channel {strongest.channel}; p = {_fmt(p)})",
+                    f"not detected: no extreme value is repeated beyond chance (largest run {counted(strongest.count, 'sample')} at "
+                    f"{strongest.value:g} in channel {strongest.channel}; {p_is(p)})",
                     rms(rss_before), rms(rss_before), float(k * np.log(3 * obs.n)), p), []
     params, where, detail = [], [], []
     for side, limit in zip(("low", "high"), clip):
@@ -104,7 +104,7 @@ def limit_rows(final: ModelFit, clip, evidence: list[StuckValue], q: float, alph
                                 for e in hits))
         params.append({"dataset": dataset, "effect": effect, "axis": "", "parameter": f"clip_{side}",
                        "value": limit, "std_uncertainty": q, "unit": output_unit})
-    evidence_text = (f"runs of samples stuck at the extremes: {'; '.join(detail)} (p = {_fmt(p)}: binomial against the "
+    evidence_text = (f"runs of samples stuck at the extremes: {'; '.join(detail)} ({p_is(p)}: binomial against the "
                      f"neighbouring value or censoring against the model); "
                      f"samples the limit can have touched are left out of every fit")
     return _row(dataset, effect, True, "; ".join(where), evidence_text, rms(rss_before), rms(rss_after), dbic, p), params

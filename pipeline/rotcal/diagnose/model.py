@@ -154,7 +154,7 @@ class _Factors:
                 column = np.multiply(column, other.scale(state, self.motion)[:, r], out=out)
         return column
 
-    def scale_column(self, effect: ScaleEffect, st: ChannelState, derivative: np.ndarray,
+    def scale_column(self, effect: ScaleEffect, st: Channel, derivative: np.ndarray,
                      out: np.ndarray | None = None) -> np.ndarray:
         """d output / d p of a scale effect's parameter p: the gained output
         times d (its factor) / d p and the other scale effects' factors."""

@@ -26,9 +26,6 @@ import polars as pl
 from rotcal.diagnose.fitting import ModelFit
 from rotcal.diagnose.model import predict
 
-# effects the reconstructed angle absorbs: the own-phase fit's rate is the true one (rate_error)
-ABSORBED_BY_OWN_PHASE = frozenset({"rate_error"})
-
 
 def with_reconstructed_angles(samples: pl.DataFrame, segments: pl.DataFrame, phases: pl.DataFrame
                               ) -> tuple[pl.DataFrame, pl.DataFrame]:

@@ -76,8 +76,15 @@ class Residuals:
     output_unit: str
 
 
-def _fmt(p: float) -> str:
-    return f"{p:.1e}" if p >= 1e-300 else "< 1e-300"
+def counted(n: int, noun: str) -> str:
+    """"1 parameter", "3 parameters": a count with its noun in the right number."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def p_is(p: float) -> str:
+    """A p-value as evidence reads it: "p = 3.1e-05", or "p < 1e-300" below
+    the smallest double a tail probability is computed to."""
+    return f"p = {p:.1e}" if p >= 1e-300 else "p < 1e-300"
 
 
 def _segments(res: Residuals):
@@ -185,7 +192,7 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
         out.append(Unexplained(
             "tone", where,
             f"tone at {f:.3g} Hz, {np.median(amps):.2g} {res.output_unit} in channel {channel}, "
-            f"in {len(present)} of {len(segs)} rotation segments (not a harmonic of any rotation rate; p = {_fmt(p_family)})",
+            f"in {len(present)} of {len(segs)} rotation segments (not a harmonic of any rotation rate; {p_is(p_family)})",
             p_family, reduction, 2 * len(segs),
         ))
     return out
@@ -281,7 +288,7 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
             out.append(Unexplained(
                 "harmonic", f"channel {channel}, axis {AXES[ax]} rotation segments",
                 f"harmonic {k} of the rotation, {np.median(amps):.2g} {res.output_unit} in channel {channel} "
-                f"during rotation about {AXES[ax]} (chi-square {stat:.0f} on {2 * m}; p = {_fmt(p_family)})",
+                f"during rotation about {AXES[ax]} (chi-square {stat:.0f} on {2 * m}; {p_is(p_family)})",
                 p_family, reduction, 2 * m,
             ))
     return out
@@ -336,7 +343,7 @@ def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
         out.append(Unexplained(
             kind, f"segment {sid} ({_describe(res, part)}), channel {CHANNELS[r]} most",
             f"segments depart from the combined model by {what} (largest: {size:.2g} {res.output_unit} in segment {sid}, "
-            f"channel {CHANNELS[r]}; chi-square {total:.0f} on {dof}; p = {_fmt(p)})",
+            f"channel {CHANNELS[r]}; chi-square {total:.0f} on {dof}; {p_is(p)})",
             p, reduction, dof,
         ))
     return out
@@ -381,6 +388,6 @@ def static_step_scan(res: Residuals, step_id: np.ndarray, alpha: float) -> list[
                 out.append(Unexplained(
                     kind, f"static steps, channel {channel}",
                     f"static-step samples of channel {channel} show {what} (Geist 2017 Appendix B; {values.size} "
-                    f"samples of {int(np.sum(size >= 20))} steps, p = {_fmt(p_family)})", p_family, np.zeros(3), 0,
+                    f"samples of {int(np.sum(size >= 20))} steps, {p_is(p_family)})", p_family, np.zeros(3), 0,
                 ))
     return out

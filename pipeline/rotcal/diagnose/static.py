@@ -38,10 +38,10 @@ from rotcal.combine import StaticReduction
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import report_parameters
 from rotcal.diagnose.fitting import chi2_sf
-from rotcal.diagnose.scans import _fmt
+from rotcal.diagnose.scans import counted, p_is
 from rotcal.diagnose.static_model import PoseModel, pose_model
 from rotcal.fit.lsq import nonlinear
-from rotcal.model.effects import listed
+from rotcal.model.effects import effect_named, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.results import IntrinsicResult, whole_fit_input
 from rotcal.tables import conform, schema
@@ -209,9 +209,10 @@ def _against(model: PoseModel, theta: np.ndarray, cand: Candidate) -> tuple[str,
     """What an effect's residuals follow, per pose: the channel's output in g
     (the nonlinearities), the time (drift) or the temperature (thermal)."""
     r = "uvw".index(cand.scope)
-    if cand.effect == "offset_drift" and model.elapsed_s is not None:
+    at_rest = effect_named(cand.effect).at_rest
+    if at_rest == "time" and model.elapsed_s is not None:
         return "time since the first sample (s)", model.elapsed_s, r
-    if cand.effect == "thermal" and model.excursion_k is not None:
+    if at_rest == "temperature" and model.excursion_k is not None:
         return "temperature - T_ref (K)", model.excursion_k, r
     state, _ = model.state(theta)
     rows = state[:9].reshape(3, 3)
@@ -244,9 +245,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
         row = {"dataset": dataset, "effect": effect.name, "rms_before": rms_final, "rms_after": rms_final}
         if not granules:
             rows.append(row | {"detected": False, "where": "not testable here", "delta_bic": 0.0, "p_value": 1.0,
-                               "evidence": "static poses do not show it (it needs rotation, a table angle or "
-                                           "time stamps)" if effect.name != "clipping" else
-                                           "not tested on static poses"})
+                               "evidence": effect.not_at_rest})
             continue
         found = tuple(c for c in active if c.effect == effect.name)
         if not found:
@@ -260,7 +259,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
                 "rms_after": _rms(model, lin.solve(active + granules)[0]),
                 "evidence": f"not detected: modelling it on every channel lowers chi-square by {joint.chi2:.1f} "
                             f"(BIC change {joint.delta_bic:+.1f}); the strongest single test ({singles[0][1]}) has "
-                            f"p = {_fmt(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
+                            f"{p_is(singles[0][0])}, above the false-alarm rate {alpha:g}; detectable at this "
                             f"level (50 % power): {_limits_text(limit)}"})
             continue
         reduced = tuple(c for c in active if c.effect != effect.name)
@@ -278,7 +277,7 @@ def _rows(lin: Linearised, active: tuple[Candidate, ...], theta: np.ndarray, cov
             "detected": True, "where": "; ".join(f"channel {c.scope}" for c in found) + f" ({where_poses})",
             "rms_before": _rms(model, lin.solve(reduced)[0]), "delta_bic": test.delta_bic, "p_value": test.p_value,
             "evidence": f"the static poses' residuals follow it: modelling it lowers chi-square by {test.chi2:.0f} on "
-                        f"{sum(len(c.names) for c in found)} parameters (p = {_fmt(test.p_value)}, BIC change "
+                        f"{counted(sum(len(c.names) for c in found), 'parameter')} ({p_is(test.p_value)}, BIC change "
                         f"{test.delta_bic:+.0f}); {text}"})
     return rows, params, before, against, limits
 

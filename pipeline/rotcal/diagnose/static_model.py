@@ -41,14 +41,11 @@ from rotcal.combine import StaticReduction
 from rotcal.combine.multiposition import FULL, ORTHOGONAL, TRIL, OrientationFreeFit, pose_arrays
 from rotcal.combine.poses import references
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects import effect_named
+from rotcal.model.effects import listed
 from rotcal.model.effects.base import Candidate
 
-# the catalogue effects a DUT at rest can show, with what each needs of the poses
-STATIC_EFFECTS = {"cubic_nonlinearity": None, "quadratic_nonlinearity": None, "offset_drift": "time",
-                  "thermal": "temperature"}
-# a parameter's typical size, for the central-difference step (internal names by prefix)
-_STEP = {"k2": 1e-4, "k3": 1e-4, "drift": 1e-3, "tco": 1e-2, "tcs": 1e-6}
+# a parameter's typical size, for the central-difference step (internal names by prefix; ``Effect.at_rest_steps``)
+_STEP = {prefix: step for e in listed() for prefix, step in e.at_rest_steps.items()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,9 +166,10 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
     if np.isfinite(temperature).all() and np.ptp(temperature) > 0:
         counts = poses["n_samples"].to_numpy().astype(float)
         excursion = temperature - np.average(temperature, weights=counts)
-    have = {None: True, "time": elapsed is not None, "temperature": excursion is not None}
-    cands = tuple(c for name, need in STATIC_EFFECTS.items() if have[need]
-                  for c in effect_named(name).candidates((), (), False))
+    # the catalogue effects a DUT at rest can show (``Effect.at_rest``), those whose quantity the poses carry
+    have = {"pose": True, "time": elapsed is not None, "temperature": excursion is not None}
+    cands = tuple(c for e in listed() if e.at_rest is not None and have[e.at_rest]
+                  for c in e.candidates((), (), False))
     # poses without scatter (noise-free, or identical samples with no output step known) or a fit with
     # no residual degree of freedom leave nothing to test an effect against
     if isinstance(fit, OrientationFreeFit):

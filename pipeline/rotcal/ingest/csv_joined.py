@@ -29,7 +29,7 @@ from rotcal.ingest.meta import CaptureSpec, CsvFormat
 from rotcal.tables import conform
 
 # the header names joined: numeric columns read as float, the axis label as the sample table's Enum
-JOINED_TYPES = {"t": pl.Float64, "u": pl.Float64, "v": pl.Float64, "w": pl.Float64, "axis": AXIS_LABELS,
+JOINED_TYPES: dict[str, pl.DataType | type[pl.DataType]] = {"t": pl.Float64, "u": pl.Float64, "v": pl.Float64, "w": pl.Float64, "axis": AXIS_LABELS,
                 "rate_hz": pl.Float64, "angle_deg": pl.Float64, "temperature_c": pl.Float64}
 PLAIN = Layout(",", whitespace=False, decimal_comma=False, skip_lines=0, comment_prefix="#")
 # joined in memory only while small: a larger dataset's fixed costs are nothing beside its parse

@@ -94,11 +94,30 @@ def _separator(lines: list[bytes], header: bool, path: Path) -> str:
     fields = {len(line.split()) for line in lines}
     if len(fields) == 1 and fields.pop() > 1:
         return "whitespace"
+    _ragged(lines, path)
     tried = ", ".join(name for _, name in SEPARATORS)
     first = lines[0][:60].decode("utf-8", "replace")
     raise InputError(f"cannot detect the delimiter: no {tried} or whitespace splits the first {len(lines)} lines into "
                      f"the same number of fields (first line {first!r})", path=path,
                      hint="set dataset.toml [format] delimiter, or skip_lines for a preamble before the header")
+
+
+def _ragged(lines: list[bytes], path: Path) -> None:
+    """Refuse, naming it, a line with fewer or more fields than all the
+    others have by one separator: the delimiter is known then, the line is
+    what is wrong (a row cut short, a stray field)."""
+    if len(lines) < 3:
+        return
+    for sep, name in SEPARATORS:
+        counts = [line.count(sep.encode()) for line in lines]
+        usual = max(set(counts), key=counts.count)
+        odd = [k for k, c in enumerate(counts) if c != usual]
+        if usual > 0 and len(odd) == 1:
+            line = lines[odd[0]][:60].decode("utf-8", "replace")
+            hint = ("a preamble before the header? set dataset.toml [format] skip_lines" if odd[0] == 0
+                    else "complete or remove that line")
+            raise InputError(f"a line has {counts[odd[0]] + 1} {name}-separated fields where the other lines have "
+                             f"{usual + 1}: {line!r}", path=path, hint=hint)
 
 
 def layout(fh: BinaryIO, fmt: CsvFormat, path: Path) -> Layout:

@@ -37,7 +37,7 @@ def _blocks(fh: BinaryIO) -> Iterator[bytes]:
         yield block
 
 
-def lines_within(text: mmap.mmap, max_line_bytes: int) -> bool:
+def lines_within(text: mmap.mmap | bytes, max_line_bytes: int) -> bool:
     """Whether every whole span of ``(max_line_bytes + 2) // 2`` bytes, laid
     end to end from the file's start, holds a newline: a longer line would
     cover one such span, so then none is (a search per span, each stopping at

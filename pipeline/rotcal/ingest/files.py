@@ -7,10 +7,11 @@ Polars: the batch process finds a dataset's captures with it."""
 
 from __future__ import annotations
 
+import io
 import os
 import stat
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING
 
 from rotcal.errors import InputError
 
@@ -38,7 +39,7 @@ def require_regular(path: Path) -> None:
         raise InputError(f"cannot be read: {exc.strerror}", path=path) from None
 
 
-def open_capture(path: Path) -> BinaryIO:
+def open_capture(path: Path) -> io.BufferedReader:
     """``path`` opened for binary reading, refused unless a regular file.
 
     Opened without blocking (a FIFO's open would wait for a writer) and
@@ -86,7 +87,7 @@ def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec
         specs = {c.file: c for c in meta.captures}
         return [(path, specs.get(path.name))]
     if meta.captures:
-        files = [(inside(path, c.file, meta.source), c) for c in meta.captures]
+        files: list[tuple[Path, CaptureSpec | None]] = [(inside(path, c.file, meta.source), c) for c in meta.captures]
         for file, _ in files:
             if not os.path.exists(file):  # False, not OSError, for a name too long to exist
                 raise InputError("capture file named in dataset.toml does not exist", path=file)

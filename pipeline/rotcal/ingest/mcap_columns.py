@@ -55,6 +55,13 @@ class DecodedTopic:
         return len(self.frame) if self.frame is not None else self._filled
 
     @property
+    def parsed(self) -> pl.DataFrame:
+        """A JSON channel's messages as parsed (the reader sets ``frame`` for every JSON channel)."""
+        if self.frame is None:
+            raise ValueError(f"channel {self.channel.topic!r} holds no parsed JSON messages")
+        return self.frame
+
+    @property
     def kind(self) -> str:
         if self.channel.message_encoding == "json":
             return "json"

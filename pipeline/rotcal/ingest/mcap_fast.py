@@ -340,7 +340,7 @@ def read_topics(path: Path, topics: set[str], limits: Limits, workers: int = 0) 
 
 def iter_topic_batches(path: Path, topics: set[str], limits: Limits, workers: int = 0,
                        only: frozenset[int] = frozenset()) -> Generator[dict[str, DecodedTopic], None, dict[str, DecodedTopic]]:
-    """``read_topics`` a batch of chunks at a time (issue 16, item 1): after
+    """``read_topics`` a batch of chunks at a time: after
     each batch (at most ``BATCH_BYTES`` of chunks, decompressed on
     ``parallel.cores(workers)`` threads), the kept channels' messages in it,
     each a finished ``DecodedTopic`` holding that batch's columns only, by

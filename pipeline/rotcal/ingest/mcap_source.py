@@ -71,8 +71,8 @@ def _json_frame(frame: pl.DataFrame, log_ns: np.ndarray, topic: str, path: Path)
 
 def _fast_imu_frame(topic: DecodedTopic, path: Path) -> pl.DataFrame:
     if topic.kind == "json":
-        fields = [f for f in JSON_FIELDS if f in topic.frame.columns]
-        return _json_frame(finite_numbers(topic.frame.select(fields)), topic.columns["log_ns"], topic.channel.topic, path)
+        fields = [f for f in JSON_FIELDS if f in topic.parsed.columns]
+        return _json_frame(finite_numbers(topic.parsed.select(fields)), topic.columns["log_ns"], topic.channel.topic, path)
     if topic.kind != "imu":
         raise Unsupported(f"DUT topic of schema {topic.schema.name if topic.schema else None}")
     c = topic.take()

@@ -246,7 +246,7 @@ def _axis_code(labels: np.ndarray, axes: list) -> np.ndarray:
 
 def fast_table_track(topic: DecodedTopic, path: Path) -> TableTrack:
     if topic.kind == "json":
-        return _json_track(finite_numbers(topic.frame), topic.columns["log_ns"], topic.channel.topic, path)
+        return _json_track(finite_numbers(topic.parsed), topic.columns["log_ns"], topic.channel.topic, path)
     elif topic.kind == "joint":
         c = topic.take()
         if c["position"].shape[1] == 1:

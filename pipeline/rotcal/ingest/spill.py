@@ -1,5 +1,4 @@
-"""Decoded columns kept on disk between the passes of a streamed run
-(issue 16, item 1).
+"""Decoded columns kept on disk between the passes of a streamed run.
 
 A streamed run reads a capture several times (the time base, the segment
 sums, the residual statistics, the refits). Decompressing the chunks and
@@ -27,9 +26,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
+import numpy.typing as npt
 import polars as pl
 
 MARGIN_BYTES = 256 * 1024 * 1024  # free disk left to others beyond what the spill needs
@@ -44,7 +44,7 @@ class Spill:
     """Columns of fixed types (``dtypes``: name to type) appended batch by
     batch and read back in pieces of rows, in the order written."""
 
-    def __init__(self, dtypes: dict[str, np.dtype]):
+    def __init__(self, dtypes: Mapping[str, npt.DTypeLike]):
         self.dtypes = {name: np.dtype(d) for name, d in dtypes.items()}
         self.files = {name: tempfile.TemporaryFile(buffering=0) for name in self.dtypes}
         self.rows = 0

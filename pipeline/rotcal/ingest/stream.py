@@ -1,5 +1,5 @@
-"""A capture read chunk by chunk, in memory bounded by a block of samples
-(issue 16, item 1): ``open_stream`` gives a ``StreamedCapture`` whose
+"""A capture read chunk by chunk, in memory bounded by a block of samples:
+``open_stream`` gives a ``StreamedCapture`` whose
 ``blocks()`` yields the capture's canonical sample columns in time order,
 a block at a time, with exactly the values ``load_dataset`` and
 ``repair_timebase`` give that capture in memory.
@@ -284,6 +284,9 @@ def _raw_blocks(samples: Iterator[dict[str, np.ndarray]], tables: Iterator[Table
                     more = False
                 elif nxt.t_ns.size:
                     track = nxt if track is None else _joined(track, nxt)
+            if track is None:  # the table topic holds no message: no labels to join
+                yield frame
+                continue
             track = _window(track, int(t_ns[0]))
             yield frame.hstack(table_labels(t_ns, track).get_columns())  # the track: the window around the block
 
@@ -304,7 +307,8 @@ def _in_memory(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: 
     tb = check_capture(samples["t_ns"].to_numpy(), [samples[c].to_numpy() for c in ("u", "v", "w")], capture, config)
     repaired = samples.filter(pl.Series(tb.keep)).with_columns(t_ns=pl.Series(tb.t_ns, dtype=pl.Int64))
     whole = time_ordered(repaired).select(COLUMNS)
-    source = samples["label_source"].drop_nulls().first() if samples.height else None
+    first = samples["label_source"].drop_nulls().first() if samples.height else None
+    source = None if first is None else str(first)
 
     def blocks() -> Iterator[pl.DataFrame]:
         for a in range(0, whole.height, block):

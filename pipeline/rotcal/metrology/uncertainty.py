@@ -174,6 +174,11 @@ def monte_carlo_note(frame: pl.DataFrame) -> str:
     if failed.height:
         excess = failed.select(pl.max_horizontal("d_low", "d_high") - pl.col("tolerance")).to_series()
         noise = int((excess <= 2 * failed["endpoint_numerical_u"]).sum())
-        which = "the other" if noise == failed.height else f"{noise} of the other"
-        text += f"; {which} {failed.height} miss the tolerance by less than twice the Monte Carlo's own numerical uncertainty"
+        bound = "twice the Monte Carlo's own numerical uncertainty"
+        if failed.height == 1:
+            text += f"; the other one misses the tolerance by {'less' if noise else 'more'} than {bound}"
+        elif noise == failed.height:
+            text += f"; the other {failed.height} miss the tolerance by less than {bound}"
+        else:
+            text += f"; {noise} of the other {failed.height} {'misses' if noise == 1 else 'miss'} the tolerance by less than {bound}"
     return text + " (monte_carlo.parquet)"

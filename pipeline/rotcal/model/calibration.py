@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import cache, lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import jsonschema
 import numpy as np
@@ -32,9 +32,6 @@ from rotcal.jsontext import json_text
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal_schemas import schema_text
-
-if TYPE_CHECKING:
-    from rotcal.ingest.meta import DatasetMeta
 
 CALIBRATION_SCHEMA = "calibration"
 CALIBRATION_VERSION = "1.0"
@@ -174,6 +171,13 @@ class RateCalibration:
     @property
     def O_vector(self) -> np.ndarray:
         return np.array([q.value for q in self.O])
+
+    def parameter(self, name: str) -> Quantity:
+        """The intrinsic parameter ``name`` (s_u, ..., phi_uv, ..., O_u, ...)."""
+        for q in self.parameters:
+            if q.name == name:
+                return q
+        raise KeyError(f"no parameter {name!r}: {', '.join(q.name for q in self.parameters)}")
 
     def to_dict(self) -> dict[str, Any]:
         return {"rate_hz": self.rate_hz, "model": self.model, "reason": self.reason, "frame": self.frame,
@@ -319,7 +323,25 @@ class Calibration:
                    tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
 
 
-def recommended_calibration(chosen: Recommended, dataset: str, meta: DatasetMeta, inputs: tuple[dict[str, Any], ...],
+class DeviceMeta(Protocol):
+    """What the document records of a dataset's metadata (``dataset.toml``,
+    read by ``rotcal.ingest.meta``): the device and the local gravity."""
+
+    @property
+    def device_id(self) -> str | None: ...
+    @property
+    def output_unit(self) -> str: ...
+    @property
+    def full_scale(self) -> float | None: ...
+    @property
+    def g_local(self) -> float: ...
+    @property
+    def g_local_uncertainty(self) -> float: ...
+    @property
+    def g_local_source(self) -> str: ...
+
+
+def recommended_calibration(chosen: Recommended, dataset: str, meta: DeviceMeta, inputs: tuple[dict[str, Any], ...],
                             configuration: dict[str, Any]) -> Calibration:
     """The run's document: ``chosen``'s result per rate, the dataset's
     metadata (device, g_local and its source), rotcal's version and the time

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
+from rotcal.model.outputs import output
 from rotcal.model.physics import ANGLE_PAIRS
 
 # BudgetInput.source of an input group that is a whole fit's noise, not split
@@ -186,10 +187,15 @@ class Failure:
 
 @dataclass(frozen=True, eq=False)
 class Table:
-    """One output table of a run: ``name`` is both its schema and its file stem."""
+    """One output table of a run: ``name`` is both its schema and its file
+    stem, an entry of ``model.outputs.OUTPUTS`` (``KeyError`` otherwise)."""
 
     name: str
     data: pl.DataFrame
+
+    def __post_init__(self) -> None:
+        if not output(self.name).is_table:
+            raise KeyError(f"{self.name!r} is a run output but not a table")
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,7 +25,7 @@ import polars as pl
 from rotcal.errors import InputError
 from rotcal.model.calibration import Calibration, Quantity, RateCalibration
 from rotcal.model.results import EXPANDED_COVERAGE
-from rotcal.report.certificate_checks import main_contributions, norm_check, norm_summary
+from rotcal.report.certificate_checks import main_contributions, norm_check, norm_remark, norm_summary
 from rotcal.report.rounding import gum_round, gum_text
 from rotcal.tables import atomic_write, schema
 
@@ -197,7 +197,15 @@ def norm_section(tables: dict[str, pl.DataFrame], cal: Calibration, figures: boo
             "(poses: poses.parquet, with the two-fold held-out check and its uncertainty from the result's "
             "covariance and the pose's noise; dwells: dwells.parquet, u from the dwell's noise; segment fits: "
             "fits.parquet under their rate's calibration, averaged over a turn, u from the fit's noise).</p>"
-            f"{summary}{figure}<details><summary>every pose, dwell and segment ({check.height})</summary>{every}</details>")
+            f"{summary}{_remark(check, cal, tables)}{figure}"
+            f"<details><summary>every pose, dwell and segment ({check.height})</summary>{every}</details>")
+
+
+def _remark(check: pl.DataFrame, cal: Calibration, tables: dict[str, pl.DataFrame]) -> str:
+    findings = tables.get("diagnosis")
+    detected = () if findings is None else tuple(dict.fromkeys(findings.filter(pl.col("detected"))["effect"].to_list()))
+    remark = norm_remark(check, cal, detected)
+    return f'<p class="note">{escape(remark)}</p>' if remark else ""
 
 
 def diagnosis(run_dir: Path, tables: dict[str, pl.DataFrame], cal: Calibration, figures: bool) -> str:

@@ -112,6 +112,29 @@ def norm_check(tables: dict[str, pl.DataFrame], cal: Calibration) -> pl.DataFram
     return pl.concat(parts) if parts else pl.DataFrame(schema=NORM_COLUMNS)
 
 
+def norm_remark(check: pl.DataFrame, cal: Calibration, detected: tuple[str, ...], coverage: float = 3.0) -> str:
+    """A sentence on the items whose |a| lies beyond ``coverage`` standard
+    uncertainties of g_local, so that none is shown without a word: under a
+    refined model the segment fits are those of the recorded samples, which
+    still hold the effects the refined model corrects; otherwise such an item
+    is a misfit to look at. Empty when every item is within."""
+    beyond = check.filter((pl.col("u_norm_m_s2") > 0)
+                          & ((pl.col("norm_m_s2") - cal.g_local).abs() > coverage * pl.col("u_norm_m_s2")))
+    if beyond.is_empty():
+        return ""
+    worst = beyond.sort(pl.col("deviation_ppm").abs(), descending=True)
+    shown = "; ".join(f"{item} at {dev:+.0f} ppm" for item, dev in worst.select("item", "deviation_ppm").head(3).iter_rows())
+    more = f" and {beyond.height - 3} more" if beyond.height > 3 else ""
+    count = f"{beyond.height} item{'s' if beyond.height > 1 else ''} lie{'s' if beyond.height == 1 else ''}"
+    head = f"{count} beyond {coverage:g} standard uncertainties of g_local ({shown}{more})"
+    refined = [r.model for r in cal.rates if r.model == "refined"]
+    segment_fits = beyond.filter(pl.col("kind") == "segment fit").height
+    if refined and segment_fits and detected:
+        return (f"{head}: segment fits are fits of the recorded samples, which still hold what the refined model "
+                f"corrects ({', '.join(detected)}): they show that effect, not an error of the calibration.")
+    return f"{head}: more than the noise explains; the diagnosis (section 6) says what it found."
+
+
 def norm_summary(check: pl.DataFrame) -> pl.DataFrame:
     """Per kind of item: how many, mean and RMS deviation and the largest |deviation| (ppm of g_local)."""
     return (check.group_by("kind", maintain_order=True)

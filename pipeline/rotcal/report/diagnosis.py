@@ -205,6 +205,10 @@ def _figures(diag: Diagnosis, fits: pl.DataFrame, figures: Path, output_unit: st
         lines += [f"Residuals before and after modelling {name} ({where}):", "", f"![{name}](figures/{file})", ""]
     if diag.final.obs.motion.rotating.any():
         offsets_figure(diag, fits, figures / "offsets_vs_w2.png", output_unit)
-        lines += ["Offsets of the rotation segments against w^2 (Gaitan 2021 Fig. 7), before and after the "
-                  "modelled centripetal acceleration:", "", "![offsets](figures/offsets_vs_w2.png)", ""]
+        centripetal = diag.findings.filter(pl.col("detected") & (pl.col("effect") == "centripetal")).height > 0
+        caption = ("before and after the modelled centripetal acceleration:" if centripetal else
+                   "as fitted: no centripetal acceleration was detected, so none is modelled (a DUT off the axis "
+                   "would show offsets growing with w^2):")
+        lines += [f"Offsets of the rotation segments against w^2 (Gaitan 2021 Fig. 7), {caption}", "",
+                  "![offsets](figures/offsets_vs_w2.png)", ""]
     return lines

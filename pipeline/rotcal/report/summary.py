@@ -26,8 +26,6 @@ def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title:
     """The nine parameters per rate: value +- expanded uncertainty (95 %,
     each value's k from its effective degrees of freedom)."""
     # title and note as lines of their own: a table's title wraps at its width
-    k = np.concatenate([res.coverage_factor for res in results]) if results else np.array([np.nan])
-    note = f"U = k u, k from each value's effective dof: {k.min():.2f} to {k.max():.2f}"
     table = Table()
     table.add_column("parameter")
     table.add_column("unit")
@@ -36,9 +34,23 @@ def summary_table(results: tuple[IntrinsicResult, ...], output_unit: str, title:
     for i, (name, unit) in enumerate(zip(INTRINSIC, units(output_unit))):
         cells = []
         for res in results:
-            cells.append(_expanded(res.value[i], res.expanded_uncertainty[i]))
+            fixed = res.std_uncertainty[i] == 0.0  # a model's fixed parameter (orthogonal axes: the angles)
+            cells.append(f"{res.value[i]:g} (fixed)" if fixed else _expanded(res.value[i], res.expanded_uncertainty[i]))
         table.add_row(name, unit, *cells)
-    return Group(Text(title), table, Text(note))
+    return Group(Text(title), table, Text(coverage_note(results)))
+
+
+def coverage_note(results: tuple[IntrinsicResult, ...]) -> str:
+    """How U follows from u: one k, or the range of k over the estimated
+    (not fixed) values, each k from that value's effective dof."""
+    k = np.concatenate([res.coverage_factor[res.std_uncertainty > 0] for res in results]) if results else np.array([])
+    k = k[np.isfinite(k)]
+    if k.size == 0:
+        return "U = k u"
+    low, high = f"{k.min():.2f}", f"{k.max():.2f}"
+    if low == high:
+        return f"U = k u, k = {low} for every value (from each value's effective dof)"
+    return f"U = k u, k from each value's effective dof: {low} to {high}"
 
 
 def _expanded(value: float, expanded: float) -> str:
@@ -50,10 +62,12 @@ def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
     freedom, noise-only reduced chi-square and excess scatter."""
     fit = static.fit
     n = static.positions.height
+    if fit is None:
+        return f"no static fit: {n} positions"
     if isinstance(fit, OrthogonalReferenceFit):
-        return (f"9-parameter fit of orthogonal axes to {n} positions of known reference ({static.frame} frame): "
-                f"residual dof {fit.dof}, excess scatter per position (u, v, w) "
-                f"{', '.join(f'{e:.3g}' for e in np.sqrt(np.diag(fit.excess_cov)))} {output_unit}")
+        excess = ", ".join(f"{e:.3g}" for e in np.sqrt(np.diag(fit.excess_cov)))
+        return (f"orthogonal-axes fit to {n} positions of known reference ({static.frame} frame): residual dof {fit.dof}, "
+                f"excess scatter per position (u, v, w) {excess} {output_unit}")
     if isinstance(fit, ReferenceFit):
         excess = ", ".join(f"{e:.3g}" for e in fit.excess_std)
         return (f"12-parameter fit to {n} positions of known reference ({static.frame} frame): residual dof {fit.dof}, "

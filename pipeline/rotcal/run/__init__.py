@@ -2,10 +2,11 @@
 then the signals for what labels leave out) -> fit -> combine (the
 reductions) -> diagnose -> the recommended model -> metrology, and one
 writer at the end that publishes what the stages produced as the output
-directory. ``run_dataset`` is that straight sequence; the stage adapters
-are in ``stages``, the output items and the writer in ``outputs``. The CLI
-and the batch runner both call ``run_dataset``; neither holds pipeline
-logic."""
+directory. ``run_dataset`` is that straight sequence (drawn in
+docs/architecture.md); the stage adapters are in ``stages`` (up to the
+results) and ``recommended`` (what is made of them), the output items and
+the writer in ``outputs``. The CLI and the batch runner both call
+``run_dataset``; neither holds pipeline logic."""
 
 from __future__ import annotations
 
@@ -22,10 +23,10 @@ from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
 from rotcal.fit.quantization import coarse_steps
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
 from rotcal.run.outputs import (
-    INPUT_TABLES,
     calibration_document,
     calibration_output,
     certificate_output,
@@ -33,19 +34,15 @@ from rotcal.run.outputs import (
     publish,
     result_tables,
 )
-from rotcal.run.stages import (
-    Reductions,
-    Segmented,
+from rotcal.run.recommended import (
     correction_stage,
-    determined,
     diagnose_stage,
     intrinsic_table,
     metrology_stage,
     recommend_stage,
     recommended_fits,
-    reduce,
-    segment_and_fit,
 )
+from rotcal.run.stages import Reductions, Segmented, determined, reduce, segment_and_fit
 from rotcal.run.streamed import load
 from rotcal.segment.angles import check_angle_rates, partial_angles
 

@@ -1,7 +1,8 @@
 """What a run publishes: its output items (``Table``s and ``Figure``s: the
 intrinsic and cross-sensitivity tables of the recommended model,
 calibration.json, the diagnosis's tables and report, the certificate) and
-the one writer, ``publish``, in ``PUBLISH_ORDER``."""
+the one writer, ``publish``, in the order of the outputs registry
+(``model.outputs.OUTPUTS``), which names every item."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from rotcal.metrology import (
     cross_sensitivity_frame,
 )
 from rotcal.model.calibration import Calibration, Recommended, recommended_calibration
+from rotcal.model.outputs import output, publish_rank
 from rotcal.model.results import IntrinsicResult, Table
 from rotcal.report.publish import OutputDir, publish_directory
 from rotcal.tables import contract_table, write_table
@@ -38,16 +40,9 @@ class Figure:
     name: str
     draw: Callable[[Path], Path | None]
 
-
-# the run's files in the order they are published (and listed in RunOutcome.written)
-PUBLISH_ORDER = ("segments", "fits", "timebase", "dwells", "diagnosis", "effect_parameters", "diagnosis_report",
-                 "calibration", "intrinsic", "components", "cross_sensitivity", "correction", "correction_uncertainty",
-                 "correction_temperature", "uncertainty_budget", "simultaneous", "consistency", "gaitan_estimators",
-                 "frequency_response", "frequency_response_png", "monte_carlo", "poses", "certificate")
-
-
-# the tables that describe the input rather than a result: published even when no rate can be determined
-INPUT_TABLES = ("segments", "fits", "timebase", "dwells", "poses")
+    def __post_init__(self) -> None:
+        if output(self.name).is_table:
+            raise KeyError(f"{self.name!r} is a table, published as a Table")
 
 
 def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> list[Table]:
@@ -102,6 +97,10 @@ class View:
     name: str
     draw: Callable[[Path, Mapping[str, pa.Table]], Path | None]
 
+    def __post_init__(self) -> None:
+        if output(self.name).is_table:
+            raise KeyError(f"{self.name!r} is a table, published as a Table")
+
 
 def certificate_output(config: RunConfig, calibration: Calibration) -> View:
     """The certificate (``report.certificate``), published last: a view of
@@ -119,8 +118,8 @@ def certificate_output(config: RunConfig, calibration: Calibration) -> View:
 
 
 def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[Path, ...]:
-    """Publish what the run produced as the whole of ``out``, in
-    ``PUBLISH_ORDER`` (an item it does not name after those it does): each
+    """Publish what the run produced as the whole of ``out``, in the
+    registry's order (``model.outputs.OUTPUTS``, which names every item): each
     table as Parquet under its schema (``tables.contract_table``; handed to
     ``out.on_table`` too), each figure drawn, each view drawn from the
     tables before it, staged beside ``out``, listed and swapped in
@@ -128,8 +127,7 @@ def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[P
     published: dict[str, pa.Table] = {}
 
     def write(staging: Path) -> list[Path]:
-        order = {name: k for k, name in enumerate(PUBLISH_ORDER)}
-        paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: order.get(o.name, len(order))))
+        paths = (write_item(i, staging) for i in sorted(outputs, key=lambda o: publish_rank(o.name)))
         return [path for path in paths if path is not None]
 
     def write_item(item: Table | Figure | View, staging: Path) -> Path | None:

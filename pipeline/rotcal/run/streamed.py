@@ -1,5 +1,5 @@
-"""The run's load and segment stages for a capture read block by block
-(issue 16, item 1): past ``[run] stream_above_samples`` a single capture's
+"""The run's load and segment stages for a capture read block by block:
+past ``[run] stream_above_samples`` a single capture's
 samples are not held; the segment stage reads them in passes
 (``run.streaming``) and keeps only what the later stages read: the static
 segments' samples, the diagnosis's thinned rows and each fitted segment's
@@ -30,7 +30,7 @@ from rotcal.ingest.stream import open_stream
 from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
-from rotcal.timebase.check import TimebaseResult
+from rotcal.timebase.repair import TimebaseResult
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis

@@ -1,5 +1,5 @@
 """Segments and segment fits of a labelled capture read block by block, in
-memory bounded by the block, not by the capture (issue 16, item 1).
+memory bounded by the block, not by the capture.
 
 The segments are the label runs of ``segment.segment_by_labels`` (a run
 is consecutive samples of one table axis and rate; a run starts where
@@ -239,8 +239,8 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
     }, dataset, angle_source)
     fits, sums = [], {}
     for r in (r for r in runs if r.has_angle):
-        if reasons[r.segment] is not None:
-            fits.append(SegmentFit.failed(r.segment, r.n, reasons[r.segment], r.rate_hz))
+        if (reason := reasons[r.segment]) is not None:
+            fits.append(SegmentFit.failed(r.segment, r.n, reason, r.rate_hz))
             continue
         coef, xtx_inv = r.normal.solve()
         res = residuals[r.segment]

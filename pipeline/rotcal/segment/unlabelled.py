@@ -18,14 +18,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import pose_table
+from rotcal.fit.means import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
 from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.tables import conform, schema
-from rotcal.timebase.rates import PLAN_MATCH, clock_drift, nominal_rate, rate_classes
+from rotcal.timebase.rates import PLAN_MATCH, ClockDrift, clock_drift, nominal_rate, rate_classes
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +42,7 @@ class Inference:
     findings: tuple[dict, ...]
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
+    clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``ClockDrift.factor``)
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,10 +127,10 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
 
 
 def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[float, ...]
-                    ) -> tuple[list[dict], list[dict], list[SegmentFit], dict, list[str]]:
+                    ) -> tuple[list[dict], list[dict], list[SegmentFit], ClockDrift]:
     """Rates of the rotations without an angle reference against the nominal
     ones: segment rows of the inferred ones, the fitted columns of the
-    labelled ones, every own-phase fit, the clock-drift finding and warnings."""
+    labelled ones, every own-phase fit and the logger clock's drift."""
     usable = np.array([r.fit is not None and r.reason is None and r.fit.determined for r in rotations], bool)
     measured = np.array([r.fit.rate_hz if r.fit else np.nan for r in rotations])
     u = np.array([r.fit.rate_u_hz if r.fit else np.nan for r in rotations])
@@ -156,7 +157,7 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
         fits.append(replace(fit.fit, segment=r.key, rate_fit_hz=float(corrected[k])) if fit is not None else
                     SegmentFit.failed(r.key, r.n_samples, f"time base: {r.reason}" if r.reason else
                                       "its own-phase fit is not determined (too few samples for ten parameters)", float("nan")))
-    return rows, updates, fits, drift.finding(dataset), drift.warnings()
+    return rows, updates, fits, drift
 
 
 def _outputs(samples: pl.DataFrame, rows: np.ndarray) -> np.ndarray:
@@ -201,7 +202,8 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         fit = None if reason else fit_sine(t_all[on], _outputs(samples, np.flatnonzero(on)), abs(row["rate_hz"]))
         found.rotations.append(_Rotation(row["segment"], row["capture"], row["axis"], row["label_source"],
                                          row["rate_hz"], fit, reason, row["t_start_ns"], row["t_end_ns"], int(on.sum())))
-    rows, updates, fits, finding, warnings = _own_phase_fits(found.rotations, dataset, plan_rates)
+    rows, updates, fits, drift = _own_phase_fits(found.rotations, dataset, plan_rates)
+    warnings = drift.warnings()
     if updates:
         kept = kept.update(pl.DataFrame(updates, schema_overrides={"segment": pl.Int32}), on="segment")
     new = pl.DataFrame(found.rows + rows, schema=schema("segments").polars_schema) if found.rows or rows else schema("segments").empty()
@@ -224,5 +226,5 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
     return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
-                     (finding,) if found.rotations else (), tuple(warnings), tuple(notes))
+                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor)
 

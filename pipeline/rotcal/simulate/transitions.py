@@ -61,6 +61,13 @@ class Phase:
     plan_segment: int | None = None
 
     @property
+    def axis_idx(self) -> int:
+        """The table axis turned in this phase (a reorientation by hand has none)."""
+        if self.axis is None:
+            raise ValueError(f"a {self.kind} phase turns no table axis")
+        return axis_index(self.axis)
+
+    @property
     def end_deg(self) -> float:
         """The true angle at t1."""
         d = self.t1_s - self.t0_s
@@ -167,10 +174,10 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
         if p.kind == "reorient":
             start = end_direction
             nxt = phases[k + 1]
-            end = gravity_direction(np.array([axis_index(nxt.axis)]), np.array([nxt.theta0_deg]))[0]
+            end = gravity_direction(np.array([nxt.axis_idx]), np.array([nxt.theta0_deg]))[0]
             hand_dir[on], hand_acc[on] = _hand_path(start, end, tau_s / (p.t1_s - p.t0_s), rng)
             continue
-        axis_idx[on] = axis_index(p.axis)
+        axis_idx[on] = p.axis_idx
         if p.kind == "move":
             theta[on] = p.theta0_deg + (p.theta1_deg - p.theta0_deg) * minimum_jerk(tau_s / (p.t1_s - p.t0_s))
         elif p.kind == "ramp":
@@ -186,7 +193,7 @@ def schedule_continuous(plan: Plan, rate_factor: float, rng: np.random.Generator
             label_rate[on] = p.rate0_hz
             label_angle[on] = theta_cmd[on] if p.kind == "rotation" else p.theta0_deg
             plan_segment[on] = p.plan_segment
-        end_direction = gravity_direction(np.array([axis_index(p.axis)]), np.array([p.end_deg]))[0]
+        end_direction = gravity_direction(np.array([p.axis_idx]), np.array([p.end_deg]))[0]
     theta_cmd = np.where(rotating, theta_cmd, theta)
     motion = Motion(t_s=t_s, axis_idx=axis_idx, rotating=rotating, theta_cmd_deg=theta_cmd,
                     t_start_s=t_start, rate_hz=rate, t0_s=0.0)

@@ -6,6 +6,7 @@ logger clock against the plan's nominal rates (``rates``)."""
 
 from __future__ import annotations
 
-from rotcal.timebase.check import classify_gaps, findings_frame, repair_timebase
+from rotcal.timebase.check import findings_frame
+from rotcal.timebase.repair import classify_gaps, repair_timebase
 
 __all__ = ["classify_gaps", "findings_frame", "repair_timebase"]

@@ -1,5 +1,5 @@
 """``check.check_capture`` for a capture whose stamps are read in blocks,
-with no sample-length array (issue 16, item 1).
+with no sample-length array.
 
 The grid ``t_k = a_run + T k`` (``timebase.grid``) is fitted as in memory,
 ``grid.grid_slots``'s iterations stopped at the same fixed point, from sums

@@ -1,4 +1,4 @@
-"""The time base of a capture read block by block (issue 16, item 1):
+"""The time base of a capture read block by block:
 ``check.check_capture``'s findings and repairs for a capture whose stamps
 are read in blocks, and the repair applied to its sample blocks in order.
 

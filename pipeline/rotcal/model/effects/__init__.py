@@ -1,8 +1,12 @@
 """The effect catalogue: the physics of docs/effects.md that the papers' linear
-model leaves out, one module per effect (``base`` says what an effect
-defines). The simulator (``rotcal.simulate``), the forward model
+model leaves out, one module per effect. The simulator (``rotcal.simulate``), the forward model
 (``rotcal.model.physics``) and the diagnosis (``rotcal.diagnose``) all read
-this registry; a new effect is a new module here that defines ``EFFECT``.
+this registry; a new effect is a new module here that defines ``EFFECT``
+(``base`` says what an effect is, ``families`` holds implementations
+several effects share). Each effect carries every fact the stages need of
+it: its forward-model stage, parameters, simulator option, diagnosis
+model, what a DUT at rest shows of it (``at_rest``) and whether a
+rotation's own-phase fit absorbs it (``absorbed_by_own_phase``).
 
 ``catalogue()`` lists the effects in the forward model's order (by stage,
 then by their row in docs/effects.md's table), ``listed()`` in the table's order
@@ -37,9 +41,11 @@ E = TypeVar("E", bound=Effect)
 
 
 def _discover() -> list[Effect]:
-    """Every module of this package but ``base`` (and ``__main__``) defines one ``EFFECT``."""
-    return [importlib.import_module(f"{__name__}.{m.name}").EFFECT for m in pkgutil.iter_modules(__path__)
-            if m.name != "base" and not m.name.startswith("_")]
+    """The ``EFFECT`` of every module of this package that defines one
+    (``base`` and ``families`` define none, ``__main__`` is not imported)."""
+    modules = (importlib.import_module(f"{__name__}.{m.name}") for m in pkgutil.iter_modules(__path__)
+               if not m.name.startswith("_"))
+    return [m.EFFECT for m in modules if hasattr(m, "EFFECT")]
 
 
 _REGISTRY: list[Effect] = []

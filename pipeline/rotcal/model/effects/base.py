@@ -29,14 +29,14 @@ and the effect's place in the catalogue is its first stage's.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 
 from rotcal.errors import ConfigError
-from rotcal.model.conventions import AXES, CHANNELS, Motion
+from rotcal.model.conventions import AXES, Motion
 
 ALL = (0, 1, 2)  # a parameter that enters every channel's equation
 
@@ -193,6 +193,18 @@ class Effect:
     # the diagnosis needs to test it (e.g. ``temperature_c``): on a dataset
     # without them it is neither tested nor listed.
     needs: ClassVar[frozenset[str]] = frozenset()
+    # What a DUT at rest shows of it, for the static diagnosis (``rotcal.diagnose.static``):
+    # None, nothing; "pose", the pose means alone; "time", the means with their time stamps;
+    # "temperature", the means at a varying temperature (its residuals are drawn against that
+    # quantity, against the channel's output otherwise). ``at_rest_steps``: the central-difference
+    # step of its internal parameters there, by name prefix (a parameter's typical size), and
+    # ``not_at_rest`` why static poses leave it untested when ``at_rest`` is None.
+    at_rest: ClassVar[Literal["pose", "time", "temperature"] | None] = None
+    at_rest_steps: ClassVar[Mapping[str, float]] = {}
+    not_at_rest: ClassVar[str] = "static poses do not show it (it needs rotation, a table angle or time stamps)"
+    # A rotation fitted against its own phase absorbs it (the fitted rate is the true one,
+    # ``rotcal.diagnose.reconstructed``): not tested on angles reconstructed from solved phases.
+    absorbed_by_own_phase: ClassVar[bool] = False
 
     # --- the simulator -------------------------------------------------
     def complete(self, params: dict, rng: np.random.Generator) -> dict:
@@ -323,47 +335,6 @@ class GainEffect(Effect):
     def column(self, name: str, cand: Candidate, st: Channel, ctx: ColumnContext,
                out: np.ndarray | None = None) -> np.ndarray:
         return ctx.gain_column(self, st, out)
-
-
-class PerChannelEffect(Effect):
-    """An effect with one coefficient per channel, ``{prefix}_u``, ``_v``,
-    ``_w``: its state (a later request fills in the channels it names), its
-    simulator draw and its diagnosis candidates (one per channel)."""
-
-    prefix: ClassVar[str]
-
-    def coefficient(self, channel: str) -> str:
-        return f"{self.prefix}_{channel}"
-
-    def state(self, previous: Any, params: dict) -> Any:
-        k = np.zeros(3) if previous is None else np.array(previous)
-        for r, c in enumerate(CHANNELS):
-            k[r] = params.get(self.coefficient(c), k[r])
-        return k
-
-    def draw(self, size: float, sign: float, axis: str, channel: str, rng: np.random.Generator) -> str:
-        return f"{self.name}:{self.coefficient(channel)}={sign * size:.6g}"
-
-    def candidates(self, rotating_axes: tuple[str, ...], all_axes: tuple[str, ...],
-                   angles_measured: bool) -> tuple[Candidate, ...]:
-        return tuple(Candidate(self.name, c, (self.coefficient(c),), ((r,),)) for r, c in enumerate(CHANNELS))
-
-    def state_from(self, values: dict[str, Any]) -> Any:
-        names = [self.coefficient(c) for c in CHANNELS]
-        return np.array([float(values.get(n, 0.0)) for n in names]) if any(n in values for n in names) else None
-
-
-class PowerGainEffect(PerChannelEffect, GainEffect):
-    """A gain error f(u) = 1 + k u^power per channel; ``chain`` stays each
-    effect's own, written so that it rounds as the diagnosis always has."""
-
-    power: ClassVar[int]
-
-    def gain(self, k: Any, u: np.ndarray) -> np.ndarray:
-        return 1.0 + k * u**self.power
-
-    def gain_derivative(self, u: np.ndarray) -> np.ndarray:
-        return u**self.power
 
 
 class ScaleEffect(Effect):

@@ -22,6 +22,7 @@ class Clipping(LimitEffect):
     size_of = "the limit, as a fraction below the largest output"
     where = "every channel's extremes"
     listed = 3
+    not_at_rest = "not tested on static poses"
 
     def state(self, previous, params):
         return params.get("clip_low"), params.get("clip_high")

@@ -4,7 +4,8 @@ y -> y (1 + k3 (y / x1g)^2) per channel."""
 from __future__ import annotations
 
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects.base import Parameter, PowerGainEffect
+from rotcal.model.effects.base import Parameter
+from rotcal.model.effects.families import PowerGainEffect
 
 
 class CubicNonlinearity(PowerGainEffect):
@@ -19,6 +20,8 @@ class CubicNonlinearity(PowerGainEffect):
     slot = 1
     prefix = "k3"
     power = 2
+    at_rest = "pose"
+    at_rest_steps = {"k3": 1e-4}
 
     def chain(self, k, S, P, u):
         return S + (S + 2 * P) * k * u**2   # S f + P u f', with f = 1 + k u^2

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects.base import Candidate, Channel, ColumnContext, OffsetEffect, Parameter, PerChannelEffect
+from rotcal.model.effects.base import Candidate, Channel, ColumnContext, OffsetEffect, Parameter
+from rotcal.model.effects.families import PerChannelEffect
 
 
 class OffsetDrift(PerChannelEffect, OffsetEffect):
@@ -20,6 +21,8 @@ class OffsetDrift(PerChannelEffect, OffsetEffect):
     listed = 8
     slot = 1
     prefix = "drift"
+    at_rest = "time"
+    at_rest_steps = {"drift": 1e-3}
 
     def state(self, previous, params):
         # a later request replaces the drifts (the catalogue's other per-channel effects fill in)

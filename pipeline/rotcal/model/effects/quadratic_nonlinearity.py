@@ -4,7 +4,8 @@ y -> y (1 + k2 (y / x1g)) per channel."""
 from __future__ import annotations
 
 from rotcal.model.conventions import CHANNELS
-from rotcal.model.effects.base import Parameter, PowerGainEffect
+from rotcal.model.effects.base import Parameter
+from rotcal.model.effects.families import PowerGainEffect
 
 
 class QuadraticNonlinearity(PowerGainEffect):
@@ -19,6 +20,8 @@ class QuadraticNonlinearity(PowerGainEffect):
     slot = 1
     prefix = "k2"
     power = 1
+    at_rest = "pose"
+    at_rest_steps = {"k2": 1e-4}
 
     def chain(self, k, S, P, u):
         return S * (1 + k * u) + P * k * u   # S f + P u f', with f = 1 + k u

@@ -19,6 +19,7 @@ class RateError(AngleEffect):
     where = "all rotation segments"
     listed = 5
     slot = 3
+    absorbed_by_own_phase = True
 
     def state(self, previous, params):
         return params.get("rate_error", 0.0)

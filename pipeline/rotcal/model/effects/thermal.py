@@ -67,6 +67,8 @@ class Thermal(ScaleEffect, OffsetEffect):
     where = "channel {s}, against temperature_c"
     needs = frozenset({"temperature_c"})
     listed = 9
+    at_rest = "temperature"
+    at_rest_steps = {"tco": 1e-2, "tcs": 1e-6}
 
     # --- the simulator -------------------------------------------------
     def complete(self, params, rng):
