@@ -75,6 +75,12 @@ def main() -> int:
                 broken["?"] += 1
                 pool.terminate()
                 break
+            except Exception as exc:  # noqa: BLE001  (the worker itself failed: a violation, and the run goes on)
+                kind, detail, violation = "?", "", f"the worker failed: {type(exc).__name__}: {exc}"
+                kinds[kind] += 1
+                broken[kind] += 1
+                lines.append(f"{i}: {violation}")
+                continue
             kinds[kind] += 1
             if violation is not None:
                 broken[kind] += 1
