@@ -21,7 +21,6 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
-from rotcal.fit.quantization import coarse_steps
 from rotcal.model.calibration import Recommended, mark_recommended
 from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
@@ -44,7 +43,6 @@ from rotcal.run.recommended import (
 )
 from rotcal.run.stages import Reductions, Segmented, determined, reduce, segment_and_fit
 from rotcal.run.streamed import load
-from rotcal.segment.angles import check_angle_rates, partial_angles
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
@@ -98,7 +96,6 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     """
     ds = load(path, meta_path, config)  # its samples streamed past [run] stream_above_samples (``streamed``)
     seg = segment_and_fit(ds, config)
-    check_angle_rates(seg.samples, ds.root)  # labels against each other: a unit mistake is refused
     reductions = reduce(seg, ds)
     try:
         results, frames, warnings = determined(reductions, seg, path)
@@ -106,9 +103,7 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
         publish([t for t in _tables(seg, reductions) if t.name in INPUT_TABLES], out)
         raise
     assert isinstance(reductions, Reductions)  # determined() raises for a Failure
-    # a step is not physics: outputs whose rounding follows the signal are not diagnosed
-    coarse = coarse_steps(seg.samples, seg.fits, ds.meta.output_unit) if reductions.static is None else None
-    diagnosis, diagnosis_notes = (None, (coarse,)) if coarse else diagnose_stage(seg, reductions, results, ds, config)
+    diagnosis, diagnosis_notes = diagnose_stage(seg, reductions, results, ds, config)
     intrinsic = intrinsic_table(results, diagnosis, ds, reductions.static)
     chosen = recommend_stage(intrinsic, results, frames, diagnosis, reductions, config, diagnosis_notes)
     # the model-dependent tables of the recommended model
@@ -119,7 +114,7 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
                calibration_output(calibration), certificate_output(config, calibration)]
-    return RunOutcome(ds.name, ds.meta.output_unit, results, partial_angles(seg.samples, seg.segments) + warnings + correction_warnings,
+    return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)
 
