@@ -103,3 +103,18 @@ def test_a_dead_channel_without_references_is_named_not_the_pose_geometry(tmp_pa
     (path / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
     with pytest.raises(UndeterminedError, match=r"static dwells: channel w reads 0 in every one of the \d+ poses \(dead"):
         run_dataset(path, tmp_path / "out")
+
+
+def test_a_reference_of_another_position_is_named(jig, tmp_path):
+    """Two positions' jig references swapped: fitted before (the 12
+    parameters bent to them, the misfit published as excess scatter); now
+    refused naming a swapped position and the angle between its outputs'
+    direction and its reference."""
+    class Swapped:
+        directions = jig.directions.copy()
+        pose, t_ns = jig.pose, jig.t_ns
+
+    Swapped.directions[[2, 5]] = Swapped.directions[[5, 2]]
+    with pytest.raises(UndeterminedError, match=r"position [36]: its outputs point \d+ degrees from its reference .* a label "
+                                                r"or jig reference of another position"):
+        run_dataset(_jig_dataset(tmp_path / "ds", jig.y, Swapped), tmp_path / "out")

@@ -26,6 +26,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.channels import channel_fault
+from rotcal.combine.directions import reference_fault
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.posemodels import ModelChoice, advice, choose_model, determines, gravity_cone
 from rotcal.combine.poses import (
@@ -141,7 +142,7 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         positions = still_poses(samples)
         if positions.height == 0:
             return Failure(0.0, "no still intervals found")
-    fault = channel_fault(positions)
+    fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] != "stillness" else None)
     if fault is not None:
         return Failure(0.0, fault)
     source = positions["source"][0]
