@@ -120,9 +120,9 @@ def _fault(value: float | None, bound: float, name: str) -> str:
         return "is NaN"
     if math.isinf(value):
         return f"is {value}"
-    shown = f"{value:.0f}" if float(value).is_integer() and abs(value) < 1e18 else f"{value:.17g}"  # every digit
+    shown = f"{value:.10g}" if float(f"{value:.10g}") == value else f"{value:.17g}"  # every digit it has
     if name == "t":
-        return (f"is {shown}, beyond ±{bound:.0f} s: time stamps in ms, us or ns? set dataset.toml [format] "
+        return (f"is {shown}, beyond ±{bound:g} s: time stamps in ms, us or ns? set dataset.toml [format] "
                 "time_unit (docs/inputs.md)")
     return f"is {shown}, beyond ±{bound:g}"
 
