@@ -79,3 +79,25 @@ def test_one_empty_angle_cell_is_named(make_dataset, tmp_path):
     outcome = run_dataset(ds, tmp_path / "out")
     assert any(w.startswith("capture 04_x_0.5hz.csv, segment 4: 1 of 4200 samples have no angle_deg, so the segment is "
                             "fitted without the table's angles") for w in outcome.warnings)
+
+
+def test_outputs_in_steps_of_ten_counts_are_not_clipped(tmp_path):
+    """A small table plan rounded to 10 counts (noise 8): the clipping test
+    took one count as the output's resolution, so each channel's extreme
+    level held "too many" samples against its neighbours one count away:
+    a false clipping finding (6 of 2,000 recordings of the long run). The
+    resolution is now the output step found from the data."""
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    from rotcal.diagnose.clipping import quantum
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import degenerate_inputs
+
+    assert quantum(np.round(np.random.default_rng(1).normal(0, 50, (1000, 3)) / 10) * 10) == 10.0
+    drawn = degenerate_inputs.draw(np.random.default_rng([1, 770]), tmp_path / "ds")
+    assert (drawn.kind, drawn.detail) == ("table quantized", "seed 241452179, step 10")
+    assert degenerate_inputs.violation(drawn, tmp_path / "out") is None
