@@ -14,6 +14,8 @@ rounding error falls as exp(-2 pi^2 sigma^2 / Delta^2)).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import polars as pl
 
@@ -84,3 +86,25 @@ def coarse_steps(samples: pl.DataFrame, fits: pl.DataFrame, unit: str) -> str | 
     return (f"diagnosis not run: channel {CHANNELS[r]} moves in steps of {step[r]:g} {unit} and its noise before rounding "
             f"({noise[r]:.2g} {unit}) is below half a step, so its rounding error follows the signal and would be read as "
             "effects")
+
+
+def rounding_repeats(fit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...]):
+    """``fit`` (a ``SegmentFit``) with each channel's covariance widened
+    where its rounding error repeats: below the output step, a sample's
+    rounding error is a function of the signal, so samples at the same
+    angle (a step's, a rotation's phases recurring each few turns) share
+    it. The fit took n independent errors; there are as many as distinct
+    angles, n_eff: the rounding's share of the variance, Delta^2 / 12 of
+    the residual variance sigma^2, grows by n / n_eff, weighted by how far
+    the noise is below the step (``mean_rounding_variance``'s decay)."""
+    if fit.status != "ok" or not np.isfinite(theta_deg).all():
+        return fit
+    step = output_step(np.column_stack(channels))
+    distinct = np.unique(np.round(np.mod(theta_deg, 360.0), 6)).size
+    share = np.divide(mean_rounding_variance(step, np.asarray(fit.sigma, float) ** 2), np.asarray(fit.sigma, float) ** 2,
+                      out=np.zeros(3), where=np.asarray(fit.sigma) > 0)
+    factor = 1.0 + np.minimum(share, 1.0) * (fit.n_samples / max(distinct, 1) - 1.0)
+    if np.all(factor <= 1.0):
+        return fit
+    scale = np.repeat(np.sqrt(factor), 3)  # the covariance's order: channel, then (C, A, B)
+    return replace(fit, cov=fit.cov * np.outer(scale, scale))
