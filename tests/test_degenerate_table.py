@@ -101,3 +101,23 @@ def test_outputs_in_steps_of_ten_counts_are_not_clipped(tmp_path):
     drawn = degenerate_inputs.draw(np.random.default_rng([1, 770]), tmp_path / "ds")
     assert (drawn.kind, drawn.detail) == ("table quantized", "seed 241452179, step 10")
     assert degenerate_inputs.violation(drawn, tmp_path / "out") is None
+
+
+@pytest.mark.parametrize("index, drawn_as", [(37, ("table noise_free", "seed 1304940491")),
+                                             (63, ("table quantized", "seed 2131898696, step 100"))])
+def test_rounding_below_the_noise_widens_the_fits(tmp_path, index, drawn_as):
+    """A table recording without noise (O_w 9.3 u from the truth) and one
+    rounded to 100 counts (phi_wu 6.6 u): the fits took each sample's
+    rounding error as independent, where samples at one angle share it.
+    Now within 5 u (recordings 37 and 63 of the long run, seed 1)."""
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import degenerate_inputs
+
+    drawn = degenerate_inputs.draw(np.random.default_rng([1, index]), tmp_path / "ds")
+    assert (drawn.kind, drawn.detail) == drawn_as
+    assert degenerate_inputs.violation(drawn, tmp_path / "out") is None
