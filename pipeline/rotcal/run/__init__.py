@@ -82,7 +82,8 @@ def library_notes(caught: list[warnings.WarningMessage]) -> tuple[str, ...]:
     """A library's warnings during a run (numpy's, matplotlib's) as rotcal's
     notes, each once, with where it arose: they would otherwise reach stderr
     and a batch's log without saying which step or dataset."""
-    seen = dict.fromkeys(f"{w.category.__name__} in {Path(w.filename).name}:{w.lineno}: {w.message}" for w in caught)
+    seen = dict.fromkeys(f"{w.category.__name__} in {Path(w.filename).name}:{w.lineno}: {w.message}" for w in caught
+                         if issubclass(w.category, (RuntimeWarning, UserWarning)))  # not a user's: resources, deprecations
     return tuple(f"a library warned (the result stands; tell the maintainers if it recurs): {text}" for text in seen)
 
 
