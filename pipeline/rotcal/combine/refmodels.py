@@ -133,7 +133,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     u, _, vt = np.linalg.svd(C)
     rotation, s = u @ vt, np.linalg.norm(C, axis=1)  # polar decomposition C = P Q: Q, and C's row lengths
     scale = float(np.abs(m).max())
-    own = not isinstance(full, ReferenceFit) or full.dof == 0  # an exact 12-parameter fit estimated no T
+    own = isinstance(full, Failure)
     excess = full.excess_cov if isinstance(full, ReferenceFit) and not own else np.zeros((3, 3))
     for _ in range(2 if own else 1):  # with its own T: once with the noise, once more with T
         root_w = np.sqrt(_weights(cov, excess, scale))
