@@ -14,7 +14,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 # installed package -> (folder in the checkout, the files it ships)
-SHIPPED = {"rotcal": ("pipeline/rotcal", ["*.py", "*.html"]), "rotcal_schemas": ("schemas", ["*.py", "*.json"]),
+SHIPPED = {"rotcal": ("pipeline/rotcal", ["*.py", "*.html", "*.typ"]), "rotcal_schemas": ("schemas", ["*.py", "*.json"]),
            "rotcal_configs": ("configs", ["*.py", "*.toml"])}
 
 

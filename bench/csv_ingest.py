@@ -20,7 +20,7 @@ import polars as pl  # noqa: E402
 from common import best_cpu_of, best_of, report  # noqa: E402
 
 from rotcal.config import Limits  # noqa: E402
-from rotcal.ingest.csv_source import read_csv_capture  # noqa: E402
+from rotcal.ingest.formats.csv.reader import read_csv_capture  # noqa: E402
 from rotcal.ingest.meta import CsvFormat  # noqa: E402
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_csv_single  # noqa: E402
 

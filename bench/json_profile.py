@@ -26,7 +26,9 @@ from pathlib import Path
 
 import rotcal
 from rotcal.config import Limits
-from rotcal.ingest import mcap_columns, mcap_fast, mcap_source
+from rotcal.ingest.formats.mcap import columns as mcap_columns
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap import reader as mcap_source
 from rotcal.ingest.meta import load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap
 

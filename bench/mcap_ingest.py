@@ -42,9 +42,9 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from rotcal.config import Limits  # noqa: E402
-from rotcal.ingest.mcap_fast import read_topics  # noqa: E402
-from rotcal.ingest.mcap_records import McapFile, top_records  # noqa: E402
-from rotcal.ingest.mcap_source import read_mcap_capture  # noqa: E402
+from rotcal.ingest.formats.mcap.fast import read_topics  # noqa: E402
+from rotcal.ingest.formats.mcap.reader import read_mcap_capture  # noqa: E402
+from rotcal.ingest.formats.mcap.records import McapFile, top_records  # noqa: E402
 from rotcal.ingest.meta import load_meta  # noqa: E402
 from rotcal.parallel import cores  # noqa: E402
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap  # noqa: E402

@@ -32,6 +32,7 @@ from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.timebase import repair_timebase
+from rotcal.timebase.blocks import repaired_stream
 
 def peak_kb():
     return int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1])
@@ -50,7 +51,7 @@ if part == "memory":
     result["samples"] = tb.samples.height
 elif part == "stream":
     meta = load_meta(directory / "dataset.toml")
-    capture = open_stream(directory / "capture.mcap", meta, block_samples=block)
+    capture = repaired_stream(open_stream(directory / "capture.mcap", meta, block_samples=block), block_samples=block)
     result["open_cpu_s"] = time.process_time() - cpu
     result["samples"] = sum(b.height for b in capture.blocks())
     result["bounded"] = capture.bounded
@@ -58,7 +59,7 @@ elif part == "stream":
 else:
     ds = load_dataset(directory)
     memory = repair_timebase(ds.samples, ds.name).samples.select(COLUMNS)
-    capture = open_stream(directory / "capture.mcap", ds.meta, block_samples=block)
+    capture = repaired_stream(open_stream(directory / "capture.mcap", ds.meta, block_samples=block), block_samples=block)
     offset, equal = 0, True
     for b in capture.blocks():
         equal &= b.equals(memory.slice(offset, b.height))

@@ -199,7 +199,7 @@ def test_headerless_file_wider_than_its_names(tmp_path):
     """[format] names may list the first columns only: the logger's further
     columns are left out, as a header file's unknown columns are."""
     from rotcal.config import Limits
-    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.formats.csv.reader import read_csv_capture
     from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.txt"
@@ -237,7 +237,7 @@ def test_blank_lines_are_not_samples(tmp_path, text, fmt):
     """A logger's trailing (or stray) blank lines are no rows: they used to
     stop the run as 'column 'u', row 3 is empty'."""
     from rotcal.config import Limits
-    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.formats.csv.reader import read_csv_capture
     from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.csv"
@@ -269,7 +269,7 @@ def test_header_with_spaces_after_the_commas(tmp_path):
     """'t, u, v, w' names the contract columns: the file was refused as
     missing 'u', 'v', 'w' while listing u, v, w among the columns found."""
     from rotcal.config import Limits
-    from rotcal.ingest.csv_source import read_csv_capture
+    from rotcal.ingest.formats.csv.reader import read_csv_capture
     from rotcal.ingest.meta import CsvFormat
 
     path = tmp_path / "log.csv"

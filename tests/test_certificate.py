@@ -25,13 +25,14 @@ from rotcal.report.certificate import CERTIFICATE, render, write_certificate
 from rotcal.report.certificate_checks import main_contributions, segment_norms
 from rotcal.report.rounding import decimals_for, gum_round, gum_text
 from rotcal.run import run_dataset
-from rotcal.run.outputs import certificate_output
+from rotcal.run.outputs import certificate_outputs
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_dataset
 
 from posesim import hand_placed, samples_frame
 
-SECTIONS = ["1. Identification", "2. Method and conventions", "3. Results", "4. Frequency response", "5. |a| check",
-            "6. Diagnosis", "7. Main contributions to the uncertainty", "8. Traceability"]
+SECTIONS = ["1. Certificate", "2. Item calibrated", "3. Measurement", "4. Method and conventions",
+            "5. Equipment and traceability", "6. Results", "7. Main contributions to the uncertainty", "8. Approval",
+            "Annex: evidence and records", "A.1 Frequency response", "A.2 |a| check", "A.3 Diagnosis", "A.4 Records"]
 
 
 @pytest.mark.parametrize(("value", "u", "expected"), [
@@ -216,7 +217,7 @@ def test_page_references_nothing_outside_itself(runs, kind, images):
 def test_sections_follow_the_kind_of_run(runs):
     table, static, unlabelled = ((runs[k] / CERTIFICATE).read_text() for k in ("table", "static", "unlabelled"))
     assert "table segments" in table and "Gaitan &amp; Geist 2021 Figs. 6 and 7" in table
-    assert "<td>uncertainty_budget.parquet</td>" in table and "residual RMS before → after" in table
+    assert "<td>uncertainty budget</td>" in table and "residual RMS before → after" in table
     assert "static poses" in static and "dut-7" in static
     poses = pl.read_parquet(runs["static"] / "poses.parquet").height
     assert f"every pose, dwell and segment ({poses})" in static and "Not applicable" in static
@@ -237,7 +238,8 @@ def test_optional_tables_absent_and_rerendered_by_the_command(runs, tmp_path, cl
     code, out, err = cli("certificate", run)
     assert code == 0 and "certificate written to" in out, err
     text = (run / CERTIFICATE).read_text()
-    assert "<td>calibration.json</td>" in text and "<td>uncertainty_budget.parquet</td>" not in text and "This run was not diagnosed" in text
+    assert "<td>covariance, g_local apart</td>" in text and "<td>uncertainty budget</td>" not in text
+    assert "This run was not diagnosed" in text
     assert "No pose, dwell or segment fit" in text
     # the same files give the same page, byte for byte
     shutil.copytree(runs["static"], tmp_path / "again")
@@ -259,9 +261,9 @@ def test_bad_run_directories_are_one_line_errors(runs, tmp_path, cli):
 
 
 def test_the_run_publishes_it_last_when_calibration_json_is_there(runs, tmp_path):
-    assert OUTPUTS[-1].name == "certificate"
+    assert [o.name for o in OUTPUTS[-2:]] == ["certificate", "certificate_pdf"]
     calibration = Calibration.read(runs["static"] / "calibration.json")
-    item = certificate_output(replace(RunConfig(), report=replace(RunConfig().report, figures=False)), calibration)
+    item, _ = certificate_outputs(replace(RunConfig(), report=replace(RunConfig().report, figures=False)), calibration)
     assert item.draw(tmp_path, {}) is None  # no calibration.json: nothing to certify
     shutil.copy(runs["static"] / "calibration.json", tmp_path)
     path = item.draw(tmp_path, {})  # the tables this publish wrote: none

@@ -123,14 +123,20 @@ def test_cli_without_uncertainties_and_without_labels(cli, tmp_path):
 @pytest.mark.real
 def test_imucal_matrix_gives_the_intrinsic_parameters_of_its_calibration(cli, tmp_path):
     """imucal's K_a R_a is the responsivity matrix in the case frame:
-    P = (K_a R_a)^-1, and its intrinsic parameters are rotcal's fit of the
-    same session (the matrices agree to 1e-15)."""
+    P = (K_a R_a)^-1, and its intrinsic parameters are rotcal's
+    12-parameter fit of the same session's labelled poses taken as exact
+    references (the matrices agree to 1e-15)."""
+    from rotcal.combine.poses import labelled_poses, reference_fit
+    from rotcal.ingest.dataset import load_dataset
+    from rotcal.segment import segment_by_labels
+
     ref = json.loads((REAL / "imucal_session" / "annotated_session_reference_cal.json").read_text())
     P = np.linalg.inv(np.array(ref["K_a"]) @ np.array(ref["R_a"]))
     status, _, _ = cli("intrinsic", "--matrix", _write_matrix_csv(tmp_path / "imucal.csv", P), "--out", tmp_path)
     assert status == 0
-    run_dataset(REAL / "imucal_session", tmp_path / "run", REPO / "configs" / "imucal_session.toml")
-    ours = pl.read_parquet(tmp_path / "run" / "intrinsic.parquet").head(6)["value"].to_numpy()
+    ds = load_dataset(REAL / "imucal_session", REPO / "configs" / "imucal_session.toml")
+    fit = reference_fit(labelled_poses(*segment_by_labels(ds.samples, ds.name)), ds.meta.g_local, 0.0)
+    ours = fit.result.value[:6]
     np.testing.assert_allclose(pl.read_parquet(tmp_path / "imucal_intrinsic.parquet")["value"].to_numpy(), ours, rtol=1e-12)
 
 

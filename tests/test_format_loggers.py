@@ -17,8 +17,8 @@ import pytest
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.csv_source import read_csv_capture
 from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import CsvFormat, load_meta
 
 sys.path.insert(0, str(Path(__file__).parent))

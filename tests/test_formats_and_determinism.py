@@ -57,7 +57,7 @@ def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path, 
     run_dataset(make_dataset(22), tmp_path / "four", config=RunConfig(run=RunSection(workers=4)))
     one, four = _digest(tmp_path / "one"), _digest(tmp_path / "four")
     # the certificate shows the configuration and calibration.json's hash, the listing every file's
-    for name in ("calibration.json", "certificate.html", "rotcal-files.json"):
+    for name in ("calibration.json", "certificate.html", "certificate.pdf", "rotcal-files.json"):
         assert one.pop(name) != four.pop(name)
     assert one == four
     # calibration.json records every configuration key, the worker count too: nothing else differs

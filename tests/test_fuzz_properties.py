@@ -26,8 +26,8 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import RunConfig, load_config
 from rotcal.errors import ConfigError, ExitCode, InputError, RotcalError
-from rotcal.ingest.csv_source import read_csv_capture
-from rotcal.ingest.mcap_source import read_mcap_capture
+from rotcal.ingest.formats.csv.reader import read_csv_capture
+from rotcal.ingest.formats.mcap.reader import read_mcap_capture
 from rotcal.ingest.meta import CsvFormat, load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, spec_from_toml, write_mcap
 from rotcal.tables import finite_or_null

@@ -14,8 +14,8 @@ import pytest
 
 from rotcal.config import FitConfig, Limits
 from rotcal.errors import InputError
-from rotcal.ingest.csv_source import read_csv_capture
 from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import CsvFormat
 from rotcal.simulate import Plan, SimulationSpec
 
@@ -168,7 +168,7 @@ def test_whitespace_file_reads_as_before(tmp_path):
 
 def test_whitespace_file_read_in_blocks_matches_one_read(tmp_path, monkeypatch):
     """Block boundaries (here every few hundred bytes) change nothing."""
-    from rotcal.ingest import csv_source
+    from rotcal.ingest.formats.csv import reader as csv_source
 
     rng = np.random.default_rng(0)
     rows = [f"{' ' * int(rng.integers(0, 3))}{i * 0.01:.2f}{' ' * int(rng.integers(1, 4))}{i}\t{-i} {2 * i}"
@@ -209,7 +209,7 @@ def test_whitespace_file_is_converted_without_copies_of_the_whole_text(tmp_path,
     the block's own arrays (blocks of 64 KiB here, for a small file)."""
     import tracemalloc
 
-    from rotcal.ingest import csv_source
+    from rotcal.ingest.formats.csv import reader as csv_source
 
     monkeypatch.setattr(csv_source, "_SCAN_BLOCK", 1 << 16)
     path = tmp_path / "log.txt"

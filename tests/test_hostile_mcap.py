@@ -28,7 +28,10 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast, mcap_records, mcap_source, ros2_cdr, ros2_msgdefs
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap import reader as mcap_source
+from rotcal.ingest.formats.mcap import records as mcap_records
+from rotcal.ingest.formats.mcap import ros2_cdr, ros2_msgdefs
 from rotcal.ingest.meta import load_meta
 from rotcal.simulate import Plan, SimulationSpec, simulate, write_mcap
 
@@ -190,7 +193,7 @@ def _peak_kib(path: Path, limit: int, workers: int) -> tuple[int, str]:
     process's peak); and the error it gave."""
     script = (
         "import sys\nfrom pathlib import Path\nfrom rotcal.config import Limits\nfrom rotcal.errors import InputError\n"
-        "from rotcal.ingest.meta import load_meta\nfrom rotcal.ingest.mcap_source import read_mcap_capture\n"
+        "from rotcal.ingest.meta import load_meta\nfrom rotcal.ingest.formats.mcap.reader import read_mcap_capture\n"
         "def peak():\n    return int(next(x for x in open('/proc/self/status') if x.startswith('VmHWM')).split()[1])\n"
         "base = peak()\ntry:\n"
         f"    read_mcap_capture(Path(sys.argv[1]), load_meta(None), None, Limits(max_mcap_record_bytes={limit}), {workers})\n"

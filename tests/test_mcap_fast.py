@@ -12,11 +12,14 @@ from polars.testing import assert_frame_equal
 
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
-from rotcal.ingest import mcap_fast, mcap_records, mcap_source, ros2_msgdefs
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap import reader as mcap_source
+from rotcal.ingest.formats.mcap import records as mcap_records
+from rotcal.ingest.formats.mcap import ros2_msgdefs
+from rotcal.ingest.formats.mcap.writer import write_capture
 from rotcal.ingest.meta import load_meta
 from rotcal.model.physics import JOINT_SIGN
 from rotcal.simulate import Plan, SimulationSpec, simulate, table_messages
-from rotcal.simulate.mcap_writer import write_capture
 
 from testdata import REAL
 

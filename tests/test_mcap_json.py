@@ -11,9 +11,9 @@ import polars as pl
 import pytest
 
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_json import json_lines, parse_json_lines
-from rotcal.ingest.mcap_records import Unsupported
-from rotcal.ingest.mcap_table import _json_track, json_time_ns
+from rotcal.ingest.formats.mcap.json_lines import json_lines, parse_json_lines
+from rotcal.ingest.formats.mcap.records import Unsupported
+from rotcal.ingest.formats.mcap.table import _json_track, json_time_ns
 
 HEADER = 31  # an MCAP message record's header: opcode, length, channel, sequence, two times
 

@@ -124,13 +124,15 @@ def test_g_uncertainty_scales_the_sensitivities_only():
 
 def test_refuses_fewer_poses_than_parameters_plus_one():
     """Nine parameters need ten poses (one residual degree of freedom), the
-    six of orthogonal axes seven: the count follows from the model."""
+    six of orthogonal axes six (exactly determined, as by the six faces)."""
     nine = orientation_free(poses_of(hand_placed(4, n_poses=9)), G_LOCAL, 0.0)
     assert isinstance(nine, Failure) and "9 static poses" in nine.reason and "at least 10" in nine.reason
     assert not isinstance(orientation_free(poses_of(hand_placed(4, n_poses=10)), G_LOCAL, 0.0), Failure)
+    five = orientation_free(poses_of(hand_placed(4, n_poses=5)), G_LOCAL, 0.0, ORTHOGONAL)
+    assert isinstance(five, Failure) and "the 6-parameter model needs at least 6" in five.reason
+    # the six of orthogonal axes may be exactly determined (six faces): no residual, no excess scatter
     six = orientation_free(poses_of(hand_placed(4, n_poses=6)), G_LOCAL, 0.0, ORTHOGONAL)
-    assert isinstance(six, Failure) and "the 6-parameter model needs at least 7" in six.reason
-    assert not isinstance(orientation_free(poses_of(hand_placed(4, n_poses=7)), G_LOCAL, 0.0, ORTHOGONAL), Failure)
+    assert not isinstance(six, Failure) and six.dof == 0 and six.excess_std == 0.0
 
 
 def test_refuses_poses_about_one_axis():

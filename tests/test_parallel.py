@@ -9,7 +9,7 @@ from rotcal import parallel
 from rotcal.batch.runner import run_batch
 from rotcal.config import BatchConfig, FitConfig, Limits, RunConfig
 from rotcal.fit import segments
-from rotcal.ingest import mcap_fast
+from rotcal.ingest.formats.mcap import fast as mcap_fast
 
 from batch_support import SERIAL, make_root
 

@@ -71,11 +71,12 @@ def test_xsens_run_prints_parameters_and_the_magnitude_check(cli, tmp_path):
 
 
 @pytest.mark.real
-def test_imucal_run_prints_the_twelve_parameter_fit_and_every_pose(cli, tmp_path):
+def test_imucal_run_prints_the_six_face_fit_and_every_pose(cli, tmp_path):
     status, stdout, stderr = cli("run", REAL / "imucal_session", "--meta", REPO / "configs" / "imucal_session.toml",
                                  "--out", tmp_path)
     assert status == 0, stderr
-    assert "12-parameter fit to 6 positions" in stdout and "residual dof 6" in stdout
+    assert "orientation-free fit (|a| = g_local) to 6 labelled poses" in stdout and "residual dof 0" in stdout
+    assert "exactly determined" in stdout and "nan" not in stdout
     for label in ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a"):
         assert label in stdout
     poses = pl.read_parquet(tmp_path / "poses.parquet")
@@ -143,18 +144,17 @@ def test_eight_poses_give_the_orthogonal_model(cli, tmp_path):
 
 
 def test_too_few_poses_are_refused_with_the_pose_table(cli, tmp_path):
-    """Six poses do not determine even the six parameters with a residual
-    degree of freedom: exit 3 with the reason, and poses.parquet still
-    lists the six intervals found."""
-    sim = hand_placed(79, n_poses=6, samples=300, move_samples=150)
+    """Five poses do not determine even the six parameters: exit 3 with the
+    reason, and poses.parquet still lists the five intervals found."""
+    sim = hand_placed(79, n_poses=5, samples=300, move_samples=150)
     data = _write(tmp_path / "data", samples_frame(sim))
     status, _, stderr = cli("run", data, "--out", tmp_path / "out")
     assert status == 3
-    assert ("no table segments, and the static poses cannot be reduced: orthogonal axes (six parameters): 6 static "
-            "poses: the 6-parameter model needs at least 7 (its 6 intrinsic parameters and one residual degree of "
-            "freedom); nine parameters: 6 static poses: the 9-parameter model needs at least 10") in " ".join(stderr.split())
+    assert ("no table segments, and the static poses cannot be reduced: orthogonal axes (six parameters): 5 static "
+            "poses: the 6-parameter model needs at least 6 (its 6 intrinsic parameters); nine parameters: 5 static "
+            "poses: the 9-parameter model needs at least 10") in " ".join(stderr.split())
     poses = pl.read_parquet(tmp_path / "out" / "poses.parquet")
-    assert poses.height == 6 and poses["norm_m_s2"].is_null().all() and poses["determines"].is_null().all()
+    assert poses.height == 5 and poses["norm_m_s2"].is_null().all() and poses["determines"].is_null().all()
     np.testing.assert_allclose(poses["n_samples"].to_numpy(), 300, atol=30)
 
 

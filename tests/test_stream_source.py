@@ -1,4 +1,5 @@
-"""Issue 16, item 1: a capture read chunk by chunk (``ingest.stream``).
+"""A capture read chunk by chunk (``ingest.stream``, ``ingest.formats.mcap.stream``)
+and repaired block by block (``timebase.blocks``).
 
 The blocks, joined, must be the very samples ``load_dataset`` and
 ``repair_timebase`` give in memory (bit for bit, whatever the block and
@@ -22,14 +23,18 @@ from test_hostile_mcap import ACCELERATION, IMU, SMALL, TABLE, VELOCITY, _long_m
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast, mcap_source, stream
 from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap import reader as mcap_source
+from rotcal.ingest.formats.mcap import stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.spill import Spill, replayed
 from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
 from rotcal.simulate.streamed import write_streamed
+from rotcal.timebase import blocks as timebase_blocks
 from rotcal.timebase import repair_timebase, stream_grid, stream_ranks
+from rotcal.timebase.blocks import repaired_stream
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
@@ -46,6 +51,11 @@ def small_batches(monkeypatch, request):
     monkeypatch.setattr(stream, "_STAMP_BLOCK", 1000)
     if request.param == "histograms":
         monkeypatch.setattr(stream_ranks, "HELD", 1000)
+
+
+def streamed_capture(path: Path, meta, block_samples: int = 1 << 20):
+    """The capture's blocks after the time base, as the streamed run reads them."""
+    return repaired_stream(open_stream(path, meta, block_samples=block_samples), block_samples=block_samples)
 
 
 NUMBER = re.compile(r"-?\d+(\.\d+)?(e[-+]?\d+)?")
@@ -76,8 +86,8 @@ def assert_streams_alike(directory: Path, block: int, bounded: bool = True, grid
     ds, tb = in_memory(directory)
     held = []
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(stream, "check_capture", lambda *a, **k: held.append(1) or check_capture(*a, **k))
-        capture = open_stream(directory / "capture.mcap", ds.meta, block_samples=block)
+        patch.setattr(timebase_blocks, "check_capture", lambda *a, **k: held.append(1) or check_capture(*a, **k))
+        capture = streamed_capture(directory / "capture.mcap", ds.meta, block_samples=block)
     assert bool(held) != grid_streamed
     blocks = list(capture.blocks())
     assert capture.bounded == bounded
@@ -175,7 +185,7 @@ def test_the_capture_is_decoded_once(tmp_path, monkeypatch, room):
     reads = []
     original = mcap_fast.iter_topic_batches
     monkeypatch.setattr(mcap_fast, "iter_topic_batches", lambda *a, **k: reads.append(1) or original(*a, **k))
-    capture = open_stream(directory / "capture.mcap", ds.meta, block_samples=5000)
+    capture = streamed_capture(directory / "capture.mcap", ds.meta, block_samples=5000)
     for _ in range(3):
         assert_frame_equal(pl.concat(list(capture.blocks())), tb.samples.select(COLUMNS))
     assert len(reads) == (1 if room else 1 + 3 * 2)
@@ -262,10 +272,12 @@ MEMORY_CHILD = """
 import sys
 from pathlib import Path
 from rotcal.ingest.dataset import load_dataset
-from rotcal.ingest import mcap_fast, stream
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap import stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.stream import open_stream
 from rotcal.timebase import repair_timebase, stream_ranks
+from rotcal.timebase.blocks import repaired_stream
 
 def status(key):
     return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])
@@ -279,7 +291,8 @@ if sys.argv[2] == "memory":
 else:
     # small batches and blocks: the part of the memory that does not grow with the capture
     mcap_fast.BATCH_BYTES, stream._STAMP_BLOCK, stream_ranks.GATHER = 1 << 20, 1 << 14, 1 << 15
-    capture = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
+    raw = open_stream(directory / "capture.mcap", load_meta(directory / "dataset.toml"), block_samples=1 << 14)
+    capture = repaired_stream(raw, block_samples=1 << 14)
     n = sum(block.height for block in capture.blocks())
 print(n, status("VmHWM") - base)
 """

@@ -10,8 +10,8 @@ times, runs of one message and held angles of -0.0."""
 import numpy as np
 import pytest
 
-from rotcal.ingest import mcap_table
-from rotcal.ingest.mcap_table import TableTrack, table_labels
+from rotcal.ingest.formats.mcap import table as mcap_table
+from rotcal.ingest.formats.mcap.table import TableTrack, table_labels
 
 
 def _expected(t_ns: np.ndarray, track: TableTrack) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

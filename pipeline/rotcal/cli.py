@@ -91,6 +91,7 @@ ExportFormat = Literal["ardupilot", "px4", "yaml", "json"]
 EFFECT = "NAME:KEY=VALUE,..."
 
 
+SITE_HELP = r"the laboratory's site file (its \[laboratory], \[equipment], \[certificate] fields for the certificate); default: site.toml beside the dataset (rotcal batch: in ROOT)"
 REPLACE_HELP = "replace files in the output directory that no rotcal listing (rotcal-files.json) names"
 
 
@@ -135,7 +136,8 @@ def _print_outcome(outcome, quiet: bool = False) -> None:
         out.print(summary_table(chosen.results, unit, f"{outcome.dataset}: intrinsic parameters of the recommended model "
                                                       f"({chosen.model}), value ± U (95 %)"))
         out.print(recommendation_line(chosen), highlight=False, markup=False)
-        if chosen.model != BASELINE:
+        # a static recording whose poses do not determine the nine parameters has no baseline rows
+        if chosen.model != BASELINE and (outcome.static is None or outcome.static.model == BASELINE):
             out.print(f"the baseline model's parameters are beside them in intrinsic.parquet (model = {BASELINE})",
                       highlight=False, markup=False)
         if outcome.diagnosis is not None:
@@ -158,6 +160,7 @@ def run(
     quiet: Annotated[bool, typer.Option(help="do not print the summary table")] = False,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary (the recommended result per rate, warnings, files written) as JSON on stdout")] = False,
     replace_files: Annotated[bool, typer.Option("--replace", help=REPLACE_HELP)] = False,
+    site: Annotated[Path | None, typer.Option(metavar="FILE", help=SITE_HELP)] = None,
 ) -> None:
     """Run the whole pipeline on one dataset."""
     target = _out_dir(out_dir, replace_files, (dataset, meta, config))
@@ -166,6 +169,8 @@ def run(
     cfg = load_config(config)
     if workers is not None:
         cfg = with_options(cfg, run={"workers": workers})
+    if site is not None:
+        cfg = with_options(cfg, report={"site": str(site.resolve())})
     if not json_summary:
         _print_outcome(run_dataset(dataset, target, meta, cfg), quiet)
         return
@@ -319,10 +324,11 @@ def export_cmd(
 def certificate(
     run_dir: Annotated[Path, typer.Argument(metavar="RUN_DIR", help="a run's output directory (calibration.json and its tables)")],
 ) -> None:
-    """Render a run's calibration certificate (RUN_DIR/certificate.html) again from its published files."""
-    from rotcal.report.certificate import write_certificate
+    """Render a run's calibration certificate (RUN_DIR/certificate.html and .pdf) again from its published files."""
+    from rotcal.report.certificate import rewrite_certificates
 
-    out.print(f"certificate written to {write_certificate(_writable(run_dir))}", highlight=False, markup=False)
+    written = rewrite_certificates(_writable(run_dir))
+    out.print(f"certificate written to {', '.join(str(p) for p in written)}", highlight=False, markup=False)
 
 
 def main() -> None:
@@ -361,12 +367,15 @@ def batch(
     executor: Annotated[str | None, typer.Option(metavar="local|dask://HOST:PORT", help="local, or dask://HOST:PORT to run on an existing Dask scheduler")] = None,
     json_summary: Annotated[bool, typer.Option("--json", help="print the run's summary as JSON on stdout")] = False,
     figures: Annotated[bool, typer.Option(help=r"draw each dataset's PNG figures too (\[report] figures); off, a batch writes the tables and report.md")] = False,
+    pdf: Annotated[bool, typer.Option(help=r"write each dataset's certificate.pdf too (\[report] pdf; about 0.5 s a dataset); off, a batch writes certificate.html")] = False,
+    site: Annotated[Path | None, typer.Option(metavar="FILE", help=SITE_HELP)] = None,
 ) -> None:
     """Process every new or changed dataset under ROOT: incremental, crash-safe, for schedulers (documentation: Batch runs)."""
     from rotcal.batch import Reporter, run_batch
 
     options = {"workers": workers, "executor": executor}
-    cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report={"figures": figures})
+    report = {"figures": figures, "pdf": pdf, **({"site": str(site.resolve())} if site is not None else {})}
+    cfg = with_options(load_config(config), batch={k: v for k, v in options.items() if v is not None}, report=report)
     with Reporter(err) as reporter:
         summary = run_batch(root, _writable(out_dir), cfg, reporter)
     if json_summary:

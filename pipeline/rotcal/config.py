@@ -30,7 +30,7 @@ from pydantic_core import PydanticCustomError
 
 from rotcal.errors import ConfigError
 
-SCHEMA_VERSION = "1.2"  # 1.2: non-finite numbers refused
+SCHEMA_VERSION = "1.3"  # 1.2: non-finite numbers refused; 1.3: [report] pdf, paper, site
 # ``batch.executor``: the local process pool, or an existing Dask scheduler (group 1: its address)
 EXECUTOR = re.compile(r"local|dask://([^/\s]+:[0-9]+)")
 
@@ -85,6 +85,10 @@ class ReportConfig:
     """Outputs for people beside the tables."""
 
     figures: bool = _key(True, "PNG figures (frequency response, diagnosis residuals); rotcal batch draws them only with --figures")
+    pdf: bool = _key(True, "certificate.pdf beside certificate.html (docs/outputs.md, the certificate); rotcal batch writes it only with --pdf")
+    paper: Literal["a4", "letter"] = _key("a4", "the PDF certificate's paper: a4 or letter")
+    site: str = _key("", "the laboratory's site file (its [laboratory], [equipment], [certificate] defaults); "
+                     "empty: site.toml beside the dataset (rotcal run) or in ROOT (rotcal batch), if there is one")
 
 
 @dataclass(frozen=True, config=_TABLE)

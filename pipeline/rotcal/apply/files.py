@@ -23,10 +23,11 @@ import pyarrow.parquet as pq
 from rotcal import __version__
 from rotcal.apply.correct import full_covariance, standard_uncertainty
 from rotcal.errors import InputError
+from rotcal.ingest.formats import REGISTRY, format_of
 from rotcal.model.physics import AXES
 from rotcal.tables import atomic_write as tables_atomic_write
 
-SUFFIXES = (".parquet", ".csv", ".mcap")
+PARQUET = ".parquet"
 IMU_TOPIC = "/imu/calibrated"
 
 
@@ -47,12 +48,15 @@ class Calibrated:
 
 
 def output_format(path: Path) -> str:
-    """The form of ``path`` by its suffix; anything else is an input error."""
+    """The form of ``path`` by its suffix (Parquet, or a capture format of
+    ``ingest.formats`` that ``WRITERS`` writes); anything else is an input error."""
     suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
+    form = "parquet" if suffix == PARQUET else getattr(format_of(path), "name", None)
+    if form not in WRITERS:
+        suffixes = [PARQUET, *(f.suffix for f in REGISTRY if f.name in WRITERS)]
         raise InputError(f"cannot tell the output format from the suffix {suffix or '(none)'!r}: "
-                         f"use {', '.join(SUFFIXES)}", path=path)
-    return suffix[1:]
+                         f"use {', '.join(suffixes)}", path=path)
+    return form
 
 
 def _columns(rec: Calibrated) -> dict[str, np.ndarray]:
@@ -82,7 +86,7 @@ def _write_csv(rec: Calibrated, fh: BinaryIO) -> None:
 
 
 def _write_mcap(rec: Calibrated, fh: BinaryIO) -> None:
-    from rotcal.simulate.mcap_writer import ROS2_LIBRARY, ChunkedWriter, add_imu_messages, register_imu_schema
+    from rotcal.ingest.formats.mcap.writer import ROS2_LIBRARY, ChunkedWriter, add_imu_messages, register_imu_schema
 
     writer = ChunkedWriter(fh, "ros2", ROS2_LIBRARY)
     schema = register_imu_schema(writer)

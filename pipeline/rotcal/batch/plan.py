@@ -9,15 +9,17 @@ import hashlib
 import json
 import os
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from rotcal import __version__
 from rotcal.batch.manifest import Manifest
 from rotcal.config import Limits, RunConfig
 from rotcal.errors import InputError, LimitError, RotcalError, decoded
-from rotcal.ingest.files import CAPTURE_SUFFIXES, capture_files
+from rotcal.ingest.files import capture_files
+from rotcal.ingest.formats import is_capture
 from rotcal.ingest.meta import load_meta
+from rotcal.ingest.site import SITE_FILE, load_site
 
 _CLEAN_PART = re.compile(r"[A-Za-z0-9.-]+(?:_[A-Za-z0-9.-]+)*")
 
@@ -83,7 +85,7 @@ def discover(root: Path, out: Path) -> list[Found]:
                     stack.append(path)
             elif entry.is_symlink() and path.is_dir():
                 found.append(Found(rel, path))
-            elif path.suffix.lower() in CAPTURE_SUFFIXES:
+            elif is_capture(path):
                 found.append(Found(rel, path))
     return sorted(found, key=lambda f: f.dataset_path)
 
@@ -131,12 +133,43 @@ def _listing(source: Path) -> list[list]:
     return sorted(rows)
 
 
+def batch_site(root: Path, config: RunConfig) -> RunConfig:
+    """``config`` with the batch's site file: ``[report] site`` (``--site``),
+    else ROOT's ``site.toml`` when there is one, for every dataset; checked
+    once here (a bad one is the whole batch's error, ``InputError``)."""
+    given = config.report.site or (str(root / SITE_FILE) if (root / SITE_FILE).is_file() else "")
+    if not given:
+        return config
+    site = load_site(Path(given))
+    assert site.site_file is not None
+    return replace(config, report=replace(config.report, site=site.site_file.path))
+
+
+def shared_certificate_numbers(plans: list[Plan]) -> tuple[str, ...]:
+    """A note per certificate number that more than one dataset's
+    ``dataset.toml`` gives (a certificate number identifies one certificate,
+    ISO/IEC 17025:2017 7.8.2.1 e); the refused datasets left out."""
+    holders: dict[str, list[str]] = {}
+    for plan in plans:
+        toml = plan.found.source / "dataset.toml"
+        if plan.refusal is None and toml.is_file():
+            number = load_meta(toml).identification.certificate.number
+            if number is not None:
+                holders.setdefault(number, []).append(plan.found.dataset_path)
+    return tuple(f"certificate number {number!r} is given by {len(paths)} datasets ({', '.join(paths)}): "
+                 "each certificate needs its own" for number, paths in sorted(holders.items()) if len(paths) > 1)
+
+
 def config_json(config: RunConfig) -> str:
     """The configuration results depend on: every table but the cores and
-    executors (``[run]``, ``[batch]``)."""
+    executors (``[run]``, ``[batch]``); the site file by its content, so that
+    a changed site file (the certificates' laboratory fields) reruns the datasets."""
     doc = asdict(config)
     for key in ("run", "batch"):
         doc.pop(key)
+    site = doc["report"]["site"]
+    if site:
+        doc["report"]["site"] = hashlib.sha256(Path(site).read_bytes()).hexdigest()
     return json.dumps(doc, sort_keys=True)
 
 

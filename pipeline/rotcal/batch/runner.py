@@ -28,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn
 from rotcal import __version__
 from rotcal.batch.jobs import Job, JobResult, execute, open_executor
 from rotcal.batch.manifest import DatasetRecord, Layout, Manifest, now, run_lock
-from rotcal.batch.plan import Plan, config_json, discover, plan_dataset
+from rotcal.batch.plan import Plan, batch_site, config_json, discover, plan_dataset, shared_certificate_numbers
 from rotcal.config import RunConfig, RunSection
 from rotcal.errors import ExitCode, InputError, printable
 from rotcal.parallel import share
@@ -149,11 +149,12 @@ def _checked_dirs(root: Path, out: Path) -> tuple[Path, Path]:
 def run_batch(root: Path, out: Path, config: RunConfig = RunConfig(), reporter: Reporter | None = None) -> BatchSummary:
     """Process every new or changed dataset under ``root`` into ``out``.
 
-    Raises ``InputError`` for a bad ROOT, ``ConfigError`` for a Dask scheduler it cannot reach,
+    Raises ``InputError`` for a bad ROOT or site file, ``ConfigError`` for a Dask scheduler it cannot reach,
     ``manifest.LockedError`` when another run holds ``out``'s lock. Bad
     datasets do not raise: they are quarantined with their reason.
     """
     root, out = _checked_dirs(root, out)
+    config = batch_site(root, config)
     reporter = reporter or Reporter()
     clock = time.perf_counter()
     with run_lock(out) as stale:
@@ -203,6 +204,9 @@ def _run(root: Path, out: Path, config: RunConfig, manifest: Manifest, reporter:
         plans, todo, refused, unchanged = _plan(root, out, config, config_text, manifest, layout, previous, lambda most: opened.append(
             stack.enter_context(open_executor(config.batch, most))))
         local, workers = config.batch.executor == "local", 0
+        for note in shared_certificate_numbers(plans):
+            notes += (note,)
+            reporter.note(note)
         dead = manifest.start_run(run_id, now(), str(root), config.batch.executor, config.batch.workers, __version__)
         if dead:
             were = "runs were" if len(dead) > 1 else "run was"

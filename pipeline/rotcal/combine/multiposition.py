@@ -122,16 +122,44 @@ def magnitude_and_gradient(params: np.ndarray, m: np.ndarray) -> tuple[np.ndarra
     return mag, grad, jac
 
 
-def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray, free: np.ndarray) -> np.ndarray:
+def angle_cosines(params: np.ndarray) -> np.ndarray:
+    """cos(phi_uv), cos(phi_vw), cos(phi_wu) of the rows of L."""
+    rows = _lower(params)
+    unit = rows / np.linalg.norm(rows, axis=1)[:, None]
+    return np.array([unit[i] @ unit[j] for i, j in ((0, 1), (1, 2), (2, 0))])
+
+
+def _cosine_jacobian(params: np.ndarray) -> np.ndarray:
+    """d cos(phi) / d params (3, 9), by central differences (a 3 x 9 Jacobian of a closed form)."""
+    step = 1e-7 * np.maximum(np.abs(params[:6]).max(), 1e-300)
+    jac = np.zeros((3, 9))
+    for j in range(6):
+        dp = np.zeros(9)
+        dp[j] = step
+        jac[:, j] = (angle_cosines(params + dp) - angle_cosines(params - dp)) / (2 * step)
+    return jac
+
+
+def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray, free: np.ndarray,
+           prior_u: float = 0.0) -> np.ndarray:
     """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights,
-    over the ``free`` parameters (the others stay as in ``start``)."""
+    over the ``free`` parameters (the others stay as in ``start``); with
+    ``prior_u`` > 0, the angles' cosines as three observations of 0 with
+    that standard uncertainty (the datasheet's prior)."""
     def whole(p: np.ndarray) -> np.ndarray:
         params = start.copy()
         params[free] = p
         return params
 
-    return whole(nonlinear(lambda p: (magnitude_and_gradient(whole(p), m)[0] - g) / sigma,
-                           lambda p: magnitude_and_gradient(whole(p), m)[2][:, free] / sigma[:, None], start[free]).x)
+    def residuals(p: np.ndarray) -> np.ndarray:
+        r = (magnitude_and_gradient(whole(p), m)[0] - g) / sigma
+        return np.concatenate([r, angle_cosines(whole(p)) / prior_u]) if prior_u else r
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        j = magnitude_and_gradient(whole(p), m)[2][:, free] / sigma[:, None]
+        return np.vstack([j, _cosine_jacobian(whole(p))[:, free] / prior_u]) if prior_u else j
+
+    return whole(nonlinear(residuals, jacobian, start[free]).x)
 
 
 def excess_variance(residuals: np.ndarray, noise_var: np.ndarray, dof: int) -> float:
@@ -161,19 +189,30 @@ def direction_spread(directions: np.ndarray, free: np.ndarray = FULL) -> float:
 
 
 def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                     free: np.ndarray = FULL) -> OrientationFreeFit | Failure:
+                     free: np.ndarray = FULL, misalignment_u: float = 0.0) -> OrientationFreeFit | Failure:
     """The nine intrinsic parameters from static poses of unknown orientation
-    (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees).
+    (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees;
+    ``misalignment_u`` > 0: the standard uncertainty of the angles' cosines
+    from the datasheet, ``combine.placement``: a Type B input carried into
+    the six where the model fixes the angles; three prior observations
+    cos(phi) = 0 where it fits them, so that an angle the poses barely
+    determine rests on the datasheet, not on the poses' small tilts).
 
     ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
     ``fit.means.pose_table``). Returns a ``Failure`` (rate 0) with the reason when the poses
     are too few or too alike to identify the model's parameters.
     """
     n, k = poses.height, len(free)
-    if n <= k:
-        return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {k + 1} (its {k} "
-                           "intrinsic parameters and one residual degree of freedom)")
+    # the orthogonal model may be exactly determined (the six faces): its angles' prior and the pose noise give its u
+    needed = k if len(free) < len(FULL) else k + 1
+    if n < needed:
+        return Failure(0.0, f"{n} static poses: the {k}-parameter model needs at least {needed} (its {k} intrinsic "
+                            f"parameters{' and one residual degree of freedom' if needed > k else ''})")
     m, cov = pose_arrays(poses)
+    if n == k and not np.any(cov):
+        return Failure(0.0, f"{n} pose means without scatter determine the {k} parameters exactly, leaving no residual to "
+                            "estimate their uncertainty from: give each pose's standard deviation and count (pose "
+                            "summaries, docs/inputs.md), or more poses")
     try:
         params = _ellipsoid_start(m, g_local, free)
     except np.linalg.LinAlgError:
@@ -181,10 +220,11 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     dof = n - k
     tau2 = 0.0
     floor = VARIANCE_FLOOR * g_local**2
+    prior = misalignment_u if len(free) == len(FULL) else 0.0  # the angles fitted: their prior as observations
     for _ in range(MAX_ITERATIONS):
         mag, grad, _ = magnitude_and_gradient(params, m)
         noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
-        params = _solve(params, m, g_local, np.sqrt(noise_var + tau2), free)
+        params = _solve(params, m, g_local, np.sqrt(noise_var + tau2), free, prior)
         mag, grad, jac = magnitude_and_gradient(params, m)
         noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), floor)
         new = excess_variance(mag - g_local, noise_var, dof)
@@ -199,10 +239,12 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None], free)
     if spread < MIN_SPREAD:
         return Failure(0.0, TOO_ALIKE.format(k=k, detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
-    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof)
+    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof) if dof else float("nan")
     weight = 1.0 / (noise_var + tau2)
+    full_jac = jac
     jac = jac[:, free]
-    params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]))
+    cosines = _cosine_jacobian(params)[:, free] / prior if prior else np.zeros((0, len(free)))
+    params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]) + cosines.T @ cosines)
     gain = params_cov @ (jac * weight[:, None]).T  # (k, n): d params / d residual
     # state = g * rows of L (the g-free coefficient space of combine) and O
     lift = np.zeros((12, 9))
@@ -212,8 +254,18 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     lift = lift[:, free]
     gain = lift @ gain
     # the pose means' noise is known from many samples each; the excess scatter is estimated from the dof residuals
-    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T),
-             (whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T)]
+    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T)]
+    if dof:  # an exactly determined fit has no residual to estimate the scatter from (its u rests on the noise and priors)
+        parts.append((whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T))
+    if prior:  # the datasheet's prior of the angles, a Type B input (GUM 4.3)
+        prior_gain = lift @ params_cov @ cosines.T
+        parts.append((whole_fit_input("misalignment prior", float("inf")), prior_gain @ prior_gain.T))
+    fixed = np.setdiff1d(FULL[:6], free)
+    if misalignment_u > 0 and fixed.size:
+        # the angles the model fixes at 90 degrees, a Type B input (GUM 4.3): L_ij = L_ii cos(phi) within its prior
+        prior = misalignment_u * np.abs(np.diag(L))[TRIL[0][fixed]]
+        sensitivity = gain @ full_jac[:, fixed] * prior
+        parts.append((whole_fit_input("misalignment prior", float("inf")), sensitivity @ sensitivity.T))
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
-    result = IntrinsicResult.from_state(0.0, state, lift @ params_cov @ lift.T, g_local, g_uncertainty, parts)
+    result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)

@@ -17,7 +17,10 @@ with both models' residuals weighed by the nine-parameter fit's variances
 noise alone explains the nine-parameter residuals (tau = 0: S_9 / nu is
 taken as 1 and F follows F(3, inf) = chi-square(3) / 3); estimated from the
 residuals otherwise (tau > 0, S_9 = nu: F follows F(3, nu)). The orthogonal
-model is chosen unless the data reject it at ``SELECTION_LEVEL``.
+model is chosen unless the data reject it at ``SELECTION_LEVEL`` *and* the
+nine parameters predict poses left out one at a time better than the six
+by more than chance (``heldout``): a rejection driven by poses that scatter
+beyond their noise does not carry over to poses not yet seen.
 
 An angle is determined by poses whose gravity mixes its two axes: a pose
 *mixes* u and v when 2 |a_u a_v| / |a|^2 >= ``MIXING`` (0.5: gravity at
@@ -39,7 +42,8 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
-from rotcal.combine.multiposition import FULL, ORTHOGONAL, OrientationFreeFit, orientation_free
+from rotcal.combine.heldout import HeldOut, compare, press
+from rotcal.combine.multiposition import FULL, ORTHOGONAL, TRIL, OrientationFreeFit, magnitude_and_gradient, orientation_free, pose_arrays
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit
 from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure
@@ -62,6 +66,7 @@ class ModelChoice:
     f_statistic: float = float("nan")
     p_value: float = float("nan")
     denominator_dof: float = float("nan")
+    heldout: HeldOut | None = None
 
     @property
     def reason(self) -> str:
@@ -70,10 +75,12 @@ class ModelChoice:
             missing = "baseline" if self.chosen == "orthogonal" else "orthogonal"
             why = getattr(self.full if missing == "baseline" else self.orthogonal, "reason", "")
             return f"the {missing} model is not determined: {why}"
-        verdict = "rejects" if self.chosen == "baseline" else "does not reject"
+        verdict = "rejects" if self.p_value < SELECTION_LEVEL else "does not reject"
         dof = "inf" if np.isinf(self.denominator_dof) else f"{self.denominator_dof:g}"
-        return (f"the F test of orthogonal axes against the nine parameters {verdict} them at the {SELECTION_LEVEL:g} "
+        test = (f"the F test of orthogonal axes against the nine parameters {verdict} them at the {SELECTION_LEVEL:g} "
                 f"level (F = {self.f_statistic:.3g} with (3, {dof}) degrees of freedom, p = {self.p_value:.3g})")
+        full = "nine-parameter" if self.full.__class__.__name__ == "OrientationFreeFit" else "12-parameter"
+        return test if self.heldout is None else f"{test}; {self.heldout.text('orthogonal', full)}"
 
     @property
     def note(self) -> str:
@@ -108,14 +115,32 @@ def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFre
                   float("inf") if full.excess_std == 0.0 else float(full.dof))
 
 
-def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ModelChoice:
-    """Both models fitted to ``poses`` and the one the evidence chooses."""
-    full = orientation_free(poses, g_local, g_uncertainty, FULL)
-    orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL)
+def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float, misalignment_u: float = 0.0,
+                 stated_u: float = 0.0) -> ModelChoice:
+    """Both models fitted to ``poses`` and the one the evidence chooses; where
+    the poses do not determine the nine parameters, the orthogonal model's
+    angles carry the prior ``misalignment_u`` (``combine.placement``); the
+    nine parameters' angles the datasheet's prior ``stated_u`` where the
+    user states one."""
+    full = orientation_free(poses, g_local, g_uncertainty, FULL, stated_u)
+    orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL,
+                                  misalignment_u if isinstance(full, Failure) else 0.0)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):
         return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")
     f, p, dof = orientation_free_f_test(full, orthogonal, g_local)
-    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
+    held = compare(*(_held_out(fit, poses, g_local, full.variance, free) for fit, free in ((orthogonal, ORTHOGONAL), (full, FULL))))
+    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL and held.better else "orthogonal", f, p, dof, held)
+
+
+def _held_out(fit: OrientationFreeFit, poses: pl.DataFrame, g_local: float, variance: np.ndarray,
+              free: np.ndarray) -> np.ndarray:
+    """Each pose's squared leave-one-out prediction error of |a| under
+    ``fit`` (``heldout.press``), weighed by ``variance``."""
+    lower = fit.result.state[:9].reshape(3, 3) / g_local
+    params = np.concatenate([lower[TRIL], fit.result.state[9:]])
+    magnitude, _, jac = magnitude_and_gradient(params, pose_arrays(poses)[0])
+    weight = 1.0 / np.sqrt(variance)
+    return press((magnitude - g_local) * weight, jac[:, free] * weight[:, None])
 
 
 def gravity_cone(directions: np.ndarray) -> str | None:

@@ -92,9 +92,11 @@ def summary_poses(summaries: pl.DataFrame) -> pl.DataFrame:
     s and the count n, optionally the channels' correlations r): the
     statistics ``group_statistics`` takes from the samples, the covariance
     of the mean s_i r_ij s_j / sqrt(n_i n_j) (r = 0 between channels where
-    not given)."""
+    not given; zero for pose means without scatter)."""
     labels = summaries["pose"].to_list()
     reference, source = _references(labels, summaries.select("gx", "gy", "gz").to_numpy())
+    if all(label is None for label in labels) and np.isnan(reference).all():
+        source = "stillness"  # no pose says how it rested: poses of unknown orientation
     means = summaries.select(f"{c}_mean" for c in CHANNELS).to_numpy()
     # standard deviations of the means, s / sqrt(n), and the channels' correlations (0 where not given)
     std = (summaries.select(f"{c}_std" for c in CHANNELS).to_numpy()
@@ -141,6 +143,24 @@ def table_step_poses(samples: pl.DataFrame, segments: pl.DataFrame) -> pl.DataFr
         if first.size else np.zeros((0, 3))
     labels = [f"{a} {theta:g} deg" for a, theta in zip(axes, angle[first].tolist())]
     return _pose_frame(samples, group, first.size, "table step", labels, reference)
+
+
+def without_scatter(poses: pl.DataFrame) -> bool:
+    """Whether the poses are means without scatter (one row each: no pose noise known)."""
+    return poses.height > 0 and not np.any(pose_arrays(poses)[1])
+
+
+def scatterless_poses(poses: pl.DataFrame) -> pl.DataFrame:
+    """Poses of one sample each taken as means without scatter: their covariance zero, not undefined."""
+    return poses.with_columns(cov_mean=pl.Series([[0.0] * 9] * poses.height, dtype=pl.List(pl.Float64)))
+
+
+def sample_poses(samples: pl.DataFrame) -> pl.DataFrame:
+    """Every sample a pose mean of unknown orientation (``[format]
+    pose_means``: a file of one row per pose, Magneto's input)."""
+    n = samples.height
+    poses = _pose_frame(samples, np.arange(n), n, "stillness", [None] * n, np.full((n, 3), np.nan))
+    return scatterless_poses(poses)
 
 
 def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:

@@ -41,6 +41,7 @@ from dataclasses import replace
 import numpy as np
 import polars as pl
 
+from rotcal.combine.heldout import compare, press
 from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
 from rotcal.combine.posemodels import MIN_CONE_DEG, SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
@@ -200,7 +201,23 @@ def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: f
     known = not np.any(full.excess_cov)
     f, p, dof = f_test(orthogonal.sum_sq - s_full, 3, 1.0 if known else s_full / full.dof,
                        float("inf") if known else float(full.dof))
-    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
+    held = compare(_held_out_orthogonal(orthogonal, poses), _held_out_full(full, poses, orthogonal.weights))
+    return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL and held.better else "orthogonal", f, p, dof, held)
+
+
+def _held_out_full(full: ReferenceFit, poses: pl.DataFrame, weights: np.ndarray) -> np.ndarray:
+    """Each position's squared leave-one-out prediction error under the
+    12-parameter fit (one design for every channel: e_k / (1 - h_kk))."""
+    design = np.column_stack([references(poses), np.ones(poses.height)])
+    return press((full.residuals * np.sqrt(weights)).ravel(), np.kron(design, np.eye(3)) * np.tile(np.sqrt(weights), len(design))[:, None], 3)
+
+
+def _held_out_orthogonal(fit: OrthogonalReferenceFit, poses: pl.DataFrame) -> np.ndarray:
+    """Each position's squared leave-one-out prediction error under the orthogonal fit."""
+    s = np.linalg.norm(fit.result.state[:9].reshape(3, 3), axis=1)  # the rows of C = D R: output per g
+    e, jac = _residuals_and_jacobian(s, fit.rotation, fit.result.state[9:], references(poses), pose_arrays(poses)[0])
+    root_w = np.sqrt(fit.weights)
+    return press((e * root_w).ravel(), (jac * root_w[None, :, None]).reshape(-1, 9), 3)
 
 
 

@@ -73,11 +73,17 @@ def segment_phases(fits: pl.DataFrame, segments: pl.DataFrame, own_phase: frozen
             .join(segments.select("segment", "t_phase_ns"), on="segment", how="left").sort("segment"))
 
 
-def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float) -> Reduction:
+def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float,
+                  single: frozenset[int] = frozenset()) -> Reduction:
     """The static result (rate 0) from the dwells when ``need_static``, and
-    the ``dwells`` table (with |a| after calibration when they gave it)."""
+    the ``dwells`` table (with |a| after calibration when they gave it);
+    otherwise a warning counting the dwells of ``single`` (segments of one
+    pose, outside every step sequence) that no result uses."""
     results: tuple[IntrinsicResult, ...] = ()
     failures: tuple[Failure, ...] = ()
+    unused = 0 if need_static or not dwells.height else dwells.filter(pl.col("segment").is_in(list(single))).height
+    warnings = (f"{unused} of the {dwells.height} dwells found are single poses outside every step sequence and are not "
+                "used: the step sequences give the static result (dwells.parquet lists every dwell and its segment)",) if unused else ()
     fault = channel_fault(dwells) if need_static and dwells.height else None
     if fault is not None:
         failures = (Failure(0.0, f"static dwells: {fault}"),)
@@ -88,4 +94,4 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
             dwells = dwells.with_columns(g_magnitude=pl.Series(fit.magnitude))
         else:
             failures = (Failure(0.0, f"static dwells: {fit.reason}"),)
-    return Reduction("intrinsic", results, failures, (Table("dwells", dwells),) if dwells.height else (), ())
+    return Reduction("intrinsic", results, failures, (Table("dwells", dwells),) if dwells.height else (), warnings)

@@ -24,6 +24,16 @@ def kept_per_segment(counts: np.ndarray, max_samples: int) -> np.ndarray:
     return np.minimum(counts, int(cap[np.argmax(ordered >= cap)]))
 
 
+def thinned_rows(first: np.ndarray, count: np.ndarray, max_samples: int) -> np.ndarray:
+    """The sample numbers the diagnosis models of the segments starting at
+    sample ``first`` with ``count`` samples: each thinned evenly to its share
+    (``kept_per_segment``), ``first + floor(i n / k)``. A capture read block
+    by block gathers these rows for the diagnosis (``run.streaming``)."""
+    kept = kept_per_segment(count, max_samples)
+    return np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)]
+                          or [np.zeros(0, np.int64)])
+
+
 def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
                  rates: list[float], g_local: float, max_samples: int) -> tuple[Observations, np.ndarray, int] | None:
     """The samples of the fitted table segments at the determined ``rates``
@@ -47,7 +57,7 @@ def observations(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFra
     rows = segment_rows(samples)
     first, count = (np.array([rows[k][i] for k in ok], dtype=np.int64) for i in (0, 1))
     kept = kept_per_segment(count, max_samples)
-    index = np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)])
+    index = thinned_rows(first, count, max_samples)
     kind, start_ns = zip(*(described.get(k, (None, None)) for k in ok))
     static, rotating, start_s = (np.repeat(v, kept) for v in (np.array(kind) == "static", np.array(kind) == "rotation",
                                                               np.array(start_ns, dtype=float) / 1e9))

@@ -21,7 +21,10 @@ The statistic is chi-square on k degrees of freedom when the poses' scatter
 is their noise; when the static fit estimated an excess scatter (hand poses
 rarely rest perfectly) it is Fisher's F on (k, dof) with the scatter
 estimated from the larger model, so that the false-alarm rate holds either
-way. Where nothing is found, ``detection_limits`` gives the size of each
+way. An effect so selected is modelled only when the model with it also
+predicts poses left out one at a time better than the baseline by more
+than chance (``combine.heldout``); the comparison is the diagnosis's
+``heldout`` sentence, which the recommendation quotes. Where nothing is found, ``detection_limits`` gives the size of each
 parameter whose expected statistic reaches the threshold (50 % power) with
 this recording's poses and noise: "nothing found" with a size.
 """
@@ -35,6 +38,7 @@ import polars as pl
 from scipy.special import chdtri, fdtrc, fdtri
 
 from rotcal.combine import StaticReduction
+from rotcal.combine.heldout import HeldOut, compare, press
 from rotcal.config import DiagnosisConfig
 from rotcal.diagnose.candidates import report_parameters
 from rotcal.diagnose.fitting import chi2_sf
@@ -65,6 +69,7 @@ class StaticDiagnosis:
     limits: dict[str, float]
     poses: int
     method: str
+    heldout: str = ""  # the held-out comparison of the model with the effects found against the baseline
 
     def channel(self, residuals: np.ndarray, r: int) -> np.ndarray:
         """Each pose's residual in channel r (the |a| residual when orientation-free)."""
@@ -303,6 +308,9 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
         return None
     alpha = config.false_alarm
     active = select(lin, alpha)
+    heldout = _held_out(lin, active) if active else None
+    if heldout is not None and not heldout.better:  # fits these poses, but does not predict the next: not modelled
+        active = ()
     theta, cov, cols = refit(lin, active) if active else (lin.theta0, np.zeros((0, 0)), lin.cols(()))
     rows, params, before, against, limits = _rows(lin, active, theta, cov, cols, alpha, dataset, output_unit)
     refined = (_refined(model, theta, cov, lin.dof(active), g_uncertainty),) if active else ()
@@ -310,4 +318,16 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
     parameters = (conform(pl.DataFrame(params, schema=schema("effect_parameters").polars_schema), "effect_parameters")
                   if params else schema("effect_parameters").empty())
     return StaticDiagnosis(findings, parameters, refined, before, against, model.residuals(theta), limits,
-                           len(model.means), static.method)
+                           len(model.means), static.method, "" if heldout is None else heldout.text("baseline", "refined"))
+
+
+def _held_out(lin: Linearised, active: tuple[Candidate, ...]) -> HeldOut:
+    """The baseline and the model with ``active`` compared on poses left out
+    one at a time (``combine.heldout``), both linearised at the static fit."""
+    size = lin.n // len(lin.model.means)
+    errors = []
+    for model in ((), active):
+        cols = lin.cols(model)
+        residuals = lin.r0 + lin.jac[:, cols] @ (lin.solve(model)[0][cols] - lin.theta0[cols])
+        errors.append(press(residuals, lin.jac[:, cols], size))
+    return compare(*errors)

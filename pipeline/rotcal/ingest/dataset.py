@@ -12,12 +12,11 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.csv_joined import read_joined
-from rotcal.ingest.csv_source import read_csv_capture
 from rotcal.ingest.duplicates import distinct_captures
 from rotcal.ingest.files import capture_files, dataset_name
+from rotcal.ingest.formats import named_format
+from rotcal.ingest.formats.csv.joined import read_joined
 from rotcal.ingest.labels import time_ordered
-from rotcal.ingest.mcap_source import read_mcap_capture
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta, load_meta
 from rotcal.ingest.summaries import MEANS
 from rotcal.tables import conform, schema
@@ -39,11 +38,9 @@ class Dataset:
 
 def read_capture(file: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits,
                  workers: int = 0) -> tuple[pl.DataFrame, tuple[str, ...]]:
-    """One capture and notes on it, by its suffix (``[[capture]]`` files other
-    than .mcap are CSV); ``workers`` as ``parallel.cores`` reads it."""
-    if file.suffix.lower() == ".mcap":
-        return read_mcap_capture(file, meta, spec, limits, workers)
-    return read_csv_capture(file, meta.csv_format, spec, limits), ()
+    """One capture and notes on it, read by its format's reader
+    (``ingest.formats.named_format``); ``workers`` as ``parallel.cores`` reads it."""
+    return named_format(file).reader(file, spec, meta, limits, workers)
 
 
 def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Limits(), workers: int = 0) -> Dataset:

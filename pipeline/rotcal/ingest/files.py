@@ -14,11 +14,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rotcal.errors import InputError
+from rotcal.ingest.formats import is_capture, patterns
 
 if TYPE_CHECKING:
     from rotcal.ingest.meta import CaptureSpec, DatasetMeta
-
-CAPTURE_SUFFIXES = (".csv", ".mcap")
 
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
@@ -93,9 +92,9 @@ def capture_files(path: Path, meta: DatasetMeta) -> list[tuple[Path, CaptureSpec
                 raise InputError("capture file named in dataset.toml does not exist", path=file)
             require_regular(file)
         return files
-    found = sorted(p for p in path.iterdir() if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir())
+    found = sorted(p for p in path.iterdir() if is_capture(p) and not p.is_dir())
     if not found:
-        raise InputError("no capture files (*.csv, *.mcap) in the dataset directory", path=path)
+        raise InputError(f"no capture files ({patterns()}) in the dataset directory", path=path)
     resolved = path.resolve()
     for file in found:  # an entry that is no link lies in the directory: only a link can lead out of it
         if file.is_symlink() and not file.resolve().is_relative_to(resolved):

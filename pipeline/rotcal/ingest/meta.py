@@ -7,12 +7,15 @@ import math
 import re
 import tomllib
 from dataclasses import dataclass, field
+from datetime import date, datetime, time
 from pathlib import Path
 
 import jsonschema
 
 from rotcal.errors import InputError
 from rotcal.model.constants import STANDARD_GRAVITY, STANDARD_GRAVITY_UNCERTAINTY
+from rotcal.model.identification import Identification, identification_from_toml
+from rotcal.model.placement import Placement
 from rotcal_schemas import schema_text
 
 # The deepest valid value is three levels down ([[capture]] -> table -> key);
@@ -67,6 +70,9 @@ class DatasetMeta:
     device_id: str | None = None
     output_unit: str = "bit"
     full_scale: float | None = None
+    cross_axis: float | None = None
+    label_tolerance_deg: float = 4.0
+    pose_means: bool = False
     g_local: float = STANDARD_GRAVITY
     g_local_uncertainty: float = STANDARD_GRAVITY_UNCERTAINTY
     g_local_source: str = "standard gravity (default)"
@@ -80,23 +86,38 @@ class DatasetMeta:
     captures: tuple[CaptureSpec, ...] = ()
     source: str | None = None
     notes: tuple[str, ...] = ()
+    identification: Identification = field(default_factory=Identification)  # the certificate's parts
+
+    @property
+    def placement(self) -> Placement:
+        """What the static reduction takes from ``[device]`` and ``[format]`` about hand-placed poses."""
+        return Placement(self.cross_axis, self.label_tolerance_deg, self.pose_means)
 
 
-def _parse(text: str, path: Path) -> dict:
+def _parse(text: str, path: Path, what: str = "dataset.toml") -> dict:
     try:
-        return tomllib.loads(text)
+        return {key: _dates_as_text(value) for key, value in tomllib.loads(text).items()}
     except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"dataset.toml is not valid TOML: {exc}", path=path) from None
+        raise InputError(f"{what} is not valid TOML: {exc}", path=path) from None
     except RecursionError:
-        raise InputError(f"dataset.toml has tables or arrays nested more than {MAX_NESTING} deep", path=path) from None
+        raise InputError(f"{what} has tables or arrays nested more than {MAX_NESTING} deep", path=path) from None
     except ValueError:  # int() refuses more than sys.get_int_max_str_digits() digits
         long = re.search(r"[0-9_]{4000,}", text)
         line = text.count("\n", 0, long.start()) + 1 if long else "?"
-        raise InputError(f"dataset.toml line {line}: an integer beyond the 64-bit range of TOML integers",
+        raise InputError(f"{what} line {line}: an integer beyond the 64-bit range of TOML integers",
                          path=path) from None
 
 
-def _check_values(doc: dict, path: Path) -> None:
+def _dates_as_text(value: object) -> object:
+    """TOML's dates and times as the ISO 8601 text the schema reads ([certificate] dates)."""
+    if isinstance(value, dict):
+        return {k: _dates_as_text(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_dates_as_text(v) for v in value]
+    return value.isoformat() if isinstance(value, date | datetime | time) else value
+
+
+def _check_values(doc: dict, path: Path, what: str = "dataset.toml") -> None:
     """Refuse what the schema's bounds let through: NaN and infinity (every
     comparison with NaN is false), integers beyond 64 bits, NUL characters
     (no file or column name holds one) and absurd nesting; in document order."""
@@ -105,20 +126,20 @@ def _check_values(doc: dict, path: Path) -> None:
         where, value = stack.pop()
         key = ".".join(map(str, where))
         if len(where) > MAX_NESTING:
-            raise InputError(f"dataset.toml has tables or arrays nested more than {MAX_NESTING} deep (at {key})", path=path)
+            raise InputError(f"{what} has tables or arrays nested more than {MAX_NESTING} deep (at {key})", path=path)
         if isinstance(value, dict | list):
             items = value.items() if isinstance(value, dict) else enumerate(value)
             stack.extend(reversed([((*where, k), v) for k, v in items]))
         elif isinstance(value, float) and not math.isfinite(value):
-            raise InputError(f"invalid dataset.toml value: {key} = {value} is not a finite number", path=path)
+            raise InputError(f"invalid {what} value: {key} = {value} is not a finite number", path=path)
         elif isinstance(value, int) and not isinstance(value, bool) and not -INT64 <= value < INT64:
-            raise InputError(f"invalid dataset.toml value: {key} is an integer beyond the 64-bit range of TOML integers",
+            raise InputError(f"invalid {what} value: {key} is an integer beyond the 64-bit range of TOML integers",
                              path=path)
         elif isinstance(value, str) and "\0" in value:
-            raise InputError(f"invalid dataset.toml value: {key} holds a NUL character", path=path)
+            raise InputError(f"invalid {what} value: {key} holds a NUL character", path=path)
 
 
-def _validate(doc: dict, path: Path) -> None:
+def _validate(doc: dict, path: Path, what: str = "dataset.toml") -> None:
     validator = jsonschema.Draft202012Validator(schema_text("dataset_toml"))
     errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
     if not errors:
@@ -134,7 +155,7 @@ def _validate(doc: dict, path: Path) -> None:
         problem = f"[{where}] maps an unknown column {err.instance!r}"
     else:
         problem = f"{where}: {err.message}"
-    raise InputError(f"invalid dataset.toml value: {problem}", path=path)
+    raise InputError(f"invalid {what} value: {problem}", path=path)
 
 
 def load_meta(path: Path | None) -> DatasetMeta:
@@ -193,6 +214,9 @@ def load_meta(path: Path | None) -> DatasetMeta:
         device_id=device.get("id"),
         output_unit=device.get("output_unit", "bit"),
         full_scale=device.get("full_scale"),
+        cross_axis=device.get("cross_axis"),
+        label_tolerance_deg=float(fmt.get("label_tolerance_deg", 4.0)),
+        pose_means=bool(fmt.get("pose_means", False)),
         g_local=float(site.get("g_local", STANDARD_GRAVITY)),
         g_local_uncertainty=g_u,
         g_local_source=f"{path.name} [site]" if "g_local" in site and path is not None else DatasetMeta.g_local_source,
@@ -206,4 +230,5 @@ def load_meta(path: Path | None) -> DatasetMeta:
         captures=tuple(CaptureSpec(**c) for c in doc.get("capture", ())),
         source=None if path is None else str(path),
         notes=tuple(notes),
+        identification=identification_from_toml(doc, path),
     )

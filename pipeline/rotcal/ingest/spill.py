@@ -105,8 +105,13 @@ class FrameSpill:
         self.heights.append(frame.height)
         return True
 
+    def join_last(self, count: int) -> None:
+        """The last ``count`` frames appended read back as one."""
+        if count > 1:
+            self.heights[-count:] = [sum(self.heights[-count:])]
+
     def frames(self) -> Iterator[pl.DataFrame]:
-        """The frames, as appended."""
+        """The frames, as appended (or joined)."""
         rows = 0
         for height in self.heights:
             piece = {name: self.spill.read(name, rows, height) for name in self.columns}

@@ -2,7 +2,9 @@
 "Pose summaries") instead of the samples, as many authors publish a
 six-position test: the pose (a label or the jig reference ``gx, gy, gz``)
 and per channel the mean, the sample standard deviation and the sample count
-(optionally the channels' sample correlations).
+(optionally the channels' sample correlations); or the means alone, as
+ellipsoid-fit tools such as Magneto take them, whose scatter the static
+reduction then takes from its fit's residuals.
 
 They are the statistics the static reduction takes from a pose's samples
 (``combine.poses``: the mean and the covariance of the mean, std^2 / n per
@@ -31,7 +33,14 @@ SUMMARY_SCHEMA = {"pose": pl.String, **dict.fromkeys((*REFERENCES, "temperature_
                   **dict.fromkeys(COUNTS, pl.Int64), **dict.fromkeys(CORRELATIONS, pl.Float64)}
 
 
+def scatterless(columns: list[str]) -> bool:
+    """Pose means alone (Magneto's input, one row per pose): no standard deviation or count column."""
+    return not any(c in columns for c in (*STDS, *COUNTS, "n"))
+
+
 def _missing(columns: list[str]) -> list[str]:
+    if scatterless(columns):
+        return [c for c in MEANS if c not in columns]
     missing = [c for c in (*MEANS, *STDS) if c not in columns]
     if "n" not in columns:
         missing += [c for c in COUNTS if c not in columns]
@@ -45,11 +54,14 @@ def pose_summaries(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
     if missing:
         raise InputError(f"pose summaries need the columns {', '.join(map(repr, missing))} "
                          f"(columns found: {', '.join(sorted(frame.columns))})", path=path)
+    means_only = scatterless(frame.columns)
+    if means_only:  # the scatter is then the fit's residuals' (combine.static): no noise known, zero covariance
+        frame = frame.with_columns(*(pl.lit(0.0).alias(c) for c in STDS), *(pl.lit(1, pl.Int64).alias(c) for c in COUNTS))
     if "n" in frame.columns:
         frame = frame.with_columns(pl.col("n").alias(c) for c in COUNTS if c not in frame.columns).drop("n")
     check_values(frame, path, required=(*MEANS, *STDS, *COUNTS))
     check_references(frame, path)
-    for name in COUNTS:
+    for name in () if means_only else COUNTS:
         counts = frame[name]
         bad = ((counts < 2) | (counts != counts.round())).arg_true()
         if len(bad):
@@ -60,7 +72,7 @@ def pose_summaries(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
         if len(bad):
             raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: {frame[name][int(bad[0])]:g} is not a correlation "
                              "(-1 to 1)", path=path)
-    for name in STDS:
+    for name in () if means_only else STDS:
         bad = (frame[name] <= 0).arg_true()
         if len(bad):
             raise InputError(f"column {name!r}, row {int(bad[0]) + 1}: a standard deviation of {frame[name][int(bad[0])]:g}; "
@@ -70,7 +82,8 @@ def pose_summaries(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
     frame = frame.with_columns(pl.lit(None, t).alias(c) for c, t in SUMMARY_SCHEMA.items() if c not in frame.columns)
     placed = pl.col("pose").is_not_null() | pl.all_horizontal(pl.col(c).is_not_null() for c in REFERENCES)
     unplaced = frame.select(~placed).to_series().arg_true()
-    if len(unplaced):
+    if 0 < len(unplaced) < frame.height:  # none placed: poses of unknown orientation, fitted as still intervals are
         raise InputError(f"row {int(unplaced[0]) + 1}: neither a pose label (x_p, x_a, ..., z_a in [format] pose_column) "
-                         "nor a reference gx, gy, gz: a summary must say how the DUT rested", path=path)
+                         "nor a reference gx, gy, gz, where other rows have one: say how every pose rested, or none",
+                         path=path)
     return frame.select(pl.col(c).cast(t) for c, t in SUMMARY_SCHEMA.items())

@@ -29,12 +29,13 @@ import polars as pl
 
 from rotcal.errors import InputError
 from rotcal.jsontext import json_text
+from rotcal.model.identification import Identification
 from rotcal.model.physics import AXES, CHANNELS, INTRINSIC
 from rotcal.model.results import EXPANDED_COVERAGE, IntrinsicResult, coverage_factor
 from rotcal_schemas import schema_text
 
 CALIBRATION_SCHEMA = "calibration"
-CALIBRATION_VERSION = "1.0"
+CALIBRATION_VERSION = "1.1"  # 1.1: certificate (the laboratory's, customer's, item's, equipment's fields)
 BASELINE, REFINED = "baseline", "refined"
 
 
@@ -53,7 +54,8 @@ def recommended_model(intrinsic: pl.DataFrame, modelled: tuple[str, ...], baseli
     not run). The one place that chooses."""
     models = set(intrinsic["model"].to_list())
     if REFINED in models and modelled:
-        return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}"
+        held = f"; {baseline_reason}" if baseline_reason.startswith("left out") else ""  # the held-out figures, where compared
+        return REFINED, f"the diagnosis modelled {', '.join(modelled)}; the baseline model omits {'it' if len(modelled) == 1 else 'them'}{held}"
     if static_choice is not None and static_choice[0] in models:
         return static_choice
     return BASELINE, baseline_reason
@@ -252,7 +254,8 @@ class Calibration:
     """``calibration.json``: the dataset, the DUT's output unit, g_local with
     its standard uncertainty and source, the inputs' content hashes, the run's
     configuration, rotcal's version and the time of the run, and the
-    recommended calibration per rate."""
+    recommended calibration per rate; what the certificate states beside the
+    results, as the laboratory gave it (``identification``)."""
 
     dataset: str
     device: dict[str, Any]
@@ -265,6 +268,7 @@ class Calibration:
     rotcal_version: str
     created_utc: str
     rates: tuple[RateCalibration, ...]
+    identification: Identification = Identification()
 
     def rate(self, rate_hz: float | None) -> RateCalibration:
         """The entry of ``rate_hz`` (None: DC when there is one, else the only rate)."""
@@ -287,7 +291,8 @@ class Calibration:
                             "source": self.g_local_source},
                 "coverage_probability": EXPANDED_COVERAGE, "inputs": list(self.inputs),
                 "configuration": self.configuration, "rotcal_version": self.rotcal_version,
-                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates]}
+                "created_utc": self.created_utc, "rates": [r.to_dict() for r in self.rates],
+                "certificate": self.identification.to_dict()}
 
     def write(self, path: Path) -> Path:
         """Write the document (validated first: a bug, not the user's input, if it fails)."""
@@ -320,12 +325,13 @@ class Calibration:
         g = doc["g_local"]
         return cls(doc["dataset"], doc["device"], doc["output_unit"], float(g["value"]), float(g["std_uncertainty"]),
                    g["source"], tuple(doc["inputs"]), doc["configuration"], doc["rotcal_version"], doc["created_utc"],
-                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]))
+                   tuple(RateCalibration.from_dict(r) for r in doc["rates"]),
+                   Identification.from_dict(doc.get("certificate", {})))
 
 
 class DeviceMeta(Protocol):
     """What the document records of a dataset's metadata (``dataset.toml``,
-    read by ``rotcal.ingest.meta``): the device and the local gravity."""
+    read by ``rotcal.ingest.meta``): the device, the local gravity and the certificate's fields."""
 
     @property
     def device_id(self) -> str | None: ...
@@ -339,13 +345,16 @@ class DeviceMeta(Protocol):
     def g_local_uncertainty(self) -> float: ...
     @property
     def g_local_source(self) -> str: ...
+    @property
+    def identification(self) -> Identification: ...
 
 
 def recommended_calibration(chosen: Recommended, dataset: str, meta: DeviceMeta, inputs: tuple[dict[str, Any], ...],
-                            configuration: dict[str, Any]) -> Calibration:
+                            configuration: dict[str, Any], site: Identification = Identification()) -> Calibration:
     """The run's document: ``chosen``'s result per rate, the dataset's
-    metadata (device, g_local and its source), rotcal's version and the time
-    of the run (``created_utc``)."""
+    metadata (device, g_local and its source; the certificate's fields,
+    each absent one from the ``site`` file's), rotcal's version and the
+    time of the run (``created_utc``)."""
     from rotcal import __version__
 
     unit = meta.output_unit
@@ -354,4 +363,5 @@ def recommended_calibration(chosen: Recommended, dataset: str, meta: DeviceMeta,
     return Calibration(dataset, device, unit, meta.g_local, meta.g_local_uncertainty, meta.g_local_source, inputs,
                        configuration, __version__, created_utc(),
                        tuple(rate_calibration(r, f, chosen.model, chosen.reason, unit)
-                             for r, f in zip(chosen.results, chosen.frames)))
+                             for r, f in zip(chosen.results, chosen.frames)),
+                       meta.identification.over(site))

@@ -64,8 +64,9 @@ OUTPUTS: tuple[Output, ...] = (
     Output("frequency_response_png", "frequency_response.png", "result", None),
     _table("monte_carlo"),
     _table("poses", "input"),
-    # a view of the files published before it: last
+    # views of the files published before them: last
     Output("certificate", "certificate.html", "result", None),
+    Output("certificate_pdf", "certificate.pdf", "result", None),
 )
 
 

@@ -73,8 +73,11 @@ def static_fit_summary(static: StaticReduction, output_unit: str) -> str:
         return (f"12-parameter fit to {n} positions of known reference ({static.frame} frame): residual dof {fit.dof}, "
                 f"reduced chi-square of the pose noise {fit.chi2_reduced:.3g}, excess scatter per position "
                 f"(u, v, w) {excess} {output_unit}")
-    return (f"orientation-free fit (|a| = g_local) to {n} still intervals: residual dof {fit.dof}, reduced chi-square "
-            f"of the pose noise {fit.chi2_reduced:.3g}, excess scatter per position {fit.excess_std:.3g} m/s^2, "
+    poses = "labelled poses (the labels as approximate directions)" if static.positions["source"][0] == "label" else "still intervals"
+    dof = fit.dof
+    judged = (f"reduced chi-square of the pose noise {fit.chi2_reduced:.3g}, excess scatter per position {fit.excess_std:.3g} m/s^2"
+              if dof else "exactly determined: no residual to judge the scatter by (more poses would)")
+    return (f"orientation-free fit (|a| = g_local) to {n} {poses}: residual dof {dof}, {judged}, "
             f"direction spread {fit.direction_spread:.3g}")
 
 

@@ -21,14 +21,16 @@ from threadpoolctl import threadpool_limits
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
+from rotcal.ingest.site import load_site, site_path
 from rotcal.model.calibration import Recommended, mark_recommended
+from rotcal.model.identification import Identification
 from rotcal.model.outputs import INPUT_TABLES
 from rotcal.model.results import Failure, IntrinsicResult, Table
 from rotcal.report.publish import OutputDir
 from rotcal.run.outputs import (
     calibration_document,
     calibration_output,
-    certificate_output,
+    certificate_outputs,
     diagnosis_outputs,
     publish,
     result_tables,
@@ -72,9 +74,10 @@ def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None
     on small matrices competing with it costs more than it gives. A bare
     path ``out`` replaces only what a rotcal listing there names. ``known``:
     the inputs' SHA-256s the caller has computed (``ingest.duplicates.content_hashes``)."""
+    site = load_site(site_path(Path(path), config.report.site))  # the site file checked before any work
     with threadpool_limits(limits=1, user_api="blas"), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        outcome = _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known)
+        outcome = _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known, site)
     return replace(outcome, notes=outcome.notes + library_notes(caught))
 
 
@@ -88,7 +91,7 @@ def library_notes(caught: list[warnings.WarningMessage]) -> tuple[str, ...]:
 
 
 def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
-         known: Mapping[tuple[int, ...], str] | None) -> RunOutcome:
+         known: Mapping[tuple[int, ...], str] | None, site: Identification) -> RunOutcome:
     """Run the pipeline on one dataset and publish its tables as ``out``.
 
     Raises ``InputError`` for unreadable input and ``UndeterminedError`` when
@@ -111,10 +114,10 @@ def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,
     metrology, metrology_notes = metrology_stage(seg, reductions.labelled, chosen,
                                                  recommended_fits(seg, diagnosis, chosen, ds, config), ds, config)
     corrections, correction_warnings = correction_stage(seg, reductions.static, ds)
-    calibration = calibration_document(chosen, ds, config, known)
+    calibration = calibration_document(chosen, ds, config, known, site)
     outputs = [*_tables(seg, reductions), *result_tables(mark_recommended(intrinsic, chosen.model), chosen, ds),
                *diagnosis_outputs(diagnosis, seg.fits, results, ds, config), *corrections, *metrology,
-               calibration_output(calibration), certificate_output(config, calibration)]
+               calibration_output(calibration), *certificate_outputs(config, calibration)]
     return RunOutcome(ds.name, ds.meta.output_unit, results, warnings + correction_warnings,
                       seg.notes + (reductions.static.notes if reductions.static else ()) + diagnosis_notes + metrology_notes,
                       publish(outputs, out), chosen, diagnosis, reductions.static)

@@ -20,6 +20,7 @@ from rotcal.metrology import (
     cross_sensitivity_frame,
 )
 from rotcal.model.calibration import Calibration, Recommended, recommended_calibration
+from rotcal.model.identification import Identification
 from rotcal.model.outputs import output, publish_rank
 from rotcal.model.results import IntrinsicResult, Table
 from rotcal.report.publish import OutputDir, publish_directory
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
 
     from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.static import StaticDiagnosis
+    from rotcal.report.certificate_blocks import Document
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,11 +57,14 @@ def result_tables(intrinsic: pl.DataFrame, chosen: Recommended, ds: Dataset) -> 
 
 
 def calibration_document(chosen: Recommended, ds: Dataset, config: RunConfig,
-                         known: Mapping[tuple[int, ...], str] | None = None) -> Calibration:
+                         known: Mapping[tuple[int, ...], str] | None = None,
+                         site: Identification = Identification()) -> Calibration:
     """The run's ``calibration.json``: the recommended result per rate,
     g_local and its source, the inputs' hashes (those ``known`` not read
-    again: ``content_hashes``) and every configuration key."""
-    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config))
+    again: ``content_hashes``), every configuration key and the
+    certificate's fields (``dataset.toml``'s over the ``site`` file's)."""
+    return recommended_calibration(chosen, ds.name, ds.meta, content_hashes(ds.inputs, ds.root, known), asdict(config),
+                                   site)
 
 
 def calibration_output(calibration: Calibration) -> Figure:
@@ -102,19 +107,36 @@ class View:
             raise KeyError(f"{self.name!r} is a table, published as a Table")
 
 
-def certificate_output(config: RunConfig, calibration: Calibration) -> View:
+def certificate_outputs(config: RunConfig, calibration: Calibration) -> list[View]:
     """The certificate (``report.certificate``), published last: a view of
-    the files published before it, drawn when they include calibration.json."""
-    def draw(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
+    the files published before it, drawn when they include calibration.json,
+    as HTML and (``[report] pdf``) as PDF, both from one document."""
+    built: dict[str, Document] = {}
+
+    def document(out: Path, published: Mapping[str, pa.Table]) -> Document | None:
         if not (out / "calibration.json").is_file():
             return None
+        if "doc" not in built:
+            from rotcal.report.certificate import document as certificate_document
+
+            # calibration_output wrote and validated this document in this same
+            # publish, and the tables are those just written: neither is read back
+            built["doc"] = certificate_document(out, config.report.figures, calibration=calibration, published=published)
+        return built["doc"]
+
+    def html(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
         from rotcal.report.certificate import write_certificate
 
-        # calibration_output wrote and validated this document in this same
-        # publish, and the tables are those just written: neither is read back
-        return write_certificate(out, config.report.figures, calibration=calibration, published=published)
+        doc = document(out, published)
+        return None if doc is None else write_certificate(out, doc=doc)
 
-    return View("certificate", draw)
+    def pdf(out: Path, published: Mapping[str, pa.Table]) -> Path | None:
+        from rotcal.report.certificate import write_certificate_pdf
+
+        doc = document(out, published)
+        return None if doc is None or not config.report.pdf else write_certificate_pdf(out, config.report.paper, doc=doc)
+
+    return [View("certificate", html), View("certificate_pdf", pdf)]
 
 
 def publish(outputs: Sequence[Table | Figure | View], out: OutputDir) -> tuple[Path, ...]:

@@ -142,7 +142,7 @@ def baseline_reason(diagnosis: Diagnosis | StaticDiagnosis | None, reductions: R
                     diagnosis_notes: tuple[str, ...]) -> str:
     """Why the baseline model is the result when it is: what the diagnosis found, or why it did not run."""
     if diagnosis is not None:
-        return "the diagnosis found no effect to model"
+        return getattr(diagnosis, "heldout", "") or "the diagnosis found no effect to model"
     why = (diagnosis_notes[0] if diagnosis_notes else "switched off ([diagnosis] enabled = false)"
            if not config.diagnosis.enabled else "the static poses leave no degree of freedom to test an effect"
            if reductions.static is not None else "no fitted table segments")

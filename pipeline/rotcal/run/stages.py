@@ -126,8 +126,15 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(timebase.warnings) + partial + (inferred.warnings if table else ()),
-                     ds.notes + (inferred.notes if table else ()), sums={f.segment: f.sums for f in fitted if f.sums is not None},
+                     ds.notes + (inferred.notes if table else _static_route(inferred.route)),
+                     sums={f.segment: f.sums for f in fitted if f.sums is not None},
                      clock_factor=inferred.clock_factor if table else 1.0)
+
+
+def _static_route(evidence: str) -> tuple[str, ...]:
+    """The static route's note: what the signals showed instead of a table's segments."""
+    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval enters the "
+            "static fit",) if evidence else ()
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
@@ -156,11 +163,12 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     g, u = ds.meta.g_local, ds.meta.g_local_uncertainty
     if not seg.table:
         summaries = None if ds.summaries is None else summary_poses(ds.summaries)
-        static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries)
+        static = reduce_static(seg.samples, seg.segments, ds.name, g, u, summaries, ds.meta.placement)
         return static if isinstance(static, Failure) else Reductions(None, (), static)
     labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name, seg.labelled_rates)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
-    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u)
+    single = frozenset(seg.segments.filter(pl.col("kind") == "pose")["segment"].to_list())
+    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single)
     return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
 
 

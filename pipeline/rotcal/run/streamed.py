@@ -1,10 +1,15 @@
 """The run's load and segment stages for a capture read block by block:
-past ``[run] stream_above_samples`` a single capture's
-samples are not held; the segment stage reads them in passes
-(``run.streaming``) and keeps only what the later stages read: the static
-segments' samples, the diagnosis's thinned rows and each fitted segment's
-sums. What the streamed path cannot take (see ``why_not``) is read in
-memory, with a note saying so."""
+past ``[run] stream_above_samples`` a single capture's samples are not
+held; the segment stage reads them in passes (``run.streaming``) and keeps
+only what the later stages read: the static segments' samples, the
+diagnosis's thinned rows and each fitted segment's sums.
+
+What still needs the whole capture is read in memory with one note,
+``read in memory, not block by block: <why>``, the reason given where it
+is known: a format without a block reader or a capture its block reader
+does not take (``ingest.formats``, ``ingest.stream.NotBlockwise``), repaired
+stamps that need a sort (``timebase.blocks``), and what the later stages
+read whole (``why_not``)."""
 
 from __future__ import annotations
 
@@ -19,23 +24,20 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import RunConfig
-from rotcal.errors import InputError
 from rotcal.fit.segments import SegmentFit
-from rotcal.ingest import mcap_fast
 from rotcal.ingest.dataset import Dataset, load_dataset
 from rotcal.ingest.files import capture_files, dataset_name
-from rotcal.ingest.mcap_records import McapFile, Unsupported
+from rotcal.ingest.formats import named_format
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import open_stream
+from rotcal.ingest.stream import BLOCK_SAMPLES, open_stream
 from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
+from rotcal.timebase.blocks import repaired_stream
 from rotcal.timebase.repair import TimebaseResult
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis
-
-BLOCK_SAMPLES = 1 << 20  # samples a block of the capture holds (ingest.stream's)
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,9 +53,11 @@ class StreamedDataset(Dataset):
 
 
 def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
-    """The dataset, its samples streamed (``ingest.stream.open_stream``)
-    when it is one MCAP capture of more than ``[run] stream_above_samples``
-    samples that the streamed reader decodes chunk by chunk; read whole otherwise."""
+    """The dataset, its samples streamed (``ingest.stream.open_stream``,
+    repaired by ``timebase.blocks.repaired_stream``) when it is one capture
+    of more than ``[run] stream_above_samples`` samples whose format's block
+    reader takes it (``ingest.formats``: MCAP and CSV); read whole otherwise,
+    with a note saying why past the key."""
     path = Path(path)
     if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
         meta_path = path / "dataset.toml"
@@ -63,16 +67,18 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     meta = load_meta(meta_path)
     root = path if path.is_dir() else path.parent
     files = capture_files(path, meta)
-    counts = _messages(files[0][0], config) if len(files) == 1 and files[0][0].suffix.lower() == ".mcap" else []
+    counts = named_format(files[0][0]).message_counts(files[0][0], config.limits) if len(files) == 1 else []
     if max(counts, default=0) <= config.run.stream_above_samples:
         return whole()
     file, spec = files[0]
     capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-    stream = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES)
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
+        because = stream.whole_because
+        del raw, stream  # not held while the dataset is read again
         read = whole()
-        return replace(read, notes=(*read.notes, "read in memory, not block by block: an MCAP capture the block reader "
-                                    "does not decode chunk by chunk (docs/streaming.md)"))
+        return replace(read, notes=(*read.notes, f"read in memory, not block by block: {because} (docs/streaming.md)"))
     constant = [pl.lit(capture, pl.Categorical).alias("capture"), pl.lit(None, pl.Float64).alias("temperature_c"),
                 pl.lit(stream.label_source or "file", schema("samples").polars_schema["label_source"]).alias("label_source")]
     tb = stream.timebase
@@ -82,17 +88,6 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
                            inputs=(file, *(() if meta_path is None else (Path(meta_path),))),
                            blocks=lambda: (b.with_columns(constant) for b in stream.blocks()), timebase=timebase,
                            in_memory=whole)
-
-
-def _messages(file: Path, config: RunConfig) -> list[int]:
-    """The messages of each channel of an MCAP file, from its message
-    indexes (the most: its samples, for a capture whose table channel is
-    slower); none where it has none the fast reader can count (it is then read whole)."""
-    try:
-        with file.open("rb") as fh:
-            return list(mcap_fast._message_counts(fh, McapFile(file, config.limits))[0].values())
-    except (Unsupported, InputError, OSError):
-        return []
 
 
 def why_not(ds: StreamedDataset, config: RunConfig, streamed: StreamedSegments | None = None) -> str | None:

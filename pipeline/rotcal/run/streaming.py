@@ -153,18 +153,6 @@ def with_segments(frame: pl.DataFrame, sizes: dict[int, tuple[int, int]]) -> pl.
     return frame.with_columns(segment=pl.Series(np.ma.masked_array(k, ~inside), dtype=pl.Int32))
 
 
-def thinned_rows(first: np.ndarray, count: np.ndarray, max_samples: int) -> np.ndarray:
-    """The sample numbers the diagnosis models of segments starting at
-    ``first`` with ``count`` samples: each thinned evenly to its share
-    (``diagnose.observed.kept_per_segment``), ``first + floor(i n / k)``, the rows
-    ``diagnose.observed.observations`` takes in memory."""
-    from rotcal.diagnose.observed import kept_per_segment  # the diagnosis's modules load when diagnosing
-
-    kept = kept_per_segment(count, max_samples)
-    return np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)]
-                          or [np.zeros(0, np.int64)])
-
-
 @dataclass(frozen=True, eq=False)
 class StreamedSegments:
     """What the two passes give: the ``segments`` table and the segment fits
@@ -172,7 +160,7 @@ class StreamedSegments:
     fitted segment's sums (``metrology.simultaneous.SegmentSums``), and the
     samples gathered on the way: the capture's first, the static segments'
     whole, and the diagnosis's thinned rows of the fitted segments
-    (``thinned_rows``; ``thinned`` names those segments, ``sizes`` gives
+    (``diagnose.observed.thinned_rows``; ``thinned`` names those segments, ``sizes`` gives
     every segment's sample count)."""
 
     blocks: Blocks
@@ -203,6 +191,8 @@ class StreamedSegments:
         thins ``segments`` to: those gathered in the second pass, or, when
         the diagnosed segments are not those fitted then, a third pass."""
         first, count = (np.array([self.sizes[s][i] for s in sorted(segments)], np.int64) for i in (0, 1))
+        from rotcal.diagnose.observed import thinned_rows  # the diagnosis's modules load when diagnosing
+
         rows = np.r_[0, thinned_rows(first, count, max_samples)]
         if segments == self.thinned:
             return self.gathered.filter(pl.col("row").is_in(rows)).drop("row")
@@ -222,6 +212,8 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
             coefs[r.segment], _ = r.normal.solve()
     fitted = [r for r in runs if r.segment in coefs]
     static = [np.arange(r.first, r.first + r.n) for r in runs if r.kind == "static"]
+    from rotcal.diagnose.observed import thinned_rows  # the rows the diagnosis will model, asked of it
+
     thinned = thinned_rows(np.array([r.first for r in fitted], np.int64), np.array([r.n for r in fitted], np.int64), max_samples)
     residuals, gathered = residual_pass(blocks, runs, coefs, np.unique(np.concatenate([[0], thinned, *static])))
     segments = segments_frame({

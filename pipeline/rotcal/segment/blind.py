@@ -27,8 +27,10 @@ recording that carries nothing but ``t, u, v, w``.
    a move faster than one sample (the output jumps between two consecutive
    samples) has no samples to stray from that plane and joins its dwells on
    their means alone. A time gap between two dwells (the logger paused; the
-   move, perhaps a hand's, unseen) joins nothing. Other dwells are single
-   poses of unknown orientation.
+   move, perhaps a hand's, unseen) joins nothing. A chain is a table's step
+   sequence only with the evidence of a table (``table_steps``): its
+   directions on one great circle, turned by equal steps. Other dwells are
+   single poses of unknown orientation.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class BlindConfig:
     cusum_kappa: float = 2.5           # edge detection: CUSUM reference (z is 1 on average under the model)
     plane_tolerance_deg: float = 2.0   # a step move stays this close to its plane
     min_steps: int = 3                 # dwells in a step sequence
+    step_tolerance_deg: float = 1.0    # a table's steps are equal to this angle (a hand's are not)
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +93,7 @@ class BlindSegmentation:
     sequences: tuple[StepSequence, ...]
     noise_sd: np.ndarray
     offset: np.ndarray
+    hand_chains: int = 0  # chains of dwells about one axis without a table's evidence (``table_steps``): poses
 
 
 def axis_from_normal(normal: np.ndarray) -> tuple[str, float]:
@@ -215,14 +219,14 @@ def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.n
 
 
 def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
-               recorded: np.ndarray, config: BlindConfig) -> tuple[StepSequence, ...]:
+               recorded: np.ndarray, config: BlindConfig) -> tuple[tuple[StepSequence, ...], int]:
     """Step sequences: chains of dwells linked by in-plane moves about one
     axis (``move`` marks the samples that may belong to a move: not those of
     a constant rotation; ``recorded`` the consecutive dwells with no time gap
     between them: the move, if any, is in the samples)."""
     k = len(dwells)
     if k < config.min_steps:
-        return ()
+        return (), 0
     a = means - offset
     normal = np.cross(a[:-1], a[1:])
     size = np.linalg.norm(normal, axis=1)
@@ -249,15 +253,34 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
         for d in (link, link + 1):
             if owner[d] < 0:
                 owner[d] = chain[link]
-    out = []
+    out, hand = [], 0
     for c in np.unique(owner[owner >= 0]):
         members = np.flatnonzero(owner == c)
         if members.size < config.min_steps:
             continue
         plane_normal = np.linalg.svd(a[members], full_matrices=False)[2][-1]
+        if not table_steps(a[members], plane_normal, config):
+            hand += 1  # poses turned about one axis by hand: single poses of unknown orientation
+            continue
         axis, off = axis_from_normal(plane_normal)
         out.append(StepSequence(tuple(int(m) for m in members), axis, off))
-    return tuple(out)
+    return tuple(out), hand
+
+
+def table_steps(outputs: np.ndarray, normal: np.ndarray, config: BlindConfig) -> bool:
+    """Whether dwells' offset-free outputs (k, 3) are the steps a table
+    makes: their directions on one great circle about ``normal`` (each
+    within ``plane_tolerance_deg`` of its plane) and turned by equal steps
+    (each within ``step_tolerance_deg`` of their median; three steps at
+    least, two being equal by chance too often). A hand turning a
+    DUT about one axis leaves both: irregular angles and a few degrees of
+    wobble."""
+    unit = outputs / np.linalg.norm(outputs, axis=1)[:, None]
+    if np.degrees(np.arcsin(np.clip(np.abs(unit @ normal), 0.0, 1.0))).max() > config.plane_tolerance_deg:
+        return False
+    steps = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", unit[:-1], unit[1:]), -1.0, 1.0)))
+    # two equal steps happen by chance; three or more are a table's program
+    return steps.size >= 3 and bool(np.abs(steps - np.median(steps)).max() <= config.step_tolerance_deg)
 
 
 def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindConfig()) -> BlindSegmentation:
@@ -338,8 +361,8 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     # a time gap (as the stillness detector has it) between one dwell's last sample and the next one's first
     gaps_before = np.r_[0, np.cumsum(np.diff(t_ns) > config.stillness.gap_factor * dt_ns)]
     recorded = gaps_before[dwells[1:, 0]] == gaps_before[dwells[:-1, 1] - 1]
-    sequences = _sequences(y, dwells, means, offset, moving, recorded, config)
-    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset)
+    sequences, hand = _sequences(y, dwells, means, offset, moving, recorded, config)
+    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset, hand)
 
 
 def noise_sd_of(y: np.ndarray, dwells: np.ndarray) -> np.ndarray:

@@ -43,6 +43,7 @@ class Inference:
     warnings: tuple[str, ...]
     notes: tuple[str, ...]
     clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``ClockDrift.factor``)
+    route: str = ""  # what the signals showed: rotations, step sequences, chains by hand, dwells (the route's evidence)
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,7 +73,7 @@ class _Found:
     rows: list[dict] = field(default_factory=list)
     rotations: list[_Rotation] = field(default_factory=list)
     dwells: list[pl.DataFrame] = field(default_factory=list)
-    counts: np.ndarray = field(default_factory=lambda: np.zeros(3, int))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(4, int))
 
 
 def _segment_row(dataset: str, key: int, capture: str, kind: str, axis: str | None, rate: float, t0: int, t1: int,
@@ -96,10 +97,11 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
                                          r.chi2_reduced))
         segment[r.start : r.stop] = found.key
         found.key += 1
-    found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells)]
+    found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells), blind.hand_chains]
     if not len(blind.dwells):
         return segment
-    spread = np.array([y[s:e].std(axis=0, ddof=1) for s, e in blind.dwells])
+    # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
+    spread = np.array([y[s:e].std(axis=0, ddof=1) if e - s > 1 else np.full(y.shape[1], np.nan) for s, e in blind.dwells])
     chi2 = (spread**2 / blind.noise_sd**2).mean(axis=1)
     group = np.full(len(blind.dwells), -1)
     for q in blind.sequences:
@@ -194,8 +196,11 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         if idx.size >= 10:
             seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], _outputs(samples, idx),
                                             unrepairable.get(capture), config)
-    notes = ([f"segments inferred from the signals of {len(captures)} capture(s): {found.counts[0]} constant "
-              f"rotations, {found.counts[1]} static step sequences, {found.counts[2]} dwells in all"] if captures else [])
+    hand = (f", {found.counts[3]} chain(s) of dwells about one axis without a table's steps (directions off one great "
+            "circle, or unequal steps: poses turned by hand)") if found.counts[3] else ""
+    route = (f"{found.counts[0]} constant rotations, {found.counts[1]} static step sequences{hand}, {found.counts[2]} dwells "
+             "in all") if captures else ""
+    notes = [f"segments inferred from the signals of {len(captures)} capture(s): {route}"] if captures else []
     for row in kept.filter((pl.col("kind") == "rotation") & (pl.col("angle_source") == "none")).iter_rows(named=True):
         on = seg_col == row["segment"]
         reason = unrepairable.get(row["capture"])
@@ -226,5 +231,5 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
     return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
-                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor)
+                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor, route)
 

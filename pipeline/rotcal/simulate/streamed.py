@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from rotcal.ingest.formats.mcap.writer import write_cdr_blocks
 from rotcal.model.physics import Dut, Effects, Motion, axis_index, noise_free_output, observe
 from rotcal.simulate.core import build_effects, draw_dut, plan_parts, truth_record
-from rotcal.simulate.mcap_writer import write_cdr_blocks
 from rotcal.simulate.spec import SimulationSpec
 from rotcal.simulate.timebase_sim import TimebaseDefects, apply_defects
 from rotcal.simulate.writers import table_messages, write_metadata

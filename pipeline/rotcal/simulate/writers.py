@@ -10,7 +10,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.errors import ConfigError
-from rotcal.model.conventions import CHANNELS
+from rotcal.ingest.formats.csv.writer import write_samples
 from rotcal.simulate.spec import Simulation, SimulationSpec
 
 
@@ -22,13 +22,6 @@ def segment_files(samples: pl.DataFrame) -> pl.DataFrame:
         for seg, axis, rate in first.iter_rows()
     ]
     return first.with_columns(file=pl.Series(names))
-
-
-def _csv_columns(samples: pl.DataFrame, integer: bool, columns: tuple[str, ...]) -> pl.DataFrame:
-    out = samples.with_columns(t=pl.col("t_ns") / 1e9)
-    if integer:
-        out = out.with_columns(pl.col(c).cast(pl.Int64) for c in CHANNELS)
-    return out.select(columns)
 
 
 def _logged(samples: pl.DataFrame) -> tuple[str, ...]:
@@ -44,17 +37,14 @@ def write_csv_segments(sim: Simulation, directory: Path) -> list[Path]:
     written = []
     for seg, name in files.select("plan_segment", "file").iter_rows():
         part = sim.samples.filter(pl.col("plan_segment") == seg)
-        path = directory / name
-        _csv_columns(part, sim.dut.integer_output, columns).write_csv(path)
-        written.append(path)
+        written.append(write_samples(part, directory / name, columns, sim.dut.integer_output))
     return written
 
 
 def write_csv_single(sim: Simulation, path: Path, columns: tuple[str, ...] = ("t", "u", "v", "w")) -> Path:
     """Everything in one CSV, with only ``columns`` (an unlabelled recording)
     and ``temperature_c`` when an effect drew a temperature history."""
-    _csv_columns(sim.samples, sim.dut.integer_output, (*columns, *_logged(sim.samples))).write_csv(path)
-    return path
+    return write_samples(sim.samples, path, (*columns, *_logged(sim.samples)), sim.dut.integer_output)
 
 
 def table_messages(samples: pl.DataFrame, period_s: float = 0.1) -> pl.DataFrame:
@@ -89,7 +79,7 @@ def write_mcap(sim: Simulation, path: Path, encoding: str = "cdr", imu_topic: st
     label them as the segment before it (a label holds to the next
     message, docs/inputs.md) and bias every fit they join; its
     segments are found from the signals, as in ``csv-unlabelled``."""
-    from rotcal.simulate.mcap_writer import write_capture
+    from rotcal.ingest.formats.mcap.writer import write_capture
 
     table = sim.table.clear() if sim.truth["plan"]["continuous"] else sim.table
     return write_capture(sim.samples, table, path, encoding, imu_topic, table_topic)

@@ -24,10 +24,10 @@ import numpy as np
 import polars as pl
 from mcap.records import Channel, Schema
 
-from rotcal.ingest.mcap_json import json_lines, parse_json_lines
-from rotcal.ingest.mcap_records import Unsupported
-from rotcal.ingest.ros2_cdr import CDR_LE, imu_layout, joint_layout
-from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.ingest.formats.mcap.json_lines import json_lines, parse_json_lines
+from rotcal.ingest.formats.mcap.records import Unsupported
+from rotcal.ingest.formats.mcap.ros2_cdr import CDR_LE, imu_layout, joint_layout
+from rotcal.ingest.formats.mcap.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 
 MESSAGE_HEADER = 31  # opcode u8, length u64, channel u16, sequence u32, log time u64, publish time u64
 _CDR_LE = int(np.frombuffer(CDR_LE, "<u4")[0])

@@ -16,10 +16,10 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError, LimitError
-from rotcal.ingest.csv_layout import Layout, layout
 from rotcal.ingest.files import open_capture
+from rotcal.ingest.formats.csv.layout import Layout, layout
 from rotcal.ingest.labels import label_columns
-from rotcal.ingest.meta import TIME_UNITS, CaptureSpec, CsvFormat
+from rotcal.ingest.meta import TIME_UNITS, CaptureSpec, CsvFormat, DatasetMeta
 from rotcal.ingest.summaries import SUMMARY_COLUMNS, pose_summaries
 from rotcal.model.physics import AXES, CHANNELS
 
@@ -307,3 +307,9 @@ def iso_times(frame: pl.DataFrame, path: Path) -> pl.DataFrame:
         problem = " is empty" if text is None else f": {text!r} is not an ISO 8601 date-time"
         raise InputError(f"column 't', row {row + 1}{problem}", path=path)
     return frame.drop("t").with_columns(parsed["t_ns"])
+
+
+def read_capture(path: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits,
+                 workers: int = 0) -> tuple[pl.DataFrame, tuple[str, ...]]:
+    """The registry's reader (``ingest.formats``): ``read_csv_capture`` with the dataset's ``[format]``, no notes."""
+    return read_csv_capture(path, meta.csv_format, spec, limits), ()

@@ -14,7 +14,7 @@ from typing import IO
 import numpy as np
 import polars as pl
 
-from rotcal.ingest.mcap_records import Unsupported
+from rotcal.ingest.formats.mcap.records import Unsupported
 from rotcal.model.physics import AXES
 
 NUMBER_FIELDS = ("t", "u", "v", "w", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")

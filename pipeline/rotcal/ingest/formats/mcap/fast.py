@@ -35,10 +35,10 @@ from mcap.records import Schema
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_chunks import tiles
-from rotcal.ingest.mcap_columns import DecodedTopic, Records, decode_messages
-from rotcal.ingest.mcap_records import McapFile, Unsupported, chunk_data, chunk_records, parse_channel, parse_schema, top_records
-from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.ingest.formats.mcap.chunks import tiles
+from rotcal.ingest.formats.mcap.columns import DecodedTopic, Records, decode_messages
+from rotcal.ingest.formats.mcap.records import McapFile, Unsupported, chunk_data, chunk_records, parse_channel, parse_schema, top_records
+from rotcal.ingest.formats.mcap.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 from rotcal.parallel import cores
 
 # Chunks are read and handed to the thread pool together up to this many

@@ -17,8 +17,8 @@ from mcap_ros2.decoder import DecoderFactory
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.mcap_records import MESSAGE_FIELDS, McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
-from rotcal.ingest.ros2_msgdefs import IMU, IMU_SCHEMA, JOINT_SCHEMA, JOINT_STATE
+from rotcal.ingest.formats.mcap.records import MESSAGE_FIELDS, McapFile, chunk_data, chunk_records, parse_channel, parse_schema, top_records
+from rotcal.ingest.formats.mcap.ros2_msgdefs import IMU, IMU_SCHEMA, JOINT_SCHEMA, JOINT_STATE
 
 _DEFINITIONS = {IMU_SCHEMA: IMU, JOINT_SCHEMA: JOINT_STATE}
 

@@ -16,14 +16,14 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap.columns import DecodedTopic
+from rotcal.ingest.formats.mcap.messages import MessageTopic, decoder, read_records, require
+from rotcal.ingest.formats.mcap.records import Unsupported
+from rotcal.ingest.formats.mcap.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
+from rotcal.ingest.formats.mcap.table import fast_table_track, finite_numbers, json_columns, json_time_ns, table_labels, table_track
 from rotcal.ingest.labels import label_columns, time_ordered
-from rotcal.ingest.mcap_columns import DecodedTopic
-from rotcal.ingest.mcap_messages import MessageTopic, decoder, read_records, require
-from rotcal.ingest.mcap_records import Unsupported
-from rotcal.ingest.mcap_table import fast_table_track, finite_numbers, json_columns, json_time_ns, table_labels, table_track
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
-from rotcal.ingest.ros2_msgdefs import IMU_SCHEMA, JOINT_SCHEMA
 
 JSON_FIELDS = ("t", "u", "v", "w", "axis", "rate_hz", "angle_deg", "temperature_c", "gx", "gy", "gz")
 
@@ -92,6 +92,12 @@ def read_mcap_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, l
     except Unsupported:
         pass  # read again below, not in this handler: the exception's traceback holds the fast path's chunks
     return _capture(read_records(path, topics, limits), path, meta, spec, workers, fast=False)
+
+
+def read_capture(path: Path, spec: CaptureSpec | None, meta: DatasetMeta, limits: Limits,
+                 workers: int = 0) -> tuple[pl.DataFrame, tuple[str, ...]]:
+    """The registry's reader (``ingest.formats``): ``read_mcap_capture``."""
+    return read_mcap_capture(path, meta, spec, limits, workers)
 
 
 def chosen_topics(found: dict, path: Path, meta: DatasetMeta) -> tuple[str, str | None, tuple[str, ...]]:

@@ -1,6 +1,7 @@
 """Write captures as MCAP: the DUT as ``sensor_msgs/msg/Imu`` (CDR) or JSON
 messages, the table as ``sensor_msgs/msg/JointState`` (CDR) or JSON
-(docs/inputs.md, "MCAP captures"). Used by the simulator; zstd-compressed chunks.
+(docs/inputs.md, "MCAP captures"). Used by the simulator and ``rotcal apply``;
+zstd-compressed chunks.
 
 CDR captures are written a chunk at a time: the messages have fixed layouts
 (``ros2_cdr``), so a chunk's records are one structured numpy array, and the
@@ -26,7 +27,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, McapRecord, Schema, Statistics, SummaryOffset
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-from rotcal.ingest import ros2_cdr, ros2_msgdefs
+from rotcal.ingest.formats.mcap import ros2_cdr, ros2_msgdefs
 from rotcal.model.physics import AXES, JOINT_SIGN
 from rotcal.tables import atomic_write
 
@@ -297,3 +298,11 @@ def write_cdr_blocks(blocks: Iterable[tuple[np.ndarray, list[np.ndarray]]], tabl
 
     atomic_write(path, write)
     return path
+
+
+def write_samples(samples: pl.DataFrame, path: Path, table: pl.DataFrame | None = None, encoding: str = "cdr") -> Path:
+    """The registry's writer (``ingest.formats``): ``samples`` as one MCAP
+    capture, with the table's messages ``table`` (t_ns, axis, rate_hz,
+    angle_deg; none by default: an unlabelled capture)."""
+    empty = pl.DataFrame(schema={"t_ns": pl.Int64, "axis": pl.String, "rate_hz": pl.Float64, "angle_deg": pl.Float64})
+    return write_capture(samples, empty if table is None else table, path, encoding)

@@ -15,11 +15,11 @@ import numpy as np
 import polars as pl
 
 from rotcal.errors import InputError
+from rotcal.ingest.formats.mcap.columns import DecodedTopic
+from rotcal.ingest.formats.mcap.json_lines import NUMBER_FIELDS, TEXT_FIELDS
+from rotcal.ingest.formats.mcap.messages import MessageTopic, decoder
+from rotcal.ingest.formats.mcap.records import Unsupported
 from rotcal.ingest.labels import MAX_ABS_TIME_S
-from rotcal.ingest.mcap_columns import DecodedTopic
-from rotcal.ingest.mcap_json import NUMBER_FIELDS, TEXT_FIELDS
-from rotcal.ingest.mcap_messages import MessageTopic, decoder
-from rotcal.ingest.mcap_records import Unsupported
 from rotcal.model.physics import AXES, JOINT_SIGN
 from rotcal.parallel import cores
 

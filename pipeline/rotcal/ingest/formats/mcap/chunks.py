@@ -14,8 +14,8 @@ import struct
 import numpy as np
 from mcap.opcode import Opcode
 
-from rotcal.ingest.mcap_columns import MESSAGE_HEADER, Records, fields
-from rotcal.ingest.mcap_records import Unsupported
+from rotcal.ingest.formats.mcap.columns import MESSAGE_HEADER, Records, fields
+from rotcal.ingest.formats.mcap.records import Unsupported
 
 _MESSAGE_HEAD = struct.Struct("<BQH")  # a message record's opcode, length and channel id
 

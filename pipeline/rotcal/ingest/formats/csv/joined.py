@@ -5,7 +5,7 @@ A batch's default-plan dataset is fifteen small files; read one by one,
 polars' fixed cost per read and per operation (a header read, a dozen
 small selects each) outweighed the parse itself. Joined, the dataset costs
 one parse and one pass of checks. Only what the per-file reader
-(``csv_source.read_csv_capture``) would read the same way is joined; for
+(``reader.read_csv_capture``) would read the same way is joined; for
 anything else, and for every fault, ``read_joined`` returns None and the
 per-file reader reads the captures again, so every message names the file
 and row it always did.
@@ -21,9 +21,10 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest.csv_layout import Layout, layout
-from rotcal.ingest.csv_source import AXIS_LABELS, lines_within
 from rotcal.ingest.files import open_capture
+from rotcal.ingest.formats import by_name, format_of
+from rotcal.ingest.formats.csv.layout import Layout, layout
+from rotcal.ingest.formats.csv.reader import AXIS_LABELS, lines_within
 from rotcal.ingest.labels import check_values, label_columns, nanoseconds
 from rotcal.ingest.meta import CaptureSpec, CsvFormat
 from rotcal.tables import conform
@@ -34,6 +35,7 @@ JOINED_TYPES: dict[str, pl.DataType | type[pl.DataType]] = {"t": pl.Float64, "u"
 PLAIN = Layout(",", whitespace=False, decimal_comma=False, skip_lines=0, comment_prefix="#")
 # joined in memory only while small: a larger dataset's fixed costs are nothing beside its parse
 MAX_JOINED_BYTES = 1 << 26
+CSV = by_name("csv")
 
 
 def _body(file: Path, text: bytes, header: bytes, limits: Limits) -> bytes | None:
@@ -72,7 +74,7 @@ def read_joined(captures: list[tuple[Path, CaptureSpec | None]], names: list[str
     the ``capture`` column), in time order, exactly as the per-file reader
     gives them; None unless every capture is a plain CSV file with the same
     header of docs/inputs.md names and no fault."""
-    if fmt != CsvFormat() or any(spec is not None or file.suffix.lower() != ".csv" for file, spec in captures):
+    if fmt != CsvFormat() or any(spec is not None or format_of(file) is not CSV for file, spec in captures):
         return None
     texts = _texts(captures)
     if not texts or not texts[0]:
