@@ -21,8 +21,9 @@ from mcap_ros2.writer import Writer as Ros2Writer
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_messages, ros2_msgdefs
-from rotcal.simulate.mcap_writer import MAGIC
+from rotcal.ingest.formats.mcap import messages as mcap_messages
+from rotcal.ingest.formats.mcap import ros2_msgdefs
+from rotcal.ingest.formats.mcap.writer import MAGIC
 
 IMU_MESSAGES = 3000
 
@@ -85,8 +86,8 @@ import json, sys
 from pathlib import Path
 from rotcal.config import Limits
 from rotcal.errors import InputError
-from rotcal.ingest import mcap_fast
-from rotcal.ingest.mcap_records import Unsupported
+from rotcal.ingest.formats.mcap import fast as mcap_fast
+from rotcal.ingest.formats.mcap.records import Unsupported
 mcap_fast.BATCH_BYTES = 64 * 1024  # many batches, each launched while the one before is decoded
 out = {}
 for workers in (1, 2, 3, 4):
@@ -160,7 +161,7 @@ def test_a_topic_split_over_two_channels_of_one_schema_is_read_whole(tmp_path):
     """Only the first channel was read (half the samples, no note); both
     are now, on every thread count (the fast path leaves it to the
     per-message path), in time order."""
-    from rotcal.ingest import mcap_source
+    from rotcal.ingest.formats.mcap import reader as mcap_source
     from rotcal.ingest.meta import load_meta
 
     path = _split_capture(tmp_path / "split.mcap")
@@ -177,7 +178,7 @@ def test_a_topic_split_over_channels_of_different_messages_is_refused_naming_bot
     """A JSON channel beside the Imu one on /imu: refused in one line that
     names both channels (before: the first channel read alone, "channel u
     holds 1e+06 in every sample" for a JSON channel registered first)."""
-    from rotcal.ingest import mcap_source
+    from rotcal.ingest.formats.mcap import reader as mcap_source
     from rotcal.ingest.meta import load_meta
 
     path = _split_capture(tmp_path / "mixed.mcap", "json")
@@ -190,7 +191,7 @@ def test_a_channel_record_repeated_keeps_the_fast_path(capture, tmp_path):
     """A writer may repeat a channel's record (same id) in later chunks: one
     channel, not a split topic, so the fast path reads it (declining sent a
     half-million-sample capture to the per-message path, 1.5 GB)."""
-    from rotcal.ingest import mcap_fast
+    from rotcal.ingest.formats.mcap import fast as mcap_fast
 
     channel = next(r for r in StreamReader(capture.open("rb")).records if isinstance(r, Channel) and r.topic == "/imu")
     body = _record(channel)

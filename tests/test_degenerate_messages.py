@@ -11,7 +11,7 @@ import pytest
 
 from rotcal import run as run_module
 from rotcal.errors import InputError
-from rotcal.ingest.csv_source import read_csv_capture
+from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import load_meta
 from rotcal.timebase.check import Gaps
 

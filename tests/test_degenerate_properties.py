@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from rotcal.config import Limits
-from rotcal.ingest import mcap_source
+from rotcal.ingest.formats.mcap import reader as mcap_source
 from rotcal.ingest.meta import load_meta
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))

@@ -101,7 +101,7 @@ def test_a_dead_channel_without_references_is_named_not_the_pose_geometry(tmp_pa
     path.mkdir()
     samples_frame(sim).with_columns(w=pl.lit(0.0)).write_csv(path / "session.csv")
     (path / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
-    with pytest.raises(UndeterminedError, match=r"static dwells: channel w reads 0 in every one of the \d+ poses \(dead"):
+    with pytest.raises(UndeterminedError, match=r"channel w reads 0 in every one of the \d+ poses \(dead"):
         run_dataset(path, tmp_path / "out")
 
 

@@ -201,6 +201,8 @@ def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: f
     known = not np.any(full.excess_cov)
     f, p, dof = f_test(orthogonal.sum_sq - s_full, 3, 1.0 if known else s_full / full.dof,
                        float("inf") if known else float(full.dof))
+    if not full.dof:  # an exact 12-parameter fit predicts no position left out (each its own leverage 1)
+        return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
     held = compare(_held_out_orthogonal(orthogonal, poses), _held_out_full(full, poses, orthogonal.weights))
     return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL and held.better else "orthogonal", f, p, dof, held)
 
