@@ -29,7 +29,7 @@ def test_help_names_the_simulation_tables(cli):
     still name the TOML tables a simulation file may hold."""
     code, out, _ = cli("simulate", "--help")
     assert code == 0
-    assert "[plan], [dut], [site], [timebase], [[effect]]" in out
+    assert "[plan], [dut], [site], [timebase], [noise], [[effect]]" in out
 
 
 def test_nothing_non_finite_is_published(tmp_path):

@@ -206,10 +206,11 @@ def simulate_cmd(
     fmt: Annotated[SimulatedFormat, typer.Option("--format", help="the captures' form")] = "csv",
     effect: Annotated[list[str] | None, typer.Option(metavar=EFFECT, help="an effect switched on (repeatable), e.g. centripetal:axis=x,radius_m=0.22")] = None,
     # rich reads [name] in help text as markup: the backslashes keep the table names
-    config: Annotated[Path | None, typer.Option(metavar="FILE", help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[\[effect]]")] = None,
+    config: Annotated[Path | None, typer.Option(metavar="FILE", help=r"simulation TOML: tables \[plan], \[dut], \[site], \[timebase], \[noise], \[\[effect]]")] = None,
     continuous: Annotated[bool, typer.Option(help="one recording with the transitions between segments (ramps, step moves, rests, hand reorientation)")] = False,
     timebase: Annotated[str | None, typer.Option(metavar="KEY=VALUE,...", help="logger defects key=value,..., e.g. drop_fraction=0.01,jitter_s=0.005,clock_drift_ppm=200")] = None,
     plan: Annotated[str | None, typer.Option(metavar="KEY=VALUE,...", help="plan numbers key=value,..., e.g. step_move_s=0,dt_s=0.05 (steps faster than a sample)")] = None,
+    noise: Annotated[str | None, typer.Option(metavar="KEY=VALUE,...", help="the DUT's noise key=value,... (docs/simulate.md), e.g. white_sd=6,ar=0.5,ar_sd=4,gauss_markov=100:2, or preset=adxl345; default: white, dut noise_std")] = None,
     replace_files: Annotated[bool, typer.Option("--replace", help="replace DIR's contents; without it a DIR that is not empty is refused")] = False,
 ) -> None:
     """Write a synthetic dataset (default: the Gaitan & Geist 2021 test plan)."""
@@ -221,6 +222,8 @@ def simulate_cmd(
         spec = spec.with_timebase(timebase)
     if plan:
         spec = spec.with_plan(plan)
+    if noise:
+        spec = spec.with_noise(noise)
     from rotcal.report.publish import publish_directory
     from rotcal.simulate import simulate, write_dataset
     from rotcal.simulate.streamed import streamable, write_streamed

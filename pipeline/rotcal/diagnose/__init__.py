@@ -47,6 +47,7 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
+from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.physics import AXES, CHANNELS
@@ -306,6 +307,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())
+    # offset effects against the offsets' measured wander (``wander``)
+    final, wander = against_wander(final, OffsetNoise.from_fits(fits), alpha, output_unit)
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
@@ -318,7 +321,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
                 before[effect.name] = obs.y - unclipped
         else:
             row, par, reduced = catalogue_rows(final, cands, effect.name, alpha, dataset, output_unit,
-                                               effect.name in absorbed)
+                                               effect.name in absorbed, wander.get(effect.name))
             if reduced is not None:
                 before[effect.name] = reduced.residuals
         rows.append(row)

@@ -30,10 +30,12 @@ def _row(dataset, effect, detected, where, evidence, before, after, dbic, p) -> 
 
 
 def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: str, alpha: float,
-                   dataset: str, output_unit: str, absorbed: bool = False) -> tuple[dict, list[dict], ModelFit | None]:
+                   dataset: str, output_unit: str, absorbed: bool = False,
+                   wander: str | None = None) -> tuple[dict, list[dict], ModelFit | None]:
     """The diagnosis row of one catalogue effect and, if detected, its
     parameters and the model refitted without it (the "before");
-    ``absorbed``: the reconstructed table angles absorb it (not tested)."""
+    ``absorbed``: the reconstructed table angles absorb it (not tested);
+    ``wander``: what its test against the offsets' wander found (``wander``)."""
     granules = [c for c in candidates if c.effect == effect]
     found = [c for c in final.active if c.effect == effect]
     if absorbed:
@@ -46,6 +48,9 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
         s = score(final, tuple(granules))
         singles = sorted((score(final, (c,)).p_value, c.key) for c in granules)
         rms_after = float(np.sqrt(s.rss.sum() / final.n_total))
+        if wander is not None:
+            return _row(dataset, effect, False, "tested: " + _where(granules), f"not detected: {wander}", final.rms,
+                        rms_after, s.delta_bic, singles[0][0]), [], None
         evidence = (f"not detected: modelling it everywhere it could act lowers chi-square by {s.chi2:.1f} on "
                     f"{counted(sum(len(c.names) for c in granules), 'parameter')} (BIC change {s.delta_bic:+.1f}); the strongest "
                     f"single test ({singles[0][1]}) has {p_is(singles[0][0])}, above the false-alarm rate {alpha:g}")
@@ -69,7 +74,7 @@ def catalogue_rows(final: ModelFit, candidates: tuple[Candidate, ...], effect: s
     versus = (f"; the best other explanation, {rival.candidate.key}, would change BIC by {rival.delta_bic:+.0f}"
               if rival is not None else "")
     evidence = (f"modelling it lowers chi-square by {lr:.0f} on {counted(k, 'parameter')} ({p_is(p)}, BIC change "
-                f"{own:+.0f}); {_param_text(params)}{versus}")
+                f"{own:+.0f}); {_param_text(params)}{versus}{'; ' + wander if wander else ''}")
     return _row(dataset, effect, True, _where(found), evidence, reduced.rms, final.rms, own, p), rows, reduced
 
 

@@ -27,7 +27,9 @@ from rotcal.fit.correlated import noise_scales
 from rotcal.fit.normal import SineSums, coefficient_covariance
 from rotcal.fit.quantization import rounding_repeats
 from rotcal.fit.sinefit4 import four_parameter_fit
-from rotcal.fit.sines import sine3_sums
+from rotcal.fit.sines import sincos_deg, sine3_sums
+from rotcal.fit.spectrum import Periodogram, periodogram, spectrum_widened
+from rotcal.fit.wander import offset_floor
 from rotcal.model.physics import CHANNELS
 from rotcal.parallel import cores
 from rotcal.tables import conform, schema
@@ -55,6 +57,12 @@ class SegmentFit:
     u_rate_fit_hz: float = 0.0
     sums: SineSums | None = None  # a three-parameter fit's sums, for the simultaneous solution
     lag2: np.ndarray | None = None  # each channel's residual lag-2 autocorrelation (``fit.correlated``)
+    # ``fit.spectrum``: the residuals' periodogram in bands; the density ratios applied (offset, sine
+    # terms x channels), each channel's between-segment offset sd, and why that was not measured
+    spectrum: Periodogram | None = None
+    noise_ratio: np.ndarray | None = None
+    offset_floor: np.ndarray | None = None
+    noise_note: str | None = None
 
     @property
     def dof(self) -> int:
@@ -263,14 +271,38 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
         fit = _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
         fit = rounding_repeats(fit, theta, channels)  # below the output step, a sample's rounding follows its angle
-        return widened(fit, angle_step(row["rate_hz"], part["t_ns"][0], part["t_ns"][-1], part.height))
+        dt_s = (part["t_ns"][-1] - part["t_ns"][0]) / 1e9 / max(part.height - 1, 1)
+        return with_spectrum(fit, theta, channels, row["rate_hz"] if row["kind"] == "rotation" else None, dt_s)
 
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(cores(workers), max(len(todo_rows), 1))
     if n_workers == 1 or sum(rows[r["segment"]][1] for r in todo_rows) < THREADED_MIN_SAMPLES:
-        return [job(row) for row in todo_rows]
-    with ThreadPoolExecutor(n_workers) as pool:
-        return list(pool.map(job, todo_rows))
+        fits = [job(row) for row in todo_rows]
+    else:
+        with ThreadPoolExecutor(n_workers) as pool:
+            fits = list(pool.map(job, todo_rows))
+    t_ns = samples["t_ns"].to_numpy()
+    first, last = (np.array([rows[r["segment"]][0] + k * (rows[r["segment"]][1] - 1) for r in todo_rows], np.int64) for k in (0, 1))
+    t_first, t_last = (t_ns[i] / 1e9 if len(t_ns) else np.zeros(0) for i in (first, last))
+    return offset_floor(spectrum_widened(fits), (t_first + t_last) / 2, t_last - t_first,
+                        [(r["kind"], r["rate_hz"]) for r in todo_rows])
+
+
+def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,
+                  dt_s: float) -> SegmentFit:
+    """``fit`` with its residuals' banded periodogram (``fit.spectrum``) at
+    sample interval ``dt_s``: a rotation's of commanded ``rate_hz`` (None:
+    a static sequence, its sine terms one cycle per segment)."""
+    if fit.status != "ok" or not dt_s > 0:
+        return fit
+    kappa = fit.rate_fit_hz / rate_hz if rate_hz else 1.0  # a four-parameter fit's rate scale
+    cycles = 1.0 if rate_hz is None else abs(rate_hz * kappa) * fit.n_samples * dt_s
+    if kappa != 1.0:
+        unwrapped = np.unwrap(theta_deg, period=360.0)
+        theta_deg = unwrapped[0] + kappa * (unwrapped - unwrapped[0])
+    sin, cos = sincos_deg(theta_deg)
+    resid = np.column_stack(channels) - (fit.coef[:, 0] + sin[:, None] * fit.coef[:, 1] + cos[:, None] * fit.coef[:, 2])
+    return replace(fit, spectrum=periodogram(resid, dt_s, cycles))
 
 
 
@@ -300,5 +332,15 @@ def fits_frame(fits: list[SegmentFit], segments: pl.DataFrame, dataset: str) -> 
            for k, c in enumerate(CHANNELS)},
         "rate_fit_hz": per_fit["rate_fit_hz"], "u_rate_fit_hz": per_fit["u_rate_fit_hz"], "sigma": per_channel["sigma"],
         "rms": per_channel["rms"], "max_abs_residual": per_channel["max_abs"], "lag1_autocorr": per_channel["lag1"],
+        **noise_columns(fits),
     }
     return conform(pl.DataFrame(columns, schema_overrides=schema("fits").polars_schema, strict=False), "fits")
+
+
+def noise_columns(fits: list[SegmentFit]) -> dict[str, object]:
+    """The ``fits`` table's noise columns (``fit.spectrum``), one row per (fit, channel)."""
+    ok = [f.status == "ok" for f in fits for _ in CHANNELS]
+    ratio = np.concatenate([f.noise_ratio.T if f.noise_ratio is not None else np.ones((3, 2)) for f in fits])
+    floor = np.concatenate([f.offset_floor if f.offset_floor is not None else np.zeros(3) for f in fits])
+    return {"noise_ratio_zero": np.where(ok, ratio[:, 0], np.nan), "noise_ratio_rate": np.where(ok, ratio[:, 1], np.nan),
+            "offset_floor": np.where(ok, floor, np.nan), "noise_note": [f.noise_note for f in fits for _ in CHANNELS]}

@@ -185,8 +185,11 @@ def _precision(seg: SegmentSamples | SegmentSums, residual: tuple[np.ndarray, fl
     return np.eye(3) if weight is None else weight
 
 
-def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float) -> IntrinsicResult | Failure:
-    """The simultaneous least-squares solution of one rate (see module docstring)."""
+def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSums], g_local: float, g_uncertainty: float,
+                      noise: Mapping[int, np.ndarray] | None = None) -> IntrinsicResult | Failure:
+    """The simultaneous least-squares solution of one rate (see module
+    docstring); ``noise``: each segment's measured noise (``segment_noise``),
+    which widens the covariance (``coloured``; none: white)."""
     measured = {3 * r + c for s in segs for r in range(3) for c in (SIN_COMPONENT[axis_index(s.axis)], COS_COMPONENT[axis_index(s.axis)])}
     missing = [STATE[i] for i in range(9) if i not in measured]
     if missing:
@@ -221,6 +224,8 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
         else:
             return Failure(rate_hz, f"simultaneous fit did not converge in {MAX_ITERATIONS} iterations")
         weights = [_precision(s, b[2]) for s, b in zip(segs, blocks)] if stage == 0 else weights
+    white = cov
+    cov, shares = coloured(cov, [b[0] for b in blocks], segs, kappa_index, noise) if noise else (cov, None)
     transform = np.zeros((12, p))
     transform[:9, :9] = np.eye(9)
     var = np.diag(cov)
@@ -230,8 +235,8 @@ def simultaneous_rate(rate_hz: float, segs: Sequence[SegmentSamples | SegmentSum
         transform[9 + r, idx] = w / w.sum()
     state, state_cov = transform @ beta, transform @ cov @ transform.T
     parts = []
-    for s, (block, _, _) in zip(segs, blocks):
-        share = transform @ cov @ block @ cov @ transform.T
+    for k, (s, (block, _, _)) in enumerate(zip(segs, blocks)):
+        share = transform @ (white @ block @ white if shares is None else shares[k]) @ transform.T
         parts.append((segment_input(s.segment, s.axis, s.n - 3), share))
     return IntrinsicResult.from_state(rate_hz, state, state_cov, g_local, g_uncertainty, parts)
 
@@ -240,15 +245,54 @@ def simultaneous(samples: pl.DataFrame, fits: pl.DataFrame, g_local: float, g_un
                  four_parameter: bool = False, sums: Mapping[int, SineSums] | None = None) -> list[IntrinsicResult | Failure]:
     """Every rate's simultaneous solution (rate 0, the static result, first);
     ``sums``: the three-parameter fits' sums by segment (``_segments``)."""
-    return [simultaneous_rate(rate, _segments(samples, ok, four_parameter, sums), g_local, g_uncertainty)
+    noise = segment_noise(fits)
+    return [simultaneous_rate(rate, _segments(samples, ok, four_parameter, sums), g_local, g_uncertainty, noise)
             for rate, ok in _ok_by_rate(fits).items()]
 
 
 def simultaneous_from_sums(sums: Mapping[int, SegmentSums], fits: pl.DataFrame, g_local: float,
                            g_uncertainty: float) -> list[IntrinsicResult | Failure]:
     """``simultaneous`` of three-parameter segments from their sums (a streamed run's)."""
-    return [simultaneous_rate(rate, [sums[row["segment"]] for row in ok], g_local, g_uncertainty)
+    noise = segment_noise(fits)
+    return [simultaneous_rate(rate, [sums[row["segment"]] for row in ok], g_local, g_uncertainty, noise)
             for rate, ok in _ok_by_rate(fits).items()]
+
+
+def segment_noise(fits: pl.DataFrame) -> dict[int, np.ndarray]:
+    """Each ok segment's measured noise (``fit.spectrum``, ``fit.wander``)
+    from the fits table: (density ratio at zero, at the sine terms'
+    frequency, offset floor) x channels."""
+    ok = fits.filter(pl.col("status") == "ok")
+    rank = {c: i for i, c in enumerate(CHANNELS)}
+    out: dict[int, np.ndarray] = {}
+    for row in ok.select("segment", "channel", "noise_ratio_zero", "noise_ratio_rate", "offset_floor").iter_rows():
+        noise = out.setdefault(row[0], np.array([[1.0] * 3, [1.0] * 3, [0.0] * 3]))
+        noise[:, rank[row[1]]] = [v if v is not None and np.isfinite(v) else d for v, d in zip(row[2:], (1.0, 1.0, 0.0))]
+    return out
+
+
+def coloured(cov: np.ndarray, blocks: list[np.ndarray], segs: Sequence[SegmentSamples | SegmentSums],
+             kappa_index: list[int | None], noise: Mapping[int, np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The covariance N^-1 (sum_k S_k N_k S_k) N^-1 and each segment's part
+    of it: segment k's normal matrix N_k with its parameters scaled by the
+    square root of its noise density's ratio to white at their frequency
+    (Grenander 1954: zero for its offsets, the rotation's for the shared
+    components it measures and its rate), and its offset floor's variance
+    added to its offsets."""
+    parts = []
+    for k, (s, block, j) in enumerate(zip(segs, blocks, kappa_index)):
+        ratio = noise.get(s.segment, np.array([[1.0] * 3, [1.0] * 3, [0.0] * 3]))
+        a = axis_index(s.axis)
+        scale = np.ones(cov.shape[0])
+        for r in range(3):
+            scale[9 + 3 * k + r] = np.sqrt(ratio[0, r])
+            scale[[3 * r + SIN_COMPONENT[a], 3 * r + COS_COMPONENT[a]]] = np.sqrt(ratio[1, r])
+        if j is not None:
+            scale[j] = np.sqrt(ratio[1].max())
+        part = cov @ (scale[:, None] * block * scale[None, :]) @ cov
+        part[9 + 3 * k + np.arange(3), 9 + 3 * k + np.arange(3)] += ratio[2] ** 2
+        parts.append(part)
+    return sum(parts, np.zeros_like(cov)), parts
 
 
 def simultaneous_frame(sim: list[IntrinsicResult], per_segment: list[IntrinsicResult], dataset: str, output_unit: str) -> pl.DataFrame:

@@ -30,6 +30,7 @@ from rotcal.config import FitConfig
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.segments import SegmentFit, angle_step, arc_bounds, arc_from, finite, refusal_from, sine3_result, stuck_from, widened
 from rotcal.fit.sines import BLOCK_SAMPLES, sincos_deg
+from rotcal.fit.wander import offset_floor
 from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.segment.labelled import segments_frame
@@ -242,6 +243,9 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
         fits.append(widened(fit, angle_step(r.rate_hz, r.t_start_ns, r.t_end_ns, r.n)))
         sums[r.segment] = SegmentSums(r.segment, AXES[r.axis], r.n, r.normal.gram, r.normal.xty.T.copy(), coef, rtr,
                                       float(np.max(np.abs(np.r_[r.low, r.high]))))
+    angled = [r for r in runs if r.has_angle]  # the offsets' wander between segments, as in memory (``fit.wander``)
+    fits = offset_floor(fits, np.array([(r.t_start_ns / 1e9 + r.t_end_ns / 1e9) / 2 for r in angled]),
+                        np.array([r.t_end_ns / 1e9 - r.t_start_ns / 1e9 for r in angled]), [(r.kind, r.rate_hz) for r in angled])
     sizes = {r.segment: (r.first, r.n) for r in runs}
     return StreamedSegments(blocks, segments, fits, sums, with_segments(gathered, sizes), frozenset(r.segment for r in fitted),
                             sizes, n_samples)

@@ -33,6 +33,8 @@ from rotcal.model.physics import (
     scaled,
     unit_vectors_from_angles,
 )
+from rotcal.simulate.noise import NoiseSpec, draw_channels, noise_terms, quantized
+from rotcal.simulate.noise_request import resolve_noise
 from rotcal.simulate.spec import DutSpec, Plan, Simulation, SimulationSpec
 from rotcal.simulate.timebase_sim import apply_defects
 from rotcal.simulate.transitions import schedule_continuous, timeline
@@ -141,7 +143,13 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
         clean[hand.mask] = dut.offsets + offset_terms(motion, effects)[hand.mask] + gained
     effects = _resolve(effects, described, clean)
     clean, foreign = _add_foreign(clean, motion, spec.foreign, effect_rng)
-    observed = observe(clean, dut, effects, noise_rng)
+    noise = dut_noise(spec)
+    if noise is None:
+        observed = observe(clean, dut, effects, noise_rng)
+    else:
+        dut = replace(dut, noise_std=np.full(3, noise.white_sd))
+        drawn = noise_at(noise, motion.t_s, 1 / spec.plan.dt_s, noise_rng)
+        observed = observe(quantized(clean + drawn, noise.quantization), replace(dut, noise_std=np.zeros(3)), effects, noise_rng)
     logged = () if motion.temperature_c is None else (pl.Series("temperature_c", motion.temperature_c),)
     samples = labels.with_columns(
         *(pl.Series(c, observed[:, r]) for r, c in enumerate(CHANNELS)), *logged
@@ -150,9 +158,31 @@ def simulate(spec: SimulationSpec, seed: int) -> Simulation:
     table = table.with_columns(t_ns=pl.Series(np.round(table["t_ns"].to_numpy() * spec.timebase.clock_factor).astype(np.int64)))
     samples, logger = apply_defects(samples, spec.timebase, logger_rng)
     truth = truth_record(spec, seed, dut, mount, described, foreign, logger)
+    if noise is not None:
+        fs_hz = 1 / spec.plan.dt_s
+        truth["noise"] = {"preset": spec.noise[0], "sample_rate_hz": fs_hz, "spec": asdict(noise),
+                          "terms": noise_terms(noise, fs_hz)}
     if phases is not None:
         truth["timeline"] = timeline(phases, spec.timebase.clock_factor)
     return Simulation(samples, truth, dut, effects, table)
+
+
+def dut_noise(spec: SimulationSpec) -> NoiseSpec | None:
+    """The DUT's noise in counts (the request's preset resolved for the
+    DUT's nominal sensitivity and the plan's sample rate), None for the
+    white noise of ``dut.noise_std``."""
+    name, values = spec.noise
+    if not name and not values:
+        return None
+    return resolve_noise(name, values, spec.dut.sensitivity, 1 / spec.plan.dt_s)
+
+
+def noise_at(noise: NoiseSpec, t_s: np.ndarray, fs_hz: float, rng: np.random.Generator) -> np.ndarray:
+    """The noise (n, 3) at sample times ``t_s``: drawn on the sensor's own
+    sample grid from the first sample to the last (the sensor's filters and
+    wander run on while the logger pauses) and taken at the samples."""
+    k = np.round((t_s - t_s[0]) * fs_hz).astype(np.int64)
+    return draw_channels(noise, int(k.max()) + 1 if k.size else 0, fs_hz, rng, 3)[k]
 
 
 def truth_record(spec: SimulationSpec, seed: int, dut: Dut, mount: dict, described: list[dict], foreign: list,

@@ -17,6 +17,7 @@ from rotcal.config import read_toml
 from rotcal.errors import ConfigError
 from rotcal.model.conventions import AXES, Dut
 from rotcal.model.effects import Effects, effect_named, names
+from rotcal.simulate.noise_request import from_table, parse_noise
 from rotcal.simulate.timebase_sim import TimebaseDefects
 
 # Structures outside the catalogue of docs/effects.md, for testing that rotcal
@@ -112,6 +113,13 @@ class SimulationSpec:
     effects: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
     foreign: tuple[tuple[str, tuple[tuple[str, object], ...]], ...] = ()
     timebase: TimebaseDefects = field(default_factory=TimebaseDefects)
+    # the DUT's noise beyond white (``simulate.noise``): a preset's name and key values over it;
+    # none: white noise of ``dut.noise_std``
+    noise: tuple[str, tuple[tuple[str, object], ...]] = ("", ())
+
+    def with_noise(self, text: str) -> SimulationSpec:
+        """The noise from ``key=value,...`` (the CLI form, ``simulate.noise_request.parse_noise``)."""
+        return replace(self, noise=parse_noise(text))
 
     def with_timebase(self, text: str) -> SimulationSpec:
         """Time-base defects from ``key=value,...`` (the CLI form)."""
@@ -194,12 +202,12 @@ def _number(effect: str, key: str, value: str) -> float:
 
 def spec_from_toml(path: Path) -> SimulationSpec:
     """A simulation request file: ``[plan]``, ``[dut]``, ``[site]``,
-    ``[timebase]`` tables and ``[[effect]]`` entries (``name`` plus the
+    ``[timebase]``, ``[noise]`` tables and ``[[effect]]`` entries (``name`` plus the
     effect's parameters)."""
     doc = read_toml(path, "simulation file")
-    unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit", "timebase"})
+    unknown = sorted(set(doc) - {"plan", "dut", "site", "effect", "output_unit", "timebase", "noise"})
     if unknown:
-        raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit, timebase)", path=path)
+        raise ConfigError(f"unknown table {unknown[0]!r} (plan, dut, site, effect, output_unit, timebase, noise)", path=path)
 
     def build(cls, table: dict):
         names = set(cls.__dataclass_fields__)
@@ -232,6 +240,7 @@ def spec_from_toml(path: Path) -> SimulationSpec:
     try:
         plan, dut = build(Plan, doc.get("plan", {})).checked(), build(DutSpec, doc.get("dut", {})).checked()
         timebase = build(TimebaseDefects, doc.get("timebase", {})).checked()
+        noise = from_table(doc.get("noise", {}))
     except ConfigError as exc:
         raise ConfigError(exc.problem, path=path) from None
     return SimulationSpec(
@@ -242,4 +251,5 @@ def spec_from_toml(path: Path) -> SimulationSpec:
         output_unit=doc.get("output_unit", "bit"),
         effects=tuple(effects),
         timebase=timebase,
+        noise=noise,
     )

@@ -8,7 +8,7 @@ The random streams are those of ``core.simulate`` drawn in the same order
 the file is byte for byte the one ``simulate`` + ``write_dataset`` write.
 It covers what a long capture needs: the plan of static steps and constant
 rotations with the DUT's noise, written as an MCAP CDR capture. Effects,
-foreign structures, logger defects and the continuous plan act on the whole
+foreign structures, logger defects, coloured noise and the continuous plan act on the whole
 recording at once (a clip limit from the largest output, a temperature
 history, dropped samples): those are simulated in memory.
 """
@@ -34,7 +34,7 @@ BLOCK_SAMPLES = 1 << 20  # about 100 MB of temporaries in the forward model
 def streamable(spec: SimulationSpec, fmt: str) -> bool:
     """Whether ``write_streamed`` can write this dataset (see the module docstring)."""
     return (fmt == "mcap-cdr" and not spec.plan.continuous and not spec.effects and not spec.foreign
-            and spec.timebase == TimebaseDefects())
+            and spec.timebase == TimebaseDefects() and spec.noise == ("", ()))
 
 
 def _labels(part: dict, index: np.ndarray | slice = slice(None)) -> pl.DataFrame:

@@ -1,0 +1,122 @@
+"""Effects that act on the segments' offsets, tested against the offset's
+wander.
+
+``offset_drift``, ``centripetal`` and ``axis_tilt`` move each segment's
+offset (a trend in time, a shift growing with the rate squared, a shift per
+axis). So does a slow wander of the sensor's bias (a Gauss-Markov term,
+flicker, a random walk), which the sample-level tests, taking the noise as
+white within segments, read as a deterministic misfit. Where the fits
+measured such a wander (``fit.wander``: the offsets scatter beyond their
+fits), each selected extension of these effects whose removal changes
+the residuals mostly by segment (``SEGMENT_CONSTANT`` of the change's sum
+of squares in its segment means) is tested again where the two compete: the segment means of the
+residuals without it, c, against its segment means d, by generalised least
+squares with each segment mean's variance under the noise model (its fit's
+u(C)^2, which holds the wander's floor):
+
+    chi^2 = (d^T V^-1 c)^2 / (d^T V^-1 d),  on the extension's parameter count.
+
+Where that is not significant at the diagnosis's false-alarm rate the
+wander explains the pattern: the extension is dropped from the model and
+its row says so with the wander's size; where it is, the row says the
+evidence favours the effect over the wander. Without a measured wander
+nothing changes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
+from rotcal.diagnose.scans import p_is
+from rotcal.model.physics import CHANNELS
+
+WANDER_RIVALS = ("offset_drift", "centripetal", "axis_tilt")
+# these effects are constant within a segment (a drift nearly so), but dropping one refits the rest, whose
+# readjustment varies within segments: a third of the difference constant marks a segment-level pattern
+SEGMENT_CONSTANT = 0.3
+
+
+@dataclass(frozen=True, eq=False)
+class OffsetNoise:
+    """Each fitted segment's offset uncertainty u(C) and the wander's floor
+    in it, per channel (``fits`` table columns)."""
+
+    u: dict[int, np.ndarray]
+    floor: dict[int, np.ndarray]
+
+    @classmethod
+    def from_fits(cls, fits: pl.DataFrame) -> OffsetNoise:
+        u: dict[int, np.ndarray] = {}
+        floor: dict[int, np.ndarray] = {}
+        rank = {c: i for i, c in enumerate(CHANNELS)}
+        columns = ("segment", "channel", "u_C", "offset_floor")
+        for seg, ch, u_c, f in fits.filter(pl.col("status") == "ok").select(columns).iter_rows():
+            u.setdefault(seg, np.full(3, np.nan))[rank[ch]] = u_c
+            floor.setdefault(seg, np.zeros(3))[rank[ch]] = f if f is not None and np.isfinite(f) else 0.0
+        return cls(u, floor)
+
+    @property
+    def wanders(self) -> bool:
+        return any(np.any(f > 0) for f in self.floor.values())
+
+    def size(self) -> str:
+        """The wander's size per channel: the largest floor of its segments."""
+        top = np.max(np.array(list(self.floor.values())), axis=0)
+        return ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, top))
+
+
+def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_unit: str) -> tuple[ModelFit, dict[str, str]]:
+    """The model with the offset effects the wander explains dropped, and
+    per effect the sentence its diagnosis row adds (module docstring)."""
+    texts: dict[str, str] = {}
+    if not noise.wanders:
+        return final, texts
+    for cand in [c for c in final.active if c.effect in WANDER_RIVALS]:
+        reduced = without(final, (cand,))
+        stat, constant = _segment_test(final, reduced, noise)
+        if stat is None or constant < SEGMENT_CONSTANT:
+            continue
+        k = len(cand.names)
+        p = chi2_sf(stat, k)
+        size = f"the offsets wander between segments (largest floor {noise.size()} {output_unit})"
+        if p >= alpha:
+            final = reduced
+            text = (f"{cand.key} set aside: {size}, and that wander explains its pattern in the segments' offsets "
+                    f"(chi-square {stat:.1f} on {k} against the wander, {p_is(p)})")
+        else:
+            text = (f"for {cand.key} the evidence favours the effect over the wander ({size}; against the wander "
+                    f"chi-square {stat:.1f} on {k}, {p_is(p)})")
+        texts[cand.effect] = f"{texts[cand.effect]}; {text}" if cand.effect in texts else text
+    return final, texts
+
+
+def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tuple[float | None, float]:
+    """(chi^2 of the extension's segment means against the noise model,
+    the share of its fitted part that is constant within segments)."""
+    seg = final.obs.segment
+    ids, idx = np.unique(seg, return_inverse=True)
+    if not all(int(s) in noise.u for s in ids):
+        return None, 0.0
+    use = final.use & reduced.use
+    before = np.where(use, reduced.residuals, 0.0)
+    part = np.where(use, reduced.residuals - final.residuals, 0.0)
+    count = np.stack([np.bincount(idx, use[:, r], ids.size) for r in range(3)], axis=1)
+    on = count > 0
+    safe = np.where(on, count, 1)
+    c = np.stack([np.bincount(idx, before[:, r], ids.size) for r in range(3)], axis=1) / safe
+    d = np.stack([np.bincount(idx, part[:, r], ids.size) for r in range(3)], axis=1) / safe
+    total = float(np.sum(part**2))
+    if total <= 0:
+        return None, 0.0
+    constant = float(np.sum(count * d**2)) / total
+    var = np.array([noise.u[int(s)] for s in ids]) ** 2
+    ok = on & np.isfinite(var) & (var > 0)
+    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
+    info = float(np.sum(w * d**2))
+    if info <= 0:
+        return None, constant
+    return float(np.sum(w * d * c)) ** 2 / info, constant

@@ -1,0 +1,129 @@
+"""Segment fits' uncertainties from the measured noise (rotcal.fit.spectrum,
+rotcal.fit.wander), checked by repeated simulation against the truth:
+records of rotation segments about one table axis whose noise is drawn by
+the simulator's noise model (rotcal.simulate.noise) over the whole record,
+fitted by the fit stage (``fit_segments``)."""
+
+from dataclasses import replace
+
+import numpy as np
+import polars as pl
+import pytest
+
+from rotcal.config import FitConfig
+from rotcal.fit.segments import fit_segments, widened
+from rotcal.fit.wander import SLOWER_THAN_RECORD, UNIDENTIFIED
+from rotcal.simulate.noise import NoiseSpec, draw_channels
+
+DT = 0.06
+TRUTH = np.array([[100.0, 16000.0, -300.0], [-50.0, 200.0, 16000.0], [400.0, -100.0, 50.0]])
+
+
+def record(noise: NoiseSpec, rates_hz: tuple[float, ...], n: int, rng: np.random.Generator) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Samples and segments of one record: a rotation segment of ``n``
+    samples at each rate in turn, the noise one process through them all."""
+    k = len(rates_hz)
+    theta = np.concatenate([360 * f * DT * np.arange(n) + 17.0 for f in rates_hz])
+    clean = np.column_stack([np.ones(k * n), np.sin(np.radians(theta)), np.cos(np.radians(theta))]) @ TRUTH.T
+    y = clean + draw_channels(noise, k * n, 1 / DT, rng, 3)
+    samples = pl.DataFrame({"t_ns": np.arange(k * n, dtype=np.int64) * round(DT * 1e9), "u": y[:, 0], "v": y[:, 1], "w": y[:, 2],
+                            "angle_deg": theta, "segment": np.repeat(np.arange(k), n).astype(np.int32)})
+    segments = pl.DataFrame({"segment": np.arange(k, dtype=np.int32), "kind": ["rotation"] * k, "rate_hz": list(rates_hz),
+                             "angle_source": ["commanded"] * k, "axis": ["x"] * k})
+    return samples, segments
+
+
+def normalised_errors(noise: NoiseSpec, rates_hz: tuple[float, ...], n: int, records: int, seed: int
+                      ) -> tuple[np.ndarray, np.ndarray, list]:
+    """(errors over the fits' standard uncertainties (records x segments,
+    9), over the lag-based widening's, the fits)."""
+    rng = np.random.default_rng(seed)
+    z, z_lag, fits = [], [], []
+    for _ in range(records):
+        samples, segments = record(noise, rates_hz, n, rng)
+        fitted = fit_segments(samples, segments, FitConfig(), workers=1)
+        for f, rate in zip(fitted, rates_hz):
+            error = (f.coef - TRUTH).ravel()
+            z.append(error / np.sqrt(np.diag(f.cov)))
+            white = replace(f, cov=white_covariance(f), spectrum=None, noise_ratio=None, offset_floor=None)
+            z_lag.append(error / np.sqrt(np.diag(widened(white, 2 * np.pi * rate * DT).cov)))
+        fits.append(fitted)
+    return np.array(z), np.array(z_lag), fits
+
+
+SINE = [1, 2, 4, 5, 7, 8]
+
+
+def white_covariance(fit) -> np.ndarray:
+    """A fit's covariance as the white-noise fit gave it (its measured noise taken out)."""
+    ratio = np.ones((2, 3)) if fit.noise_ratio is None else fit.noise_ratio
+    floor = np.zeros(3) if fit.offset_floor is None else fit.offset_floor
+    cov = fit.cov.copy()
+    cov[[0, 3, 6], [0, 3, 6]] -= floor**2
+    scale = np.sqrt(np.column_stack([ratio[0], ratio[1], ratio[1]]).ravel())
+    return cov / np.outer(scale, scale)
+
+
+@pytest.mark.parametrize(("noise", "lag_fails"), [(NoiseSpec(white_sd=8.0, lowpass_order=2, lowpass_cutoff=0.1), True),
+                                                 (NoiseSpec(white_sd=8.0, ar=(0.9,), ar_sd=8.0), False),
+                                                 (NoiseSpec(white_sd=8.0, gauss_markov=((10.0, 4.0),)), True)])
+def test_sine_terms_cover_coloured_noise(noise, lag_fails):
+    """60 records of four segments (1200 samples at 0.05, 0.1, 0.2, 0.5 Hz):
+    the sine terms' normalised errors have sd 0.8 to 1.25 per rate (1.0 to
+    1.11), where the white-noise covariance gives up to 2.2 (low-pass at
+    0.1 of the sample rate), 3.3 (autoregression 0.9) and 2.8 (wander of 4
+    counts, 10 s). The lag-1/lag-2 widening (white plus a first-order
+    autoregression) fitted the autoregression (1.0 to 1.23) but made the
+    low-pass's uncertainties up to twice too large (0.56) and the
+    wander's too small (2.26 at 0.05 Hz)."""
+    rates = (0.05, 0.1, 0.2, 0.5)
+    z, z_lag, fits = normalised_errors(noise, rates, 1200, 60, seed=11)
+    sd = np.sqrt(np.mean(z.reshape(60, 4, 9)[:, :, SINE] ** 2, axis=(0, 2)))
+    assert np.all((sd > 0.8) & (sd < 1.25)), sd
+    ratio = np.array([f.noise_ratio[1] for record in fits for f in record]).reshape(60, 4, 3)
+    z_white = z.reshape(60, 4, 9)[:, :, SINE] * np.sqrt(np.repeat(ratio, 2, axis=2))
+    assert np.sqrt(np.mean(z_white**2, axis=(0, 2))).max() > 2.0
+    sd_lag = np.sqrt(np.mean(z_lag.reshape(60, 4, 9)[:, :, SINE] ** 2, axis=(0, 2)))
+    assert np.any((sd_lag < 0.8) | (sd_lag > 1.25)) == lag_fails, sd_lag
+
+
+def test_offsets_carry_a_slow_wander():
+    """A Gauss-Markov wander of 4 counts with a time constant of 100 s
+    under 8 counts of white noise, 30 records of eight 1200-sample
+    segments (576 s): the offsets' normalised errors have sd 0.8 to 1.25
+    (1.17; within a segment the wander is nearly constant: 15 with the
+    lag-based uncertainties), and each fit says how large the floor it
+    carries is (median 3.1 counts)."""
+    noise = NoiseSpec(white_sd=8.0, gauss_markov=((100.0, 4.0),))
+    z, z_lag, fits = normalised_errors(noise, (0.05, 0.1, 0.2, 0.5) * 2, 1200, 30, seed=12)
+    offsets = z[:, [0, 3, 6]]
+    assert 0.8 < np.sqrt(np.mean(offsets**2)) < 1.25, np.sqrt(np.mean(offsets**2))
+    assert np.sqrt(np.mean(z_lag[:, [0, 3, 6]] ** 2)) > 5
+    floors = np.array([f.offset_floor for record in fits for f in record])
+    assert 2.0 < np.median(floors) < 4.5
+    assert {f.noise_note for record in fits for f in record} <= {None, SLOWER_THAN_RECORD}
+
+
+def test_a_wander_slower_than_the_record_is_flagged():
+    """A time constant of 1000 s over a 576 s record: the wander's size is
+    not identified; the fits that carry a floor say so."""
+    _, _, fits = normalised_errors(NoiseSpec(white_sd=8.0, gauss_markov=((1000.0, 4.0),)), (0.05, 0.1, 0.2, 0.5) * 2,
+                                   1200, 6, seed=15)
+    flagged = [f.noise_note == SLOWER_THAN_RECORD for record in fits for f in record if f.offset_floor is not None]
+    assert flagged and sum(flagged) >= len(flagged) / 2
+
+
+def test_white_noise_leaves_the_fits_as_they_were():
+    """White noise in 30 records of five segments: every fit's covariance is
+    its white-noise one (no density ratio or offset floor significant)."""
+    _, _, fits = normalised_errors(NoiseSpec(white_sd=8.0), (0.01, 0.05, 0.1, 0.2, 0.5), 1200, 30, seed=13)
+    ratios = np.array([f.noise_ratio for record in fits for f in record])
+    assert np.all(ratios == 1.0)
+    assert all(f.offset_floor is None for record in fits for f in record)
+
+
+def test_too_few_segments_say_the_floor_is_not_identified():
+    """Three segments cannot separate a wander from the offsets' own noise:
+    the fits carry the note instead of a floor."""
+    _, _, fits = normalised_errors(NoiseSpec(white_sd=8.0, gauss_markov=((1000.0, 4.0),)), (0.1, 0.2, 0.5), 600, 1, seed=14)
+    assert all(f.noise_note == UNIDENTIFIED.format(k=4) and f.offset_floor is None for f in fits[0])
