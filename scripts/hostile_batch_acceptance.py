@@ -150,7 +150,7 @@ def build(root: Path) -> tuple[list[str], dict[str, str], list[str]]:
     quarantined["trap.csv"] = "not a regular file (a FIFO)"
     set_cell(sorted(hostile("angle_1e308", "1e308").glob("*_static.csv"))[0], "angle_deg", 5, "1e308")
     set_cell(sorted(hostile("u_1e308", "1e308").glob("*.csv"))[0], "u", 3, "1e308")
-    set_cell(sorted(hostile("t_1e12", "beyond ±9e+09 s").glob("*.csv"))[0], "t", 3, "1e12")
+    set_cell(sorted(hostile("t_1e12", "beyond ±9e+09 s: time stamps in ms, us or ns?").glob("*.csv"))[0], "t", 3, "1e12")
     set_cell(sorted(hostile("non_utf8", "UTF-8").glob("*.csv"))[0], "u", 3, "x")
     bad = sorted((root / "non_utf8").glob("*.csv"))[0]
     bad.write_bytes(bad.read_bytes().replace(b",x,", b",\xff,"))

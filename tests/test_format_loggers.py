@@ -102,7 +102,8 @@ def test_time_unit(tmp_path, unit, scale):
 
 
 def test_time_unit_keeps_the_range_check(tmp_path):
-    with pytest.raises(InputError, match=r"column 't', row 1 is 1e\+16, beyond ±9e\+09 s"):
+    with pytest.raises(InputError, match=r"column 't', row 1 is 1e\+16, beyond ±9e\+09 s: time stamps in "
+                                         r"ms, us or ns\? set dataset.toml \[format\] time_unit"):
         read(tmp_path, "t,u,v,w\n1e19,1,2,3\n", '[format]\ntime_unit = "ms"\n')
 
 

@@ -236,9 +236,18 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
     state = fit.coef.T.ravel()[order]
     state_cov = fit.cov[np.ix_(order, order)]
     dof = 3 * fit.dof
+    noise_free = np.all(np.einsum("kii->ki", cov) <= (1e-12 * np.abs(m).max()) ** 2)  # rounding of identical samples
+    if dof == 0 and noise_free:
+        # an exact fit to positions without noise: the values are exact, but nothing, neither residuals
+        # nor the poses' scatter, gives them an uncertainty
+        return Failure(0.0, f"{n} positions with a known reference and no scatter determine the 12 parameters "
+                           "exactly, with no residual degree of freedom: their uncertainty is undetermined (the "
+                           "AN4399 correction gives the exact values); record at least 5 positions")
+    # the positions' noise alone where the fit is exact: its degrees of freedom are the pose means' own
+    noise_dof = float(dof) if dof else float(max(int(poses["n_samples"].to_numpy().min()) - 1, 1))
     # the positions' noise and excess scatter together: the sandwich covariance of one fit
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(dof or np.inf)), state_cov)])
+                                        [(whole_fit_input("positions", noise_dof), state_cov)])
     return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
 
 

@@ -135,7 +135,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     rotation, s = u @ vt, np.linalg.norm(C, axis=1)  # polar decomposition C = P Q: Q, and C's row lengths
     scale = float(np.abs(m).max())
     own = isinstance(full, Failure)
-    excess = full.excess_cov if isinstance(full, ReferenceFit) else np.zeros((3, 3))
+    excess = full.excess_cov if isinstance(full, ReferenceFit) and not own else np.zeros((3, 3))
     for _ in range(2 if own else 1):  # with its own T: once with the noise, once more with T
         root_w = np.sqrt(_weights(cov, excess, scale))
         s, rotation, offsets, converged = _gauss_newton(s, rotation, offsets, ref, m, root_w)
@@ -167,9 +167,11 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     state_cov = lift @ params_cov @ lift.T
     state = np.concatenate([(s[:, None] * rotation).ravel(), offsets])
     dof = 3 * n - 9
-    # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result states)
+    # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result
+    # states; its own where that one is exact and estimated none)
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) else dof)), state_cov)])
+                                        [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof
+                                                                             else dof)), state_cov)])
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 
@@ -199,6 +201,8 @@ def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: f
     known = not np.any(full.excess_cov)
     f, p, dof = f_test(orthogonal.sum_sq - s_full, 3, 1.0 if known else s_full / full.dof,
                        float("inf") if known else float(full.dof))
+    if not full.dof:  # an exact 12-parameter fit predicts no position left out (each its own leverage 1)
+        return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL else "orthogonal", f, p, dof)
     held = compare(_held_out_orthogonal(orthogonal, poses), _held_out_full(full, poses, orthogonal.weights))
     return ModelChoice(full, orthogonal, "baseline" if p < SELECTION_LEVEL and held.better else "orthogonal", f, p, dof, held)
 
@@ -226,6 +230,9 @@ def reference_advice(ref: np.ndarray) -> list[str]:
     spanning three dimensions every angle is determined, best by the faces:
     pose +u measures r_v's u component, the cross-axis reading, with
     weight 1, a pose between +u and +v with weight 0.71.)"""
+    spread = np.linalg.svd(np.column_stack([ref, np.ones(len(ref))]), compute_uv=False)
+    if len(ref) >= 4 and spread[-1] > 1e-9 * spread[0]:
+        return []  # the references span three dimensions: the 12 parameters failed for another reason
     normal = np.linalg.svd(ref)[2][-1]
     normal = normal * np.sign(normal[np.argmax(np.abs(normal))])
     axis = ", ".join(f"{c:.2f}" for c in normal + 0.0)

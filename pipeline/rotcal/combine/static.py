@@ -27,6 +27,8 @@ from typing import TypeAlias
 import numpy as np
 import polars as pl
 
+from rotcal.combine.channels import channel_fault
+from rotcal.combine.directions import reference_fault
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.placement import label_tilts, off_label
 from rotcal.combine.posemodels import ModelChoice, advice, choose_model, determines, gravity_cone
@@ -151,6 +153,10 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         positions = still_poses(samples)
         if positions.height == 0:
             return Failure(0.0, "no still intervals found")
+    # (a jig's references are exact: a hand's labels are placed off them by ``placement``'s measure)
+    fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
+    if fault is not None:
+        return Failure(0.0, fault)
     reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
     if isinstance(reduction, Failure) or not without_scatter(positions):
         return reduction

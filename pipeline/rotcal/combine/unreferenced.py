@@ -15,6 +15,7 @@ from __future__ import annotations
 import polars as pl
 from scipy.special import chdtrc
 
+from rotcal.combine.channels import channel_fault
 from rotcal.combine.labelled import segment_coefficients
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free
 from rotcal.combine.phasefree import PhaseFreeFit, PhaseSegment, solve_phase_free
@@ -83,7 +84,10 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
     unused = 0 if need_static or not dwells.height else dwells.filter(pl.col("segment").is_in(list(single))).height
     warnings = (f"{unused} of the {dwells.height} dwells found are single poses outside every step sequence and are not "
                 "used: the step sequences give the static result (dwells.parquet lists every dwell and its segment)",) if unused else ()
-    if need_static and dwells.height:
+    fault = channel_fault(dwells) if need_static and dwells.height else None
+    if fault is not None:
+        failures = (Failure(0.0, f"static dwells: {fault}"),)
+    elif need_static and dwells.height:
         fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty)
         if isinstance(fit, OrientationFreeFit):
             results = (fit.result,)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import betainc, log_ndtr
 
+from rotcal.fit.quantization import output_step
 from rotcal.model.physics import CHANNELS
 
 # The censoring test only where the quantum is at least this fraction of the
@@ -56,11 +57,14 @@ class StuckValue:
 
 
 def quantum(y: np.ndarray) -> float:
-    """The output's resolution: 1 for integer outputs, else the smallest step seen."""
-    if np.all(y == np.round(y)):
-        return 1.0
+    """The output's resolution: the coarsest channel's output step
+    (``fit.quantization``: 1 for integer outputs, 100 where a logger keeps
+    the top bits), else the smallest step seen."""
+    found = output_step(y.reshape(len(y), -1))
+    if np.any(found > 0):
+        return float(found.max())
     steps = np.diff(np.unique(y))
-    return float(steps[steps > 0].min()) if steps.size else 1.0
+    return float(steps[steps > 0].min()) if np.any(steps > 0) else 1.0
 
 
 def censoring_gain(mu: np.ndarray, sigma: np.ndarray, limit: np.ndarray | float, q: float) -> np.ndarray:

@@ -151,8 +151,8 @@ class PoseModel:
 
 
 def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
-    """The ``PoseModel`` of a static reduction (None when it has no fit):
-    the effects testable on its poses (time stamps for ``offset_drift``, a
+    """The ``PoseModel`` of a static reduction (None when it has no fit, no
+    residual degree of freedom or poses without scatter): the effects testable on its poses (time stamps for ``offset_drift``, a
     varying temperature for ``thermal``)."""
     fit = static.fit
     if fit is None:
@@ -170,12 +170,19 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
     have = {"pose": True, "time": elapsed is not None, "temperature": excursion is not None}
     cands = tuple(c for e in listed() if e.at_rest is not None and have[e.at_rest]
                   for c in e.candidates((), (), False))
+    # poses without scatter (noise-free, or identical samples with no output step known) or a fit with
+    # no residual degree of freedom leave nothing to test an effect against
     if isinstance(fit, OrientationFreeFit):
+        if not np.all(fit.variance > 0):
+            return None
         L = fit.result.state[:9].reshape(3, 3) / fit.result.g_local
         start = np.concatenate([L[TRIL], fit.result.state[9:]])
         free = ORTHOGONAL if static.model == "orthogonal" else FULL
         return PoseModel(means, elapsed, excursion, None, np.sqrt(fit.variance), start, free, cands,
                          fit.result.g_local, fit.excess_std > 0)
-    chol = np.linalg.cholesky(cov + fit.excess_cov[None])
+    weight = cov + fit.excess_cov[None]
+    if fit.dof == 0 or not np.all(np.linalg.eigvalsh(weight) > 0):
+        return None
+    chol = np.linalg.cholesky(weight)
     return PoseModel(means, elapsed, excursion, references(poses), chol, fit.result.state.copy(), np.arange(12),
                      cands, fit.result.g_local, bool(np.any(fit.excess_cov != 0)))

@@ -10,6 +10,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.correlated import density_ratio, grouped_autocorrelation
+from rotcal.fit.quantization import mean_rounding_variance, output_step
 from rotcal.model.physics import CHANNELS
 
 
@@ -20,9 +21,10 @@ def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[n
     Where a group's samples are correlated from one to the next (lag-1
     autocorrelation significant and positive), the covariance is widened
     by the noise density's ratio to white at zero frequency
-    (``fit.correlated``). Integer-valued outputs get a floor of one
-    quantum's variance (1/12 per sample) on the diagonal, so perfectly
-    quiet poses keep a finite weight.
+    (``fit.correlated``). A quantized output (its step found from the
+    samples) adds the rounding's variance of a mean to the diagonal
+    (``fit.quantization``): a pose of identical samples is uncertain by
+    the step, not by the step over the square root of its count.
     """
     inside = group >= 0
     g, yy = group[inside], y[inside]
@@ -36,9 +38,13 @@ def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[n
     # noise correlated from sample to sample: a mean's variance is the noise density at zero frequency
     widen = np.sqrt(density_ratio(*grouped_autocorrelation(centred, g, n_groups, g), counts[:, None], 0.0))
     cov = cov * widen[:, :, None] * widen[:, None, :]
-    if yy.size and np.all(yy == np.round(yy)):
+    if yy.size:
+        # the output step's rounding, the same for every sample of a pose when the noise is below it
+        # (each pose's own scatter: a pose dithering across a level boundary says nothing of the others)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sample_var = np.einsum("kii->ki", scatter) / (counts - 1.0)[:, None]
         diag = np.einsum("kii->ki", cov)
-        diag[:] = np.maximum(diag, (1.0 / 12.0) / counts[:, None])
+        diag += mean_rounding_variance(output_step(yy)[None], sample_var)
     return counts.astype(np.int64), means, cov
 
 

@@ -25,6 +25,7 @@ import polars as pl
 from rotcal.config import FitConfig
 from rotcal.fit.correlated import noise_scales
 from rotcal.fit.normal import SineSums, coefficient_covariance
+from rotcal.fit.quantization import rounding_repeats
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
 from rotcal.fit.spectrum import Periodogram, periodogram, spectrum_widened
@@ -269,6 +270,7 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
         fit = _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
+        fit = rounding_repeats(fit, theta, channels)  # below the output step, a sample's rounding follows its angle
         dt_s = (part["t_ns"][-1] - part["t_ns"][0]) / 1e9 / max(part.height - 1, 1)
         return with_spectrum(fit, theta, channels, row["rate_hz"] if row["kind"] == "rotation" else None, dt_s)
 

@@ -120,7 +120,11 @@ def _fault(value: float | None, bound: float, name: str) -> str:
         return "is NaN"
     if math.isinf(value):
         return f"is {value}"
-    return f"is {value:.10g}, beyond ±{bound:g}{' s' if name == 't' else ''}"
+    shown = f"{value:.10g}" if float(f"{value:.10g}") == value else f"{value:.17g}"  # every digit it has
+    if name == "t":
+        return (f"is {shown}, beyond ±{bound:g} s: time stamps in ms, us or ns? set dataset.toml [format] "
+                "time_unit (docs/inputs.md)")
+    return f"is {shown}, beyond ±{bound:g}"
 
 
 def label_columns(

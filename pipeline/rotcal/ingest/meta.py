@@ -197,6 +197,12 @@ def load_meta(path: Path | None) -> DatasetMeta:
         decimal_comma={",": True, ".": False}.get(fmt.get("decimal", "")),
         time_unit=fmt.get("time_unit", "s"),
     )
+    rate = csv_format.sample_rate_hz
+    if rate is not None and not 1e-6 <= rate <= 1e9:
+        # stamps are whole nanoseconds within +-9e9 s: beyond these every stamp is equal or out of range
+        raise InputError(f"invalid dataset.toml value: [format] sample_rate_hz = {rate!r} puts the samples "
+                         f"{1 / rate:.3g} s apart; rotcal reads rates of 1e-6 to 1e9 Hz (time stamps are whole "
+                         "nanoseconds): the logger's rate in Hz?", path=path)
     if not csv_format.header and csv_format.names is None:
         raise InputError("invalid dataset.toml value: [format] header = false needs names = [...]", path=path)
     files = [c["file"] for c in doc.get("capture", ())]

@@ -100,7 +100,9 @@ def offsets_figure(diag: Diagnosis, fits: pl.DataFrame, path: Path, output_unit:
         static = part.filter(pl.col("rate_hz") == 0)
         ax = axes[a]
         for r, c in enumerate(CHANNELS):
-            rot = part.filter((pl.col("rate_hz") != 0) & (pl.col("channel") == c)).sort("rate_hz")
+            # the rates the diagnosis modelled (a rate recorded about one axis alone is not among them)
+            rot = part.filter((pl.col("rate_hz") != 0) & (pl.col("channel") == c)
+                              & pl.col("rate_hz").is_in(final.obs.rates.tolist())).sort("rate_hz")
             if rot.height == 0 or static.filter(pl.col("channel") == c).height == 0:
                 continue
             c0 = static.filter(pl.col("channel") == c)["C"][0]

@@ -10,8 +10,9 @@ the writer in ``outputs``. The CLI and the batch runner both call
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -75,8 +76,19 @@ def run_dataset(path: Path, out: Path | OutputDir, meta_path: Path | None = None
     path ``out`` replaces only what a rotcal listing there names. ``known``:
     the inputs' SHA-256s the caller has computed (``ingest.duplicates.content_hashes``)."""
     site = load_site(site_path(Path(path), config.report.site))  # the site file checked before any work
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known, site)
+    with threadpool_limits(limits=1, user_api="blas"), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        outcome = _run(Path(path), out if isinstance(out, OutputDir) else OutputDir(Path(out)), meta_path, config, known, site)
+    return replace(outcome, notes=outcome.notes + library_notes(caught))
+
+
+def library_notes(caught: list[warnings.WarningMessage]) -> tuple[str, ...]:
+    """A library's warnings during a run (numpy's, matplotlib's) as rotcal's
+    notes, each once, with where it arose: they would otherwise reach stderr
+    and a batch's log without saying which step or dataset."""
+    seen = dict.fromkeys(f"{w.category.__name__} in {Path(w.filename).name}:{w.lineno}: {w.message}" for w in caught
+                         if issubclass(w.category, (RuntimeWarning, UserWarning)))  # not a user's: resources, deprecations
+    return tuple(f"a library warned (the result stands; tell the maintainers if it recurs): {text}" for text in seen)
 
 
 def _run(path: Path, out: OutputDir, meta_path: Path | None, config: RunConfig,

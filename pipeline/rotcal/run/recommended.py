@@ -17,6 +17,7 @@ from rotcal.combine.labelled import rate_segments
 from rotcal.combine.unreferenced import segment_phases
 from rotcal.config import RunConfig
 from rotcal.fit import fit_segments, fits_frame
+from rotcal.fit.quantization import coarse_steps
 from rotcal.ingest.dataset import Dataset
 from rotcal.metrology import (
     budget_frame,
@@ -73,6 +74,9 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
                      "segment(s) without one; rate_error not tested (the fitted rates absorb it)")
     diagnosed = tuple(r for r in results if r.rate_hz in in_table)
     samples = seg.samples if seg.streamed is None else _diagnosed_samples(seg.streamed, seg.fits, diagnosed, config)
+    coarse = coarse_steps(samples, seg.fits, ds.meta.output_unit)  # a step is not physics
+    if coarse is not None:
+        return None, (coarse,)
     diagnose_with = partial(diagnose, samples, seg.segments, seg.fits,
                             diagnosed, ds.name, ds.meta.output_unit,
                             ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)

@@ -32,6 +32,7 @@ from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.run.streamed import StreamedDataset, streamed_segments
 from rotcal.run.streaming import StreamedSegments
 from rotcal.segment import infer_segments, segment_by_labels
+from rotcal.segment.angles import check_angle_rates, partial_angles
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
 
 
@@ -109,6 +110,8 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
         ds = replace(whole, notes=whole.notes + notes)
     timebase = repair_timebase(ds.samples, ds.name)
     samples, segments = segment_by_labels(timebase.samples, ds.name, ds.meta.angle_source)
+    check_angle_rates(samples, ds.root)  # labels against each other: a unit mistake is refused
+    partial = partial_angles(samples, segments)
     inferred = infer_segments(samples, segments, ds.name, ds.meta.plan_rates_hz, timebase.unrepairable)
     timebase = classify_gaps(timebase, inferred.samples, inferred.segments)  # gaps between segments: pauses
     # a table recording (labelled or found in the signals); otherwise a static one (``reduce``)
@@ -122,7 +125,7 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
                           findings_frame(list(inferred.findings) if table else [])])
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
                      (Table("segments", segments), Table("fits", fits), Table("timebase", findings)),
-                     tuple(timebase.warnings) + (inferred.warnings if table else ()),
+                     tuple(timebase.warnings) + partial + (inferred.warnings if table else ()),
                      ds.notes + (inferred.notes if table else _static_route(inferred.route)),
                      sums={f.segment: f.sums for f in fitted if f.sums is not None},
                      clock_factor=inferred.clock_factor if table else 1.0)

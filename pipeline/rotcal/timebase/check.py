@@ -84,9 +84,8 @@ class Gaps:
     min_slots: int
 
     def findings(self, between: np.ndarray | None = None) -> tuple[tuple[Finding, ...], str | None]:
-        """The ``missing_samples``, ``gaps`` and ``logging_pauses`` findings
-        and the warning, the gaps marked ``between`` segments counted as
-        pauses (not as missing samples)."""
+        """The ``missing_samples``, ``gaps`` and ``logging_pauses`` findings and the warning, the gaps
+        marked ``between`` segments counted as pauses (not as missing samples; nor more samples than slots)."""
         between = np.zeros(self.length.size, bool) if between is None else between
         inside = self.length[~between]
         paused = int(self.length[between].sum())
@@ -94,11 +93,12 @@ class Gaps:
         share = f"{100 * missing / max(total, 1):.3g} %"
         longest = float(inside.max()) * self.period_s if inside.size else 0.0
         n_pauses = self.phase_pauses + int(between.sum())
+        over = f"{-missing} more samples than the {total} grid slots: the stamps jitter by half a period or more"
         restarted = (f"{self.phase_pauses} gaps after which the sampling grid's phase changes (the logger "
                      f"stopped and restarted: not a defect)")
         found = (
-            Finding("missing_samples", missing > 0, float(missing), None, "1", "none: each sample keeps its own time",
-                    f"{missing} of {total} grid slots have no sample ({share})"),
+            Finding("missing_samples", missing > 0, float(max(missing, 0)), None, "1", "none: each sample keeps its own time",
+                    f"{missing} of {total} grid slots have no sample ({share})" if missing >= 0 else over),
             Finding("gaps", inside.size > 0, longest, None, "s", "none: each sample keeps its own time",
                     f"{inside.size} runs of {self.min_slots} or more missing samples, "
                     f"longest {longest:.3g} s, {float(inside.sum()) * self.period_s:.3g} s in all"),
@@ -108,7 +108,7 @@ class Gaps:
                     f"in all (the logger rested while the table moved: not a defect)"),
         )
         warning = (f"{self.capture}: {missing} samples missing ({share}), {inside.size} gaps, longest {longest:.3g} s"
-                   if missing else None)
+                   if missing > 0 else f"{self.capture}: {over}" if missing < 0 else None)
         return found, warning
 
 

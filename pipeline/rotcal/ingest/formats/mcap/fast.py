@@ -70,7 +70,17 @@ class _State:
     keep: dict[int, DecodedTopic] = field(default_factory=dict)
     # the last chunk launched, decoded once this is set (chunks are decoded in file order)
     last: threading.Event = field(default_factory=lambda: _done_event())
+    # every chunk's event, set when the read ends whatever became of the chunk
+    launched: list[threading.Event] = field(default_factory=list)
     failed: bool = False
+
+    def release(self, failed: bool) -> None:
+        """Set every chunk's event as the read ends: a chunk whose job raised, was cancelled (a pool's map
+        cancels the rest of its batch when one raises) or never ran (a batch run in this thread stops at its
+        first failure) leaves later chunks waiting on it; they then see the read failed and skip decoding."""
+        self.failed = self.failed or failed
+        for event in self.launched:
+            event.set()
 
     def buffer(self, size: int) -> np.ndarray:
         """This thread's buffer, ``size`` bytes of it."""
@@ -84,10 +94,13 @@ class _State:
         self.schemas[record.id] = record
 
     def channel(self, body: bytes | memoryview) -> int | None:
-        """Register a channel as the per-message path does (the first per
-        topic); returns its id if its messages are to be decoded."""
+        """Register a channel as the per-message path does; returns its id if its messages are to be
+        decoded. A second channel of a decoded topic is left to the per-message path (it reads them all)."""
         record = parse_channel(body, self.where)
         if record.topic in self.found:
+            first = self.found[record.topic].channel.id
+            if record.id != first and first in self.keep:  # (a writer may repeat a channel's record per chunk)
+                raise Unsupported("a topic over several channels")  # the per-message path reads them all
             return None
         topic = DecodedTopic(self.schemas.get(record.schema_id), record, self.counts.get(record.id, 0))
         self.found[record.topic] = topic
@@ -176,6 +189,7 @@ def _launch(state: _State, batch: _Batch, mapper: Callable) -> _Flight:
     for chunk in batch.chunks:
         jobs.append(_Job(chunk, state.last))
         state.last = jobs[-1].decoded
+        state.launched.append(state.last)
     size, batch.chunks, batch.size = batch.size, [], 0
     return _Flight((map if largest > BATCH_BYTES // 2 else mapper)(partial(_inflate, state), jobs), size)
 
@@ -252,10 +266,21 @@ def _message_counts(fh, where: McapFile) -> tuple[dict[int, int], int]:
 def _reading(path: Path, where: McapFile, topics: set[str], workers: int) -> Iterator[tuple[BinaryIO, Callable, _State]]:
     """The open file, the map that decompresses and decodes chunks (a pool
     of ``parallel.cores(workers)`` threads, or this thread for one), and the
-    state of the read, sized from the message index records."""
+    state of the read, sized from the message index records.
+
+    Free of deadlock at any thread count: a pool thread blocks only until the chunk before its own is
+    decoded, and that chunk was launched before it (on the pool, whose queue is first in, first out, or in
+    this thread, landed first); should the read end early (a damaged or unsupported chunk, an interrupt),
+    every chunk's event is set (``_State.release``) before the pool is joined."""
     threads = cores(workers)
     with path.open("rb") as fh, ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
-        yield fh, map if pool is None else pool.map, _State(where, topics, *_message_counts(fh, where))
+        state = _State(where, topics, *_message_counts(fh, where))
+        try:
+            yield fh, map if pool is None else pool.map, state
+        except BaseException:
+            state.release(failed=True)
+            raise
+        state.release(failed=False)
 
 
 def _handovers(fh, state: _State, batch: _Batch) -> Iterator[bool]:

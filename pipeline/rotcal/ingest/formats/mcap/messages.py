@@ -75,12 +75,31 @@ class _Reader:
         elif opcode == Opcode.CHANNEL:
             channel = parse_channel(body, self.where)
             if channel.topic in self.found:
+                self._another(self.found[channel.topic], channel)
                 return
             topic = MessageTopic(self.schemas.get(channel.schema_id), channel, [], [])
             self.found[channel.topic] = topic
             kind = topic.schema.name if topic.schema is not None else ""
             if channel.topic in self.topics or kind in (IMU_SCHEMA, JOINT_SCHEMA):
                 self.keep[channel.id] = topic
+
+
+    def _another(self, topic: MessageTopic, channel: Channel) -> None:
+        """A further channel of a topic already seen: its messages join the
+        first channel's (a logger may split one topic over channels, e.g.
+        one per session or per publisher) where both carry the same messages,
+        else the topic is refused, naming both channels."""
+        if topic.channel.id not in self.keep or channel.id == topic.channel.id:
+            return
+        schema = self.schemas.get(channel.schema_id)
+        first = (topic.channel.message_encoding, topic.schema.name if topic.schema is not None else None)
+        second = (channel.message_encoding, schema.name if schema is not None else None)
+        if first != second:
+            raise InputError(f"topic {channel.topic!r} is split over channels of different messages: channel "
+                             f"{topic.channel.id} ({first[0]}, schema {first[1]!r}) and channel {channel.id} "
+                             f"({second[0]}, schema {second[1]!r}); rotcal reads one kind of message per topic",
+                             path=self.where.path)
+        self.keep[channel.id] = topic
 
 
 def require(schema: Schema | None, channel: Channel, expected: str, path: Path) -> None:
