@@ -67,8 +67,8 @@ def restricted_loglik(c: np.ndarray, v: np.ndarray, corr: np.ndarray, s2: np.nda
 
 
 def offset_pattern(t_s: np.ndarray, rate_hz: np.ndarray, axis: list[object]) -> np.ndarray:
-    """The deterministic offset pattern's design (segments, columns), full
-    column rank: a common offset, a drift linear in time, and per table axis
+    """The deterministic offset pattern's design (segments, columns): a
+    common offset, a drift linear in time, and per table axis
     a shift and one proportional to the rate squared (a pose's rate is 0)."""
     t = t_s - t_s.mean()
     cols = [np.ones_like(t), t / max(float(np.abs(t).max()), 1e-9)]
@@ -76,8 +76,12 @@ def offset_pattern(t_s: np.ndarray, rate_hz: np.ndarray, axis: list[object]) -> 
     for a in sorted({str(a) for a in axis}):
         on = np.array([str(b) == a for b in axis], float)
         cols += [on, on * w2 / max(float(w2.max()), 1e-9)]
-    x = np.column_stack(cols)
-    # keep a basis of its column space (the axis shifts sum to the common offset; a rate may be single)
+    return np.column_stack(cols)
+
+
+def column_basis(x: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of ``x``'s column space (the axis shifts sum to
+    the common offset; a rate may be single)."""
     u, sv, _ = np.linalg.svd(x, full_matrices=False)
     return u[:, sv > sv[0] * 1e-9]
 
@@ -119,8 +123,9 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
         return [replace(f, noise_note=note) if f.status == "ok" else f for f in fits]
     c = np.array([fits[k].coef[:, 0] for k in ok])
     v = np.array([np.diag(fits[k].cov)[0::3] for k in ok])
-    x = offset_pattern(t_mid_s[ok], np.array([groups[k][1] if groups[k][0] == "rotation" else 0.0 for k in ok], float),
-                       [axis[k] for k in ok])
+    pattern = offset_pattern(t_mid_s[ok], np.array([groups[k][1] if groups[k][0] == "rotation" else 0.0 for k in ok], float),
+                             [axis[k] for k in ok])
+    x = column_basis(pattern)
     dof = len(ok) - x.shape[1]
     if dof < 1:
         return fits  # the pattern takes every segment: nothing left to measure a wander by
@@ -129,13 +134,16 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     for r in range(c.shape[1]):
         a, b = x * sw[:, r, None], c[:, r] * sw[:, r]
         q[r] = float(np.sum((b - a @ np.linalg.lstsq(a, b, rcond=None)[0]) ** 2))
-    wanders = q > chdtri(dof, SIGNIFICANCE)
+    # the channels' scatter pooled as well: one wander test of the sensor, then its size per channel
+    wanders = (q > chdtri(dof, SIGNIFICANCE)) | (q.sum() > chdtri(q.size * dof, SIGNIFICANCE))
     if not wanders.any():
         return fits
     t = t_mid_s[ok]
     span = float(t.max() - t.min())
     tau_top = 10.0 * max(span, 1e-9)
-    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top), x)
+    # measured beside the axis and rate pattern, not the drift: over the record a slow wander is a drift
+    steady = column_basis(np.delete(pattern, 1, axis=1))
+    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top), steady)
     slower = tau >= span  # the record shows no wander's decorrelation: its size is a lower bound, the bound taken
     s2 = np.where(wanders, upper if slower else s2, 0.0)
     corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
