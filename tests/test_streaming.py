@@ -109,7 +109,8 @@ def test_fits_widened_for_correlated_noise_streamed_equal_in_memory(long_capture
     residuals' spectrum (``fit.spectrum``), streamed from lag-1 and lag-2
     sums carried across blocks (``fit.correlated``), which read this
     noise (white plus the autoregression: density ratio 2.8 at zero) as a
-    plain autoregression (4): the standard uncertainties agree within 40 %,
+    plain autoregression (4): the standard uncertainties agree within 30 %
+    (measured: offsets 23 %, sine terms 14 %),
     and everything else is the same."""
     from scipy.signal import lfilter
 
@@ -119,7 +120,7 @@ def test_fits_widened_for_correlated_noise_streamed_equal_in_memory(long_capture
         pl.col(c) + np.round(lfilter([1.0], [1.0, -0.6], rng.normal(0, 8.0, n))) for c in ("u", "v", "w"))
     labelled, segments = segment_by_labels(noisy, long_capture.name, long_capture.meta.angle_source)
     assert all(f.lag1.min() > 0.2 for f in fit_segments(labelled, segments, FitConfig()))   # widened, every segment
-    _assert_streamed_fits_equal(long_capture, noisy, 4999, widening=0.4)
+    _assert_streamed_fits_equal(long_capture, noisy, 4999, widening=0.3)
 
 
 WIDENING = ("u_C", "u_A", "u_B", "u_rate_fit_hz", "noise_ratio_zero", "noise_ratio_rate", "cov_u", "cov_v", "cov_w")

@@ -7,8 +7,10 @@ rate squared, a shift per axis; the effects' ``moves_segment_offsets``). So does
 flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
-fits), each selected extension of these effects whose removal changes
-the residuals mostly by segment (``SEGMENT_CONSTANT`` of the change's sum
+fits and beyond the drift, axis and rate pattern these effects would
+leave, so white noise with these effects measures none), each selected
+extension of these effects whose removal changes the residuals mostly by
+segment (``SEGMENT_CONSTANT`` of the change's sum
 of squares in its segment means) is tested again where the two compete: the segment means of the
 residuals without it, c, against its segment means d, by generalised least
 squares with each segment mean's variance under the noise model (its fit's
