@@ -158,11 +158,12 @@ def _assert_streamed_fits_equal(ds, samples: pl.DataFrame, block: int, widening:
 DIFFERENCES = {"z", "chi2", "chi2_per_dof", "p_value", "difference", "difference_over_u", "z_difference"}
 
 
-def assert_tables_match(ours: Path, theirs: Path) -> int:
-    """Every table of two output directories: integers and strings equal,
-    floats within 1e-9 of their column's largest magnitude (1e-6 for the
-    statistics of differences); the number of tables compared."""
-    names = sorted(p.name for p in theirs.glob("*.parquet"))
+def assert_tables_match(ours: Path, theirs: Path, only_theirs: tuple[str, ...] = ()) -> int:
+    """Every table of two output directories (but ``only_theirs``, which
+    ``ours`` lacks): integers and strings equal, floats within 1e-9 of their
+    column's largest magnitude (1e-6 for the statistics of differences); the
+    number of tables compared."""
+    names = sorted(p.name for p in theirs.glob("*.parquet") if p.name not in only_theirs)
     assert names == sorted(p.name for p in ours.glob("*.parquet"))
     for name in names:
         a, b = pl.read_parquet(ours / name), pl.read_parquet(theirs / name)
@@ -210,9 +211,11 @@ def test_the_whole_run_streamed_equals_in_memory(centripetal_capture, tmp_path, 
     config = with_options(RunConfig(), run={"stream_above_samples": 200_000})
     ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=config)
     assert len(taken) == 1 and taken[0].n_samples == 243_600  # streamed, not read in memory
-    assert ours.notes == memory.notes and ours.warnings == memory.warnings
+    # the one documented difference: a capture read in blocks keeps no samples to identify the noise model from
+    unidentified = "noise model not identified: the capture was read block by block (its samples are not kept)"
+    assert ours.notes == (*memory.notes, unidentified) and ours.warnings == memory.warnings
     assert ours.recommended.model == "refined"
-    assert assert_tables_match(tmp_path / "streamed", tmp_path / "memory") == 15
+    assert assert_tables_match(tmp_path / "streamed", tmp_path / "memory", only_theirs=("noise.parquet",)) == 15
 
 
 def test_what_the_streamed_path_cannot_take_is_read_in_memory(centripetal_capture, tmp_path):
