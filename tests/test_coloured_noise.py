@@ -91,9 +91,9 @@ def test_offsets_carry_a_slow_wander():
     """A Gauss-Markov wander of 4 counts with a time constant of 100 s
     under 8 counts of white noise, 30 records of eight 1200-sample
     segments (576 s): the offsets' normalised errors have sd 0.8 to 1.25
-    (1.07; within a segment the wander is nearly constant: 15 with the
+    (0.99; within a segment the wander is nearly constant: 15 with the
     lag-based uncertainties), and each fit says how large the floor it
-    carries is (median 3.4 counts)."""
+    carries is (median 3.5 counts)."""
     noise = NoiseSpec(white_sd=8.0, gauss_markov=((100.0, 4.0),))
     z, z_lag, fits = normalised_errors(noise, (0.05, 0.1, 0.2, 0.5) * 2, 1200, 30, seed=12)
     offsets = z[:, [0, 3, 6]]

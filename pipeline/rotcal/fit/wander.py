@@ -12,14 +12,17 @@ a linear drift in time, a shift per table axis and one growing with the
 rate squared per axis, i.e. offset_drift, axis_tilt, centripetal; the
 diagnosis tests those). Where the generalised Cochran's Q, the weighted
 residual sum of squares of the offsets beyond that pattern, rejects it (at
-``SIGNIFICANCE`` on n - rank degrees of freedom: white noise, with or
-without those effects, leaves the fits as they were), the offsets are taken as
+``SIGNIFICANCE`` on n - rank degrees of freedom, per channel or pooled over
+the channels: white noise, with or without those effects, leaves the fits
+as they were), the offsets are taken as
 
-    C_i = x_i^T b_r + w(t_i) + e_i,   cov(w(t_i), w(t_j)) = s^2 exp(-|t_i - t_j| / tau),
+    C_i = O_r + w(t_i) + e_i,   cov(w(t_i), w(t_j)) = s^2 exp(-|t_i - t_j| / tau),
 
 a first-order Gauss-Markov wander at the segments' mid-times beside each
-fit's own noise e_i and the pattern x_i^T b_r, with s^2 per channel and tau
-shared by the channels,
+fit's own noise e_i (sized about one offset: on a plan that takes the axes
+in turn a slow wander looks like a drift and per-axis shifts, which would
+take most of it; the diagnosis then weighs those effects against the
+wander), with s^2 per channel and tau shared by the channels,
 by restricted maximum likelihood (Patterson & Thompson 1971, Biometrika 58,
 545) on a grid. The stages after the fits take segments as independent, so
 each segment of a group combined together (one rate and kind) carries the
@@ -141,9 +144,9 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     t = t_mid_s[ok]
     span = float(t.max() - t.min())
     tau_top = 10.0 * max(span, 1e-9)
-    # measured beside the axis and rate pattern, not the drift: over the record a slow wander is a drift
-    steady = column_basis(np.delete(pattern, 1, axis=1))
-    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top), steady)
+    # sized about a common offset: on a plan that takes the axes in turn a slow wander is a drift and a shift
+    # per axis, so the pattern would take most of it (the diagnosis weighs the effects against the wander)
+    s2, upper, tau = wander_fit(c, v, t, (max(float(np.min(duration_s[ok])) / 2, 1e-9), tau_top), pattern[:, :1])
     slower = tau >= span  # the record shows no wander's decorrelation: its size is a lower bound, the bound taken
     s2 = np.where(wanders, upper if slower else s2, 0.0)
     corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
