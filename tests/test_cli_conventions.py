@@ -92,10 +92,13 @@ def test_the_diagnosis_reads_as_english(cubic_run):
 def test_the_monte_carlo_note_counts_in_english(cubic_run):
     outcome, out = cubic_run
     frame = pl.read_parquet(out / "monte_carlo.parquet")
-    assert frame.filter(~pl.col("validated")).height == 1                  # this seed: one misses
-    note = monte_carlo_note(frame)
+    assert any(n.startswith(monte_carlo_note(frame).split(";")[0]) for n in outcome.notes)  # the run prints this note
+    missing = frame.with_row_index("k").filter(~pl.col("validated"))["k"]
+    assert missing.len() >= 1                                            # this seed: some miss
+    # the same table with exactly one parameter missing the tolerance
+    one = frame.with_columns(validated=pl.col("validated") | (pl.int_range(pl.len()) != missing[0]))
+    note = monte_carlo_note(one)
     assert "the other one misses the tolerance" in note and "other 1 miss" not in note
-    assert any("the other one misses" in n for n in outcome.notes)
 
 
 def test_report_names_centripetal_only_when_modelled(cubic_run):
