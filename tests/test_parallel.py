@@ -72,7 +72,8 @@ def test_fit_stage_threads_on_the_cores_given(monkeypatch, four_cores, workers, 
     theta = np.tile(np.linspace(0, 360, n, endpoint=False), 6)
     samples = pl.DataFrame({"segment": np.repeat(np.arange(6), n), "t_ns": np.arange(6 * n) * 60_000_000, "angle_deg": theta,
                             **{c: np.sin(np.radians(theta)) for c in ("u", "v", "w")}})
-    table = pl.DataFrame({"segment": range(6), "kind": ["rotation"] * 6, "rate_hz": [0.5] * 6, "angle_source": ["commanded"] * 6})
+    table = pl.DataFrame({"segment": range(6), "kind": ["rotation"] * 6, "axis": ["z"] * 6, "rate_hz": [0.5] * 6,
+                          "angle_source": ["commanded"] * 6})
     fits = segments.fit_segments(samples, table, FitConfig(), workers)
     assert _Pool.sizes == pools and [f.segment for f in fits] == list(range(6))
 
