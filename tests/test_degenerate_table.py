@@ -103,12 +103,8 @@ def test_outputs_in_steps_of_ten_counts_are_not_clipped(tmp_path):
     assert degenerate_inputs.violation(drawn, tmp_path / "out") is None
 
 
-@pytest.mark.parametrize("index, drawn_as", [
-    # recording 37 is again one of the long run's known violations (docs/fuzzing.md) since the
-    # between-segment offset floor: its 0 Hz O_w lies 8.1 u off; strict, so a mend shows here
-    pytest.param(37, ("table noise_free", "seed 1304940491"),
-                 marks=pytest.mark.xfail(strict=True, reason="a noise-free table recording's static offset 8.1 u off")),
-    (63, ("table quantized", "seed 2131898696, step 100"))])
+@pytest.mark.parametrize("index, drawn_as", [(37, ("table noise_free", "seed 1304940491")),
+                                             (63, ("table quantized", "seed 2131898696, step 100"))])
 def test_rounding_below_the_noise_widens_the_fits(tmp_path, index, drawn_as):
     """A table recording without noise (O_w 9.3 u from the truth) and one
     rounded to 100 counts (phi_wu 6.6 u): the fits took each sample's

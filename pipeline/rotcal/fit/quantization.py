@@ -104,6 +104,10 @@ def rounding_repeats(fit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...
     share = np.divide(mean_rounding_variance(step, np.asarray(fit.sigma, float) ** 2), np.asarray(fit.sigma, float) ** 2,
                       out=np.zeros(3), where=np.asarray(fit.sigma) > 0)
     factor = 1.0 + np.minimum(share, 1.0) * (fit.n_samples / max(distinct, 1) - 1.0)
+    # residuals that scatter less than the rounding alone would (few distinct angles, whose errors happen
+    # to be small) do not measure it: the rounding's own variance, Delta^2 / 12 of a uniform error
+    # (GUM 4.3.7), is taken instead
+    factor = factor * np.maximum(share, 1.0)
     if np.all(factor <= 1.0):
         return fit
     scale = np.repeat(np.sqrt(factor), 3)  # the covariance's order: channel, then (C, A, B)
