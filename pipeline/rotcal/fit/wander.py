@@ -67,8 +67,8 @@ SIGNIFICANCE = 1e-3
 MIN_FLOOR_SEGMENTS = 4
 TAU_GRID = 25
 VARIANCE_GRID = 41
-UNIDENTIFIED = ("offset floor not identified (fewer than {k} segments of this channel): the offset's uncertainty "
-                "holds the noise seen within segments only and may understate a slow wander")
+UNIDENTIFIED = ("offsets' scatter between segments not tested (fewer than {k} segments of this channel): the offset's "
+                "uncertainty holds the noise model's and may understate a wander slower than the segments")
 SLOWER_THAN_RECORD = ("the offset wanders more slowly than the record lasts: its size is not identified, and the "
                       "floor is its upper 95 % likelihood bound (a longer record would measure it)")
 
@@ -186,7 +186,10 @@ def group_widening(cov: np.ndarray) -> float:
         for _ in range(20):
             g = 1.0 / np.sum(1.0 / (d + new)) - target
             slope = np.sum((d + new) ** -2.0) / np.sum(1.0 / (d + new)) ** 2
-            new = max(new - g / slope, 0.0)
+            step = g / slope
+            new = max(new - step, 0.0)
+            if abs(step) <= 1e-12 * (float(d.max()) + new):
+                break
         if abs(new - f) <= 1e-9 * max(float(d.max()), 1e-300):
             return new
         f = new
@@ -222,6 +225,8 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
             s2, corr, slower = wander
             total = [b + s * corr for b, s in zip(base, s2)]
             flag = SLOWER_THAN_RECORD if slower else None
+    if total is base and not (noise is not None and coloured.any()):  # white noise, no wander: the fits as they were
+        return [replace(fits[k], noise_note=flag) if fits[k].status == "ok" and flag else fits[k] for k in range(len(fits))]
     key = [groups[k] for k in ok]
     added = np.zeros(v.shape)
     for g in dict.fromkeys(key):
