@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from noise_coverage import CLASSES, SHAPES, WHITE_SD, noise_request  # noqa: E402
+
 from rotcal.combine.posemodels import choose_model  # noqa: E402
 from rotcal.combine.refmodels import choose_reference_model  # noqa: E402
 from rotcal.fit.means import pose_table  # noqa: E402
