@@ -12,7 +12,8 @@ import pytest
 
 from rotcal.config import FitConfig
 from rotcal.fit.segments import fit_segments, widened
-from rotcal.fit.wander import SLOWER_THAN_RECORD, UNIDENTIFIED
+from rotcal.fit.wander import NOT_MODELLED, SLOWER_THAN_RECORD, UNIDENTIFIED
+from rotcal.noise.means import NoiseProcess, window_mean_covariance
 from rotcal.simulate.noise import NoiseSpec, draw_channels
 
 DT = 0.06
@@ -158,3 +159,19 @@ def test_too_few_segments_say_the_floor_is_not_identified():
     the fits carry the note instead of a floor."""
     _, _, fits = normalised_errors(NoiseSpec(white_sd=8.0, gauss_markov=((1000.0, 4.0),)), (0.1, 0.2, 0.5), 600, 1, seed=14)
     assert all(f.noise_note == UNIDENTIFIED.format(k=4) and f.offset_floor is None for f in fits[0])
+
+
+def test_a_record_too_short_for_a_noise_model_is_widened_and_says_so():
+    """Eight segments of 24 samples (1.4 s each) under a Gauss-Markov
+    wander of 20 counts and 5 s: too few averaging times for a noise model,
+    so each fit says so and the offsets' scatter gives the wander at its
+    upper likelihood bound: the combined offset's u (each channel) is at
+    least the sd of the wander's mean over the record (18 counts)."""
+    samples, segments = record(NoiseSpec(white_sd=2.0, gauss_markov=((5.0, 20.0),)), (0.5,) * 8, 24, np.random.default_rng(1))
+    fits = fit_segments(samples, segments, FitConfig(), workers=1)
+    assert {f.noise_note for f in fits} == {NOT_MODELLED}
+    u = 1 / np.sqrt(np.sum([1 / np.diag(f.cov)[0::3] for f in fits], axis=0))
+    span = 8 * 24 * DT
+    wander = np.sqrt(window_mean_covariance(NoiseProcess(gauss_markov=((5.0, 20.0),)), np.zeros(1), np.full(1, span), DT,
+                                            (0.0, span))[0, 0])
+    assert np.all(u >= wander), (u, wander)

@@ -301,7 +301,7 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     noise = record_noise([residuals(f, r) for f, r in zip(fits, todo_rows) if f.status == "ok"], dt,
                          (float(t_ns[0]) / 1e9, float(t_ns[-1]) / 1e9)) if coloured and dt > 0 else None
     return offset_floor(fits, (t_first + t_last) / 2, t_last - t_first, [(r["kind"], r["rate_hz"]) for r in todo_rows],
-                        [r["axis"] for r in todo_rows], noise)
+                        [r["axis"] for r in todo_rows], noise, modelled=dt > 0)
 
 
 def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.ndarray:

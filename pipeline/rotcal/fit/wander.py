@@ -69,6 +69,9 @@ TAU_GRID = 25
 VARIANCE_GRID = 41
 UNIDENTIFIED = ("offsets' scatter between segments not tested (fewer than {k} segments of this channel): the offset's "
                 "uncertainty holds the noise model's and may understate a wander slower than the segments")
+NOT_MODELLED = ("the noise is coloured but its model could not be identified (too few averaging times in the "
+                "residuals): the offsets' covariance is their scatter's alone, its wander at the upper 95 % likelihood "
+                "bound, and a wander every segment shares is not in u")
 SLOWER_THAN_RECORD = ("the offset wanders more slowly than the record lasts: its size is not identified, and the "
                       "floor is its upper 95 % likelihood bound (a longer record would measure it)")
 
@@ -197,13 +200,15 @@ def group_widening(cov: np.ndarray) -> float:
 
 
 def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.ndarray, groups: list[tuple[str, float]],
-                 axis: list[object], noise: RecordNoise | None = None) -> list[SegmentFit]:
+                 axis: list[object], noise: RecordNoise | None = None, modelled: bool = False) -> list[SegmentFit]:
     """``fits`` with each channel's offset covariance between segments
     folded into their C variances (module docstring): ``t_mid_s``,
     ``duration_s`` each fit's mid-time and length, ``groups`` the key
     (kind, rate in Hz) of the fits combined together, ``axis`` each fit's
     table axis, ``noise`` the recording's noise model (None: the scatter
-    alone)."""
+    alone), ``modelled`` whether the caller tried to identify one (where it
+    failed on coloured noise, the scatter's wander is taken at its upper
+    bound and the fits say so)."""
     ok = [k for k, f in enumerate(fits) if f.status == "ok"]
     if not ok:
         return fits
@@ -217,14 +222,16 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
                          for r in range(c.shape[1])])
     base = model_covariance(noise, v, t - half, t + half, coloured)
     total, flag = base, None
+    unmodelled = noise is None and bool(coloured.any()) and modelled
     if len(ok) < MIN_FLOOR_SEGMENTS:
         flag = UNIDENTIFIED.format(k=MIN_FLOOR_SEGMENTS)
     else:
-        wander = scatter_wander(c, base, t, duration_s[ok], [groups[k] for k in ok], [axis[k] for k in ok])
+        wander = scatter_wander(c, base, t, duration_s[ok], [groups[k] for k in ok], [axis[k] for k in ok], unmodelled)
         if wander is not None:
             s2, corr, slower = wander
             total = [b + s * corr for b, s in zip(base, s2)]
             flag = SLOWER_THAN_RECORD if slower else None
+    flag = NOT_MODELLED if unmodelled and len(ok) >= MIN_FLOOR_SEGMENTS else flag
     if total is base and not (noise is not None and coloured.any()):  # white noise, no wander: the fits as they were
         return [replace(fits[k], noise_note=flag) if fits[k].status == "ok" and flag else fits[k] for k in range(len(fits))]
     key = [groups[k] for k in ok]
@@ -247,11 +254,12 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
 
 
 def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duration_s: np.ndarray,
-                   key: list[tuple[str, float]], axis: list[object]) -> tuple[np.ndarray, np.ndarray, bool] | None:
+                   key: list[tuple[str, float]], axis: list[object], conservative: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, bool] | None:
     """The wander the offsets' scatter shows beyond ``base`` (part 2 of the
     module docstring): (s^2 per channel, the correlation between segments,
     whether tau is longer than the record), or None where the scatter is
-    explained."""
+    explained; ``conservative``: s^2 at its upper bound whatever tau."""
     pattern = offset_pattern(t, np.array([g[1] if g[0] == "rotation" else 0.0 for g in key], float), axis)
     x = column_basis(pattern)
     dof = len(t) - x.shape[1]
@@ -269,7 +277,7 @@ def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duratio
     # the record shows no wander's decorrelation: its size is a lower bound, the bound taken (a random walk's
     # growth measures its size)
     slower = span <= tau < np.inf
-    s2 = np.where(wanders, upper if slower else s2, 0.0)
+    s2 = np.where(wanders, upper if slower or conservative else s2, 0.0)
     if np.isinf(tau):
         return s2, np.minimum.outer(since, since) / max(float(since.max()), 1e-9), False
     return s2, np.exp(-np.abs(t[:, None] - t[None, :]) / tau), slower
