@@ -325,7 +325,7 @@ def record_noise(pieces: list[list[np.ndarray]], dt_s: float, record_s: tuple[fl
     channels = [identify_channel(c, [p[:, r] for p in flat], 1 / dt_s, "", allan[r]) for r, c in enumerate(CHANNELS)]
     if all(ch.reason for ch in channels):
         return None
-    return RecordNoise(tuple(process_of(ch.terms) for ch in channels), dt_s, record_s)
+    return RecordNoise(tuple(process_of(ch) for ch in channels), dt_s, record_s)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

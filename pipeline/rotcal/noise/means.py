@@ -27,14 +27,15 @@ Phi(x) = T^2 (|x| / T - 1 + exp(-|x| / T)) for exp(-|x| / T).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rotcal.noise.model import Term
+from rotcal.noise.model import ChannelNoise, gauss_markov_avar
 
 FLICKER_PER_DECADE = 2
+# the averaging times that decide whether a noise slower than white is shown: the longest five octaves
+SLOW_OCTAVES = 5
 
 
 @dataclass(frozen=True)
@@ -101,16 +102,51 @@ def window_mean_covariance(process: NoiseProcess, start_s: np.ndarray, stop_s: n
     return out
 
 
-def process_of(terms: Sequence[Term]) -> NoiseProcess:
+def slow_shown(channel: ChannelNoise) -> bool:
+    """Whether the channel's Allan variance over its longest averaging
+    times (the last ``SLOW_OCTAVES`` octaves) rises above what its fast
+    terms give there (white density N^2 / tau and the Gauss-Markov terms
+    shorter than those times: a filter's, an autoregression's) by more than
+    2 standard deviations, pooled (each estimate's sd sigma^2 sqrt(2 / edf),
+    NIST SP 1065 5.3): the data show a noise slower than those terms,
+    whichever terms the fit split it into."""
+    av = channel.allan
+    if av.tau_s.size == 0 or not channel.terms:
+        return False
+    last = slice(max(av.tau_s.size - SLOW_OCTAVES, 0), None)
+    tau, avar, edf = av.tau_s[last], av.avar[last], av.edf[last]
+    fast = _fast(channel, float(tau[0]))
+    expected = fast.white_density**2 / tau
+    for t, q in fast.gauss_markov:
+        expected = expected + gauss_markov_avar(tau, q, t, channel.dt)
+    z = (avar - expected) / (avar * np.sqrt(2 / np.maximum(edf, 1e-9)))
+    return bool(np.sum(z) / np.sqrt(z.size) > 2.0)
+
+
+def _fast(channel: ChannelNoise, shortest_s: float) -> NoiseProcess:
+    """The channel's white density and Gauss-Markov terms shorter than ``shortest_s``."""
+    value = {(t.term, t.index): t.value for t in channel.terms}
+    gm = tuple((value[("gauss_markov_tau_s", j)], value[("gauss_markov_sd", j)]) for j in range(len(channel.terms))
+               if ("gauss_markov_sd", j) in value and ("gauss_markov_tau_s", j) in value)
+    return NoiseProcess(value.get(("white_density", 0), 0.0), tuple(t for t in gm if t[0] < shortest_s))
+
+
+def process_of(channel: ChannelNoise) -> NoiseProcess:
     """A channel's process from its identified terms (``noise.model``) at
     their fitted values, without the random walk: identified within
     segments, a random walk cannot be told from a Gauss-Markov term longer
     than they are, and extrapolated over the record it would widen a
     bounded wander without limit (the offsets' scatter between segments
-    measures it, ``fit.wander``). Terms the data do not show alone are kept
-    at their fitted values: flicker and a slow Gauss-Markov term share the
-    low frequencies, each uncertain, their sum not."""
-    value = {(t.term, t.index): t.value for t in terms}
-    gm = tuple((value[("gauss_markov_tau_s", j)], value[("gauss_markov_sd", j)]) for j in range(len(terms))
-               if ("gauss_markov_sd", j) in value and ("gauss_markov_tau_s", j) in value)
-    return NoiseProcess(value.get(("white_density", 0), 0.0), gm, value.get(("bias_instability", 0), 0.0))
+    measures it, ``fit.wander``). Flicker and a slow Gauss-Markov term share
+    the low frequencies, each uncertain, their sum not: they are kept at
+    their fitted values where the longest averaging times show a noise
+    slower than white (``slow_shown``), else only the Gauss-Markov terms
+    shorter than those times (a filter's or an autoregression's)."""
+    if slow_shown(channel):
+        return replace(_fast(channel, np.inf), flicker_b=_value(channel, "bias_instability"))
+    av = channel.allan
+    return _fast(channel, float(av.tau_s[max(av.tau_s.size - SLOW_OCTAVES, 0)]) if av.tau_s.size else 0.0)
+
+
+def _value(channel: ChannelNoise, term: str) -> float:
+    return next((t.value for t in channel.terms if t.term == term and t.index == 0), 0.0)
