@@ -28,6 +28,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.combine.channels import channel_fault
+from rotcal.combine.datasheet import with_datasheet
 from rotcal.combine.directions import reference_fault
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.placement import label_tilts, off_label
@@ -160,6 +161,8 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     if fault is not None:
         return Failure(0.0, fault)
     reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
+    if not isinstance(reduction, Failure) and reduction.results:
+        reduction = _with_datasheet(reduction, placement)
     if unused is not None and unused.height and not isinstance(reduction, Failure):
         reduction = with_unused(reduction, unused, positions.height)
     if isinstance(reduction, Failure) or not without_scatter(positions):
@@ -167,6 +170,17 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     return replace(reduction, notes=reduction.notes + (
         f"{positions.height} pose means without scatter: no pose noise is known, so the scatter is taken from the fit's "
         "residuals (its residual degrees of freedom, n - p, set the coverage factor)",))
+
+
+def _with_datasheet(reduction: StaticReduction, placement: Placement) -> StaticReduction:
+    """The reduction's results (its own and the nested models') joined to
+    the datasheet's priors of ``[device]`` (``combine.datasheet``), with the
+    note naming the parameters that rest on them."""
+    result, note = with_datasheet(reduction.result, placement)
+    if note is None:
+        return reduction
+    nested = tuple((name, with_datasheet(r, placement)[0]) for name, r in reduction.nested)
+    return replace(reduction, results=(result,) + reduction.results[1:], nested=nested, notes=reduction.notes + (note,))
 
 
 AnyReduction = TypeVar("AnyReduction", bound=Reduction)
