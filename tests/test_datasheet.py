@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 import pytest
+from test_corpus import SUAREZ, assert_within, suarez_parameters
 
 from rotcal.errors import InputError
 from rotcal.run import run_dataset
 
-from test_corpus import SUAREZ, assert_within, suarez_parameters
 from testdata import REPO
 
 # MPU-6000/6050 Product Specification rev 3.4, section 6.2 (AFS_SEL = 0): 16384 LSB/g, initial calibration
