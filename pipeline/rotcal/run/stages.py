@@ -134,8 +134,8 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
 
 def _static_route(evidence: str) -> tuple[str, ...]:
     """The static route's note: what the signals showed instead of a table's segments."""
-    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval enters the "
-            "static fit",) if evidence else ()
+    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval the detector "
+            "accepts enters the static fit",) if evidence else ()
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
