@@ -65,3 +65,29 @@ def test_rests_shorter_than_the_minimum_are_listed_with_their_reason():
     assert still.height == 0 and rejected.height == 6
     assert rejected["reason"].str.starts_with("shorter than the stillness detector's minimum rest of 5 s").all()
     assert np.all(np.abs(rejected["n_samples"].to_numpy() - REST) <= 100)
+
+
+def test_a_table_recording_lists_both_kinds_in_time_order():
+    """The dwells a table recording's step sequences leave unused and the
+    detector's rejections, in one table in time order, with one count."""
+    from rotcal.combine.unreferenced import reduce_dwells
+    from rotcal.segment.stillness import unused_rows
+    from rotcal.tables import schema
+
+    frame = _shaken(3, (5, 12), 31.0)
+    t_ns = np.round(frame["t"].to_numpy() * 1e9).astype(np.int64)
+    _, rejected = still_and_short(t_ns, frame.select("u", "v", "w").to_numpy())
+    rejected = unused_rows("d", "session.csv", rejected, 0.01)
+    columns = schema("dwells").polars_schema
+    dwells = pl.DataFrame({"dataset": ["d"] * 4, "segment": [0, 0, 7, 9], "capture": ["session.csv"] * 4,
+                           "t_start_ns": [0, 7_000_000_000, 50_000_000_000, 120_000_000_000], "dwell_s": [4.0] * 4,
+                           "n_samples": [400] * 4}).with_columns(
+        *(pl.lit(None, dtype).alias(name) for name, dtype in columns.items()
+          if name not in ("dataset", "segment", "capture", "t_start_ns", "dwell_s", "n_samples"))
+    ).select(columns.keys()).cast(columns)
+    reduction = reduce_dwells(dwells, False, 9.81, 0.0, frozenset({7, 9}), rejected)
+    unused = next(t.data for t in reduction.tables if t.name == "still_unused")
+    assert unused["t_start_ns"].is_sorted() and unused.height == 4
+    assert unused["reason"].str.starts_with("too noisy").sum() == 2
+    assert unused["reason"].str.starts_with("a single pose outside every step sequence").sum() == 2
+    assert reduction.warnings[0].startswith("4 of the 6 still intervals found are not used")
