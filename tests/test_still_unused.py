@@ -91,3 +91,19 @@ def test_a_table_recording_lists_both_kinds_in_time_order():
     assert unused["reason"].str.starts_with("too noisy").sum() == 2
     assert unused["reason"].str.starts_with("a single pose outside every step sequence").sum() == 2
     assert reduction.warnings[0].startswith("4 of the 6 still intervals found are not used")
+
+
+def test_a_refusal_says_what_was_left_out(cli, tmp_path):
+    """Seven rests, two of them shaken: five poses are too few for the six
+    parameters; the refusal (exit 3) counts the two left out, and their
+    table is published."""
+    frame, _ = hand_session(3, n_poses=7)
+    rng = np.random.default_rng(3)
+    extra = np.zeros(frame.height)
+    for k in (2, 4):
+        extra[k * (REST + MOVE) : k * (REST + MOVE) + REST] = 1.0
+    frame = frame.with_columns(**{c: pl.col(c) + np.round(extra * rng.normal(0.0, 31.0, frame.height)) for c in "uvw"})
+    status, out, err = cli("run", write_session(tmp_path / "data", frame), "--out", tmp_path / "out")
+    assert status == 3
+    assert "5 static poses" in err and "2 of the 7 still intervals found are not used" in " ".join(err.split())
+    assert pl.read_parquet(tmp_path / "out" / "still_unused.parquet").height == 2

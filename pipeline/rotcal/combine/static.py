@@ -188,12 +188,16 @@ AnyReduction = TypeVar("AnyReduction", bound=Reduction)
 
 def with_unused(reduction: AnyReduction, unused: pl.DataFrame, used: int) -> AnyReduction:
     """``reduction`` with the still intervals found and not used: the
-    ``still_unused`` table and the console's count."""
+    ``still_unused`` table and the console's count (in a refusal's reason
+    too)."""
     kind = unused["reason"].str.split(":").list.first().alias("kind")  # the reason's first clause: its kind
     why = "; ".join(f"{n} {reason}" for reason, n in unused.group_by(kind, maintain_order=True).len().iter_rows())
     warning = (f"{unused.height} of the {used + unused.height} still intervals found are not used (still_unused.parquet "
                f"lists each with its reason): {why}")
-    return replace(reduction, tables=reduction.tables + (Table("still_unused", unused),),
+    # a refusal is all the console shows: it carries the count too
+    failures = reduction.failures if reduction.results else tuple(
+        Failure(f.rate_hz, f"{f.reason} ({warning})") for f in reduction.failures)
+    return replace(reduction, tables=reduction.tables + (Table("still_unused", unused),), failures=failures,
                    warnings=reduction.warnings + (warning,))
 
 
