@@ -61,3 +61,17 @@ def test_a_tolerance_without_its_nominal_is_refused(tmp_path):
     (tmp_path / "bad.toml").write_text(text)
     with pytest.raises(InputError, match="sensitivity_tolerance needs sensitivity"):
         run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path / "out", tmp_path / "bad.toml")
+
+
+def test_a_prior_the_data_contradict_is_not_joined(tmp_path):
+    """The nominal of another range (8192 LSB/g, +-4 g) lies 50 % off the
+    sensitivities the poses determine to 0.05 %: not joined (the results as
+    without it), and the note names each with its value."""
+    text = _config(tmp_path, True).read_text().replace("sensitivity = 16384", "sensitivity = 8192")
+    (tmp_path / "wrong.toml").write_text(text)
+    outcome = run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path / "out", tmp_path / "wrong.toml")
+    note = next(n for n in outcome.static.notes if n.startswith("datasheet priors"))
+    assert "not joined, the data contradicting their prior beyond 3 standard uncertainties: s_u (" in note
+    assert "s_v (" in note and "s_w (" in note and "O_u" not in note.split("not joined")[1]
+    recommended = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet").filter("recommended")
+    assert_within(recommended, suarez_parameters(), names=("s_u", "s_v", "s_w", "O_u", "O_v", "O_w"))

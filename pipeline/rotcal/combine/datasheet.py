@@ -32,6 +32,7 @@ from rotcal.model.placement import Placement
 from rotcal.model.results import IntrinsicResult, intrinsic_jacobian, whole_fit_input
 
 PRIOR_INPUT = "datasheet prior"
+AGREEMENT = 3.0  # a prior farther than this many combined standard uncertainties from the data is not joined
 
 
 def datasheet_priors(placement: Placement) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -53,14 +54,36 @@ def datasheet_priors(placement: Placement) -> tuple[np.ndarray, np.ndarray, np.n
 
 def with_datasheet(result: IntrinsicResult, placement: Placement) -> tuple[IntrinsicResult, str | None]:
     """``result`` joined to the datasheet's priors (module docstring), and a
-    note naming the parameters that rest on the prior (None without priors)."""
+    note naming the parameters that rest on the prior (None without priors).
+    A prior the data contradict (the estimate farther from it than
+    ``AGREEMENT`` combined standard uncertainties: a nominal of another
+    range, or an output whose zero-g level is not 0) is not joined, and the
+    note names it."""
     index, prior, prior_u = datasheet_priors(placement)
     if not index.size:
         return result, None
     value, jac, _ = intrinsic_jacobian(result.state, result.g_local)
+    data_u = np.sqrt(np.einsum("ij,jk,ik->i", jac[index], result.state_cov, jac[index]))
+    agree = np.abs(value[index] - prior) <= AGREEMENT * np.hypot(data_u, prior_u)
+    stated = ", ".join(name for name, on in (("sensitivity_tolerance", 0 in index), ("offset_tolerance", 6 in index)) if on)
+    joined = _joined(result, value, jac, index[agree], prior[agree], prior_u[agree]) if agree.any() else result
+    resting = [INTRINSIC[i] for i, d, p in zip(index[agree], data_u[agree], prior_u[agree]) if d > p]
+    note = (f"datasheet priors ([device] {stated}) joined as Type B inputs (GUM 4.3, rectangular): "
+            + (f"{', '.join(resting)} rest on the prior (the poses determine them less well than the datasheet)"
+               if resting else "every parameter they bound is determined by the poses better than by the datasheet"))
+    if not agree.all():
+        note += (f"; not joined, the data contradicting their prior beyond {AGREEMENT:g} standard uncertainties: "
+                 + ", ".join(f"{INTRINSIC[i]} ({value[i]:.6g} against {p:.6g})" for i, p in zip(index[~agree], prior[~agree]))
+                 + " (the nominal of another range? an output whose zero-g level is not 0?)")
+    return joined, note
+
+
+def _joined(result: IntrinsicResult, value: np.ndarray, jac: np.ndarray, index: np.ndarray, prior: np.ndarray,
+            prior_u: np.ndarray) -> IntrinsicResult:
+    """The linearised Bayesian update of ``result`` by the priors of the
+    parameters ``index`` (module docstring), the prior one more input group."""
     H = jac[index]
     P = result.state_cov
-    data_u = np.sqrt(np.einsum("ij,jk,ik->i", H, P, H))
     R = np.diag(prior_u**2)
     K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
     state = result.state + K @ (prior - value[index])
@@ -68,11 +91,4 @@ def with_datasheet(result: IntrinsicResult, placement: Placement) -> tuple[Intri
     parts = [(inp, keep @ part @ keep.T) for inp, part in zip(result.inputs, result.state_parts)]
     parts.append((whole_fit_input(PRIOR_INPUT, float("inf")), K @ R @ K.T))
     state_cov = sum(part for _, part in parts)
-    joined = IntrinsicResult.from_state(result.rate_hz, state, state_cov, result.g_local, result.g_uncertainty, parts)
-    resting = [INTRINSIC[i] for i, d, p in zip(index, data_u, prior_u) if d > p]
-    stated = ", ".join(name for name, on in (("sensitivity_tolerance", index[0] == 0),
-                                             ("offset_tolerance", 6 in index)) if on)
-    note = (f"datasheet priors ([device] {stated}) joined as Type B inputs (GUM 4.3, rectangular): "
-            + (f"{', '.join(resting)} rest on the prior (the poses determine them less well than the datasheet)"
-               if resting else "every parameter they bound is determined by the poses better than by the datasheet"))
-    return joined, note
+    return IntrinsicResult.from_state(result.rate_hz, state, state_cov, result.g_local, result.g_uncertainty, parts)

@@ -154,8 +154,8 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     if positions.height == 0:
         positions, unused = still_poses(samples, dataset=dataset)
         if positions.height == 0:
-            return Failure(0.0, "no still intervals found" + (f" long enough to use ({unused.height} shorter rests)"
-                                                              if unused.height else ""))
+            return Failure(0.0, "no still intervals found" + (f" that the stillness detector accepts ({unused.height} "
+                                                              "rejected: too short or too noisy)" if unused.height else ""))
     # (a jig's references are exact: a hand's labels are placed off them by ``placement``'s measure)
     fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
     if fault is not None:
