@@ -31,6 +31,7 @@ from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
 from rotcal.fit.means import group_statistics
+from rotcal.fit.posenoise import pose_wander, with_shared
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
@@ -252,8 +253,9 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
     # the positions' noise alone where the fit is exact: its degrees of freedom are the pose means' own
     noise_dof = float(dof) if dof else float(max(int(poses["n_samples"].to_numpy().min()) - 1, 1))
     # the positions' noise and excess scatter together: the sandwich covariance of one fit
-    result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", noise_dof), state_cov)])
+    wander = pose_wander(m, np.einsum("kii->ki", cov), poses, design)
+    parts = with_shared(poses, [(whole_fit_input("positions", noise_dof), state_cov)], wander)
+    result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
 
 

@@ -46,6 +46,7 @@ from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
 from rotcal.combine.posemodels import MIN_CONE_DEG, SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
 from rotcal.fit.lsq import CONDITION_LIMIT, excess_is_significant, psd_part
+from rotcal.fit.posenoise import pose_wander, with_shared
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
@@ -169,9 +170,10 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     dof = 3 * n - 9
     # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result
     # states; its own where that one is exact and estimated none)
-    result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
-                                        [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof
-                                                                             else dof)), state_cov)])
+    wander = pose_wander(m, np.einsum("kii->ki", cov), poses, design)
+    parts = with_shared(poses, [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof
+                                                                    else dof)), state_cov)], wander)
+    result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
 
