@@ -41,7 +41,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.lsq import excess_is_significant, nonlinear
-from rotcal.fit.posenoise import pose_wander, with_shared
+from rotcal.fit.posenoise import with_shared
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
@@ -267,10 +267,9 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         prior = misalignment_u * np.abs(np.diag(L))[TRIL[0][fixed]]
         sensitivity = gain @ full_jac[:, fixed] * prior
         parts.append((whole_fit_input("misalignment prior", float("inf")), sensitivity @ sensitivity.T))
-    # a wander every pose's mean shares moves the offsets: the means' scatter about the fitted directions shows it
-    wander = pose_wander(m, np.einsum("kii->ki", cov), poses, np.column_stack([a / np.linalg.norm(a, axis=1)[:, None],
-                                                                               np.ones(n)]))
-    parts = with_shared(poses, parts, wander)
+    # the noise every pose's mean shares moves the offsets (its model's part: the magnitudes alone, which the
+    # directions fit, cannot size a wander slower than the poses)
+    parts = with_shared(poses, parts)
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
     result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)

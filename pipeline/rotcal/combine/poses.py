@@ -30,7 +30,7 @@ import polars as pl
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
-from rotcal.fit.means import group_statistics
+from rotcal.fit.means import pose_statistics
 from rotcal.fit.posenoise import pose_wander, with_shared
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
@@ -47,7 +47,7 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
                 label: Sequence[str | None], reference: np.ndarray) -> pl.DataFrame:
     """One row per group of samples (``group`` = -1 outside every pose)."""
     t_ns = samples["t_ns"].to_numpy()
-    counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)
+    counts, means, cov, shared = pose_statistics(t_ns, samples.select(CHANNELS).to_numpy(), group, n_groups)
     inside = group >= 0
     temp = samples["temperature_c"].fill_null(np.nan).to_numpy()[inside]
     known = np.isfinite(temp)
@@ -59,7 +59,9 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
     np.minimum.at(first, g, t_ns[inside])
     np.maximum.at(last, g, t_ns[inside])
     temperature = np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0)
-    return _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
+    frame = _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
+    # the noise every pose's mean shares (``fit.posenoise``), carried into the static fits' offsets
+    return frame.with_columns(cov_shared=pl.Series([shared.ravel().tolist()] * n_groups, dtype=pl.List(pl.Float64)))
 
 
 def _statistics_frame(source: str, label: Sequence[str | None], reference: np.ndarray, counts: np.ndarray,

@@ -104,7 +104,8 @@ def pose_wander(c: np.ndarray, var: np.ndarray, poses: pl.DataFrame, x: np.ndarr
     than the session, which cannot tell it from the offset), and of that
     wander's covariance between poses the mean off-diagonal element (k,);
     None where the scatter shows none or the poses carry no times."""
-    if poses.height < 3 or poses["t_start_ns"].null_count() or poses["t_end_ns"].null_count():
+    if (poses.height < 3 or not {"t_start_ns", "t_end_ns"} <= set(poses.columns)
+            or poses["t_start_ns"].null_count() or poses["t_end_ns"].null_count()):
         return None
     start = poses["t_start_ns"].to_numpy() / 1e9
     stop = poses["t_end_ns"].to_numpy() / 1e9
@@ -145,6 +146,11 @@ def with_shared(poses: pl.DataFrame, parts: list, wander: np.ndarray | None = No
         cov[9:, 9:] = np.diag(wander)
         out.append((whole_fit_input("pose means' wander shared by every pose", float("inf")), cov))
     return out
+
+
+def shared_unidentified(poses: pl.DataFrame) -> bool:
+    """Whether the poses' noise is correlated but its model was not identified (``SHARED_NOT_MODELLED``)."""
+    return "cov_shared" in poses.columns and poses.height > 0 and bool(np.isnan(poses["cov_shared"][0].to_numpy()).any())
 
 
 def shared_offset_covariance(poses: pl.DataFrame) -> np.ndarray | None:
