@@ -94,16 +94,19 @@ def pose_noise_covariance(t_ns: np.ndarray, y: np.ndarray, group: np.ndarray, n_
     return cov_white * scale[:, :, None] * scale[:, None, :], np.diag(shared)
 
 
-def pose_wander(c: np.ndarray, var: np.ndarray, poses: pl.DataFrame, x: np.ndarray) -> np.ndarray | None:
+def pose_wander(c: np.ndarray, var: np.ndarray, poses: pl.DataFrame, x: np.ndarray, seen: str = "references"
+                ) -> np.ndarray | None:
     """The wander the pose means' scatter shows beyond their noise, the
     part every pose shares: per column of ``c`` (poses, k: the means, or a
     fit's residuals) of variances ``var`` (poses, k) under fixed effects
     ``x`` (poses, p), the generalised Cochran's Q test and the first-order
     Gauss-Markov wander's restricted maximum likelihood of ``fit.wander``
     over the poses' mid-times (its upper 95 % bound where tau is longer
-    than the session, which cannot tell it from the offset), and of that
-    wander's covariance between poses the mean off-diagonal element (k,);
-    None where the scatter shows none or the poses carry no times."""
+    than the session, which cannot tell it from the offset), and the part
+    of it every pose shares (k,): a random walk's mean covariance between
+    poses, a Gauss-Markov wander's variance (``seen = "magnitudes"``, the
+    orientation-free fit's: the largest variance either way); None where
+    the scatter shows none or the poses carry no times."""
     if (poses.height < 3 or not {"t_start_ns", "t_end_ns"} <= set(poses.columns)
             or poses["t_start_ns"].null_count() or poses["t_end_ns"].null_count()):
         return None
@@ -128,8 +131,13 @@ def pose_wander(c: np.ndarray, var: np.ndarray, poses: pl.DataFrame, x: np.ndarr
     else:
         corr = np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
     s2 = upper if span <= tau else s2
+    if seen == "magnitudes" or not np.isinf(tau):
+        # a Gauss-Markov wander's time constant is poorly determined by a few tens of poses, and the part they share
+        # lies between 0 and its variance: its variance, conservatively; the magnitudes (which the directions and
+        # nine parameters largely take up) size a random walk no better
+        return s2 * float(np.max(np.diag(corr)))
     off = corr[~np.eye(len(t), dtype=bool)]
-    return s2 * float(off.mean())
+    return s2 * float(off.mean())  # a random walk's covariance from the session's start, fixed by its form
 
 
 def with_shared(poses: pl.DataFrame, parts: list, wander: np.ndarray | None = None) -> list:
