@@ -42,11 +42,10 @@ from rotcal.diagnose.scans import (
     Unexplained,
     harmonic_scan,
     p_is,
-    segment_scan,
-    static_step_scan,
     step_scan,
     tone_scan,
 )
+from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segment_scan, static_step_scan
 from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
@@ -197,10 +196,15 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
     return fit
 
 
-def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Unexplained]:
+def rate_dependence(final: ModelFit, alpha: float, output_unit: str,
+                    baseline: tuple[IntrinsicResult, ...] = ()) -> list[Unexplained]:
     """Whether the responsivity matrices of the rates differ beyond their
     uncertainties (Wald test of R_f = R_0 for every rate f), after every
-    modelled effect: a frequency response no catalogue effect explains."""
+    modelled effect: a frequency response no catalogue effect explains.
+    The whole-model fit takes the noise as white at the rotation's
+    frequencies; each difference's variance is widened to the ``baseline``
+    results' (from the segment fits, which carry the noise's measured
+    spectrum), where larger, keeping the fit's correlations."""
     layout, m = final.layout, final.layout.n_rates
     if m < 2:
         return []
@@ -214,6 +218,13 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
         jac[rows, pos[f]] = np.eye(9)
         jac[rows, pos[0]] -= np.eye(9)
     cov_diff = jac @ cov @ jac.T
+    by_rate = {r.rate_hz: r.state_cov[:9, :9] for r in baseline}
+    if all(float(rate) in by_rate for rate in final.obs.rates):
+        # the baseline's rates are independent fits: Var(R_f - R_0) = Var(R_f) + Var(R_0)
+        base = np.concatenate([np.diag(by_rate[float(final.obs.rates[f])]) + np.diag(by_rate[float(final.obs.rates[0])])
+                               for f in range(1, m)])
+        widen = np.sqrt(np.maximum(1.0, base / np.where(np.diag(cov_diff) > 0, np.diag(cov_diff), np.inf)))
+        cov_diff = cov_diff * np.outer(widen, widen)
     stat = float(diff @ np.linalg.pinv(cov_diff) @ diff)
     p = chi2_sf(stat, diff.size)
     if p >= alpha:
@@ -331,10 +342,11 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         rows.append(step[0])
         before["unexplained: offset step"] = step[1].residuals
     res = _residuals(final, output_unit)
+    recorded = replace(res, resid=final.residuals)   # the noise as recorded, which the fits' noise model describes
     a_u = config.unexplained_false_alarm
-    for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(res, a_u)
-                  + static_step_scan(replace(res, resid=final.residuals), step_id, a_u)   # of the noise as recorded
-                  + rate_dependence(final, a_u, output_unit)):
+    for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(recorded, a_u, SegmentNoise.from_fits(fits))
+                  + static_step_scan(recorded, step_id, a_u, residual_autoregression(recorded))
+                  + rate_dependence(final, a_u, output_unit, results)):
         rows.append(scan_row(final, found, dataset))
     modelled = bool(final.active) or any(v is not None for v in clip)
     refined = refined_results(final, g_local, g_uncertainty) if modelled else ()

@@ -3,7 +3,8 @@ wander.
 
 Some effects move each segment's offset as a whole (``offset_drift``,
 ``centripetal``, ``axis_tilt``: a trend in time, a shift growing with the
-rate squared, a shift per axis; the effects' ``moves_segment_offsets``). So does a slow wander of the sensor's bias (a Gauss-Markov term,
+rate squared, a shift per axis; the effects' ``moves_segment_offsets``),
+and so does an offset step in every channel (the ``unexplained`` step). So does a slow wander of the sensor's bias (a Gauss-Markov term,
 flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
@@ -32,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 
+from rotcal.diagnose.candidates import STEP
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
 from rotcal.diagnose.scans import p_is
 from rotcal.model.effects import catalogue
@@ -78,7 +80,8 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
     if not noise.wanders:
         return final, texts
     rivals = {e.name for e in catalogue() if e.moves_segment_offsets}
-    for cand in [c for c in final.active if c.effect in rivals]:
+    # an offset step in every channel moves the offsets of the segments after it alike
+    for cand in [c for c in final.active if c.effect in rivals or c == STEP]:
         reduced = without(final, (cand,))
         stat, constant = _segment_test(final, reduced, noise)
         if stat is None or constant < SEGMENT_CONSTANT:
