@@ -33,6 +33,7 @@ from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, successive_noise
 from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
+from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segment_scan, static_step_scan
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
@@ -45,7 +46,6 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
-from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segment_scan, static_step_scan
 from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
@@ -344,7 +344,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     res = _residuals(final, output_unit)
     recorded = replace(res, resid=final.residuals)   # the noise as recorded, which the fits' noise model describes
     a_u = config.unexplained_false_alarm
-    for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(recorded, a_u, SegmentNoise.from_fits(fits))
+    for found in (tone_scan(recorded, a_u) + harmonic_scan(recorded, a_u) + segment_scan(recorded, a_u, SegmentNoise.from_fits(fits))
                   + static_step_scan(recorded, step_id, a_u, residual_autoregression(recorded))
                   + rate_dependence(final, a_u, output_unit, results)):
         rows.append(scan_row(final, found, dataset))

@@ -39,6 +39,10 @@ from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.scans import Residuals, Unexplained, _describe, _segment_chi2, _segment_grams, _used_segments, normal_p, p_is
 from rotcal.model.physics import CHANNELS
 
+# the largest variance of a least-squares slope over a record of duration T that a first-order
+# Gauss-Markov term of stationary sd q gives, times T^2 / q^2 (at a correlation time of 0.32 T; a random
+# walk whose offsets scatter by q between segments gives less): a slow wander's share of a segment's trend
+WANDER_SLOPE = 2.45
 # the highest autoregressive order the static-step test prewhitens with (a second-order low-pass at a
 # tenth of the sample rate needs about 6; each order costs the steps one sample)
 MAX_AR_ORDER = 10
@@ -48,19 +52,22 @@ MAX_AR_ORDER = 10
 class SegmentNoise:
     """Per fitted segment and channel: the fit's covariance of (C, A, B)
     (3, 3, 3: channel, 3 x 3), its residual level and its noise density's
-    ratio to white near zero frequency (``fits`` table columns)."""
+    ratio to white near zero frequency and the offsets' wander floor between
+    segments (``fits`` table columns)."""
 
     cov: dict[int, np.ndarray]
     sigma: dict[int, np.ndarray]
     ratio_zero: dict[int, np.ndarray]
+    floor: dict[int, np.ndarray]
 
     @classmethod
     def from_fits(cls, fits: pl.DataFrame) -> SegmentNoise:
         cov: dict[int, np.ndarray] = {}
         sigma: dict[int, np.ndarray] = {}
         ratio: dict[int, np.ndarray] = {}
+        floor: dict[int, np.ndarray] = {}
         rank = {c: i for i, c in enumerate(CHANNELS)}
-        columns = ["segment", "channel", "sigma", "noise_ratio_zero"] + [f"cov_{c}" for c in CHANNELS]
+        columns = ["segment", "channel", "sigma", "noise_ratio_zero", "offset_floor"] + [f"cov_{c}" for c in CHANNELS]
         for row in fits.filter(pl.col("status") == "ok").select(columns).iter_rows(named=True):
             seg, r = int(row["segment"]), rank[row["channel"]]
             own = row[f"cov_{row['channel']}"]
@@ -69,7 +76,9 @@ class SegmentNoise:
             sigma.setdefault(seg, np.full(3, np.nan))[r] = np.nan if row["sigma"] is None else row["sigma"]
             f0 = row["noise_ratio_zero"]
             ratio.setdefault(seg, np.ones(3))[r] = f0 if f0 is not None and np.isfinite(f0) and f0 > 0 else 1.0
-        return cls(cov, sigma, ratio)
+            q = row["offset_floor"]
+            floor.setdefault(seg, np.zeros(3))[r] = q if q is not None and np.isfinite(q) else 0.0
+        return cls(cov, sigma, ratio, floor)
 
     def misfit_chi2(self, sid: int, r: int, coef: np.ndarray) -> float | None:
         """chi^2 of a segment's (C, A, B) misfit ``coef`` (output units) under
@@ -79,12 +88,16 @@ class SegmentNoise:
             return None
         return float(coef @ np.linalg.pinv(cov[r]) @ coef)
 
-    def trend_variance(self, sid: int, r: int) -> float | None:
-        """A trend's variance factor over 1 / S_tt: sigma^2 F(0); None where unknown."""
+    def trend_variance(self, sid: int, r: int, s_tt: float, duration_s: float) -> float | None:
+        """A least-squares trend's variance over a segment of ``duration_s``
+        with sum of squared centred times ``s_tt``: the noise's within the
+        segment, sigma^2 F(0) / S_tt, plus at most ``WANDER_SLOPE`` q^2 / T^2
+        of a wander of the offsets' floor q; None where unknown."""
         sigma = self.sigma.get(sid)
-        if sigma is None or not np.isfinite(sigma[r]) or sigma[r] <= 0:
+        if sigma is None or not np.isfinite(sigma[r]) or sigma[r] <= 0 or s_tt <= 0:
             return None
-        return float(sigma[r] ** 2 * self.ratio_zero[sid][r])
+        wander = WANDER_SLOPE * self.floor[sid][r] ** 2 / duration_s**2 if duration_s > 0 else 0.0
+        return float(sigma[r] ** 2 * self.ratio_zero[sid][r] / s_tt + wander)
 
 
 def segment_scan(res: Residuals, alpha: float, noise: SegmentNoise | None = None) -> list[Unexplained]:
@@ -126,8 +139,9 @@ def segment_scan(res: Residuals, alpha: float, noise: SegmentNoise | None = None
                 if noise is not None and kind == "inconsistent":
                     chi2 = noise.misfit_chi2(sid, r, size)
                 elif noise is not None:
-                    var = noise.trend_variance(sid, r)
-                    chi2 = None if var is None else float(size[0] ** 2 * grams[k, 0, 0] / var)
+                    t_seg = res.t_s[rows[starts[k]:starts[k + 1] if k + 1 < starts.size else rows.size]]
+                    var = noise.trend_variance(sid, r, float(grams[k, 0, 0]), float(t_seg[-1] - t_seg[0]))
+                    chi2 = None if var is None else float(size[0] ** 2 / var)
                 stats.append((float(x2[k]) if chi2 is None else chi2, basis.shape[1], sid, part, r, size))
         if not stats:
             continue

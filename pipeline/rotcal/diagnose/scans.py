@@ -13,6 +13,7 @@ import numpy as np
 from scipy.special import fdtrc, gammaincc, gammaln
 
 from rotcal.diagnose.fitting import chi2_sf
+from rotcal.fit.spectrum import density_ratio_at, periodogram
 from rotcal.model.physics import AXES, CHANNELS
 
 
@@ -292,9 +293,35 @@ def _harmonics(theta: np.ndarray, orders) -> list[np.ndarray]:
     return [waves[k] for k in orders]
 
 
+def harmonic_density(e: np.ndarray, starts: np.ndarray, rates_hz: np.ndarray, dt_s: float, orders) -> np.ndarray:
+    """Per segment (rows ``starts[k]:starts[k+1]`` of ``e``, standardised
+    residuals) and order k, the noise's density at k times the segment's
+    rotation frequency in units of e^2 (1 for white noise of e's level):
+    the segment's mean square times the density's ratio to white there,
+    read from the segments' periodograms pooled on one frequency axis
+    (``fit.spectrum.density_ratio_at``: 1 where white noise explains it, so
+    white noise keeps its test). Grenander 1954: a sine term's variance is
+    white noise's at the density of its frequency."""
+    bounds = np.r_[starts, e.size]
+    grams = [periodogram(e[a:b, None], dt_s, abs(rate) * (b - a) * dt_s) for a, b, rate in zip(bounds[:-1], bounds[1:], rates_hz)]
+    pooled: dict[int, tuple[np.ndarray, float]] = {}
+    for gram in grams:
+        for k, sums, count in zip(gram.bands, gram.sums, gram.counts):
+            old = pooled.get(int(k), (np.zeros(1), 0.0))
+            pooled[int(k)] = (old[0] + sums, old[1] + float(count))
+    out = np.ones((starts.size, len(orders)))
+    for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        level = float(e[a:b] @ e[a:b]) / (b - a)
+        for j, k in enumerate(orders):
+            out[i, j] = level * float(density_ratio_at(pooled, k * abs(rates_hz[i]), grams[i].resolution_hz)[0])
+    return out
+
+
 def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
     """Harmonics k theta of the rotation in the residuals of each axis's
-    rotation segments, per channel (chi-square with 2 per segment)."""
+    rotation segments, per channel (chi-square with 2 per segment), each
+    segment's against the noise's density at its harmonic's frequency
+    (``harmonic_density``)."""
     tests = []
     # the harmonics of every rotating sample once; each channel takes its used rows
     rotating = np.flatnonzero(res.rotating)
@@ -308,10 +335,13 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
         e = res.resid[rows, r] / res.sigma[r]
         at = None if rows.size == rotating.size else np.searchsorted(rotating, rows)
         seg_axis = np.array([res.axis_idx[part.start] for _, part in segs])
-        for k, wave in zip(orders, waves):
+        dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
+        density = harmonic_density(e, starts, np.array([res.rate_hz[part.start] for _, part in segs]), dt, orders)
+        for j, (k, wave) in enumerate(zip(orders, waves)):
             if at is None and k not in grams:
                 grams[k] = _segment_grams(wave, starts)
             x2, coef = _segment_chi2(e, wave, starts, grams[k]) if at is None else _segment_chi2(e, wave[at], starts)
+            x2 = x2 / density[:, j]
             for ax in np.unique(seg_axis):
                 on = seg_axis == ax
                 stat = float(x2[on].sum())

@@ -42,6 +42,8 @@ from rotcal.model.physics import CHANNELS
 # these effects are constant within a segment (a drift nearly so), but dropping one refits the rest, whose
 # readjustment varies within segments: a third of the difference constant marks a segment-level pattern
 SEGMENT_CONSTANT = 0.3
+# the wander's correlation times tried, as shares of the recording's duration (besides independent offsets)
+WANDER_TIMES = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -102,7 +104,14 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
 
 def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tuple[float | None, float]:
     """(chi^2 of the extension's segment means against the noise model,
-    the share of its fitted part that is constant within segments)."""
+    the share of its fitted part that is constant within segments). The
+    segment means' covariance is V = diag(u(C)^2) + q_i q_j (rho_ij - delta_ij),
+    q the wander's floor and rho_ij = exp(-|t_i - t_j| / T) the correlation
+    of a wander of correlation time T (a Gauss-Markov term; T = 0:
+    independent offsets). The fits measure q, not T: the statistic is the
+    least over ``WANDER_TIMES`` of the recording's duration, the correlation
+    time that explains the pattern best (a slow wander moves neighbouring
+    segments alike, as a drift or a step would)."""
     seg = final.obs.segment
     ids, idx = np.unique(seg, return_inverse=True)
     if not all(int(s) in noise.u for s in ids):
@@ -120,9 +129,26 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tup
         return None, 0.0
     constant = float(np.sum(count * d**2)) / total
     var = np.array([noise.u[int(s)] for s in ids]) ** 2
-    ok = on & np.isfinite(var) & (var > 0)
-    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
-    info = float(np.sum(w * d**2))
-    if info <= 0:
+    floor = np.array([noise.floor[int(s)] for s in ids])
+    t = final.obs.motion.t_s
+    centre = np.bincount(idx, t, ids.size) / np.bincount(idx, minlength=ids.size)
+    lag = np.abs(centre[:, None] - centre[None, :])
+    duration = float(t.max() - t.min()) if t.size else 0.0
+    stats = []
+    for share in (0.0,) + WANDER_TIMES:
+        rho = np.eye(ids.size) if share == 0.0 or duration <= 0 else np.exp(-lag / (share * duration))
+        num, info = 0.0, 0.0
+        for r in range(3):
+            ok = on[:, r] & np.isfinite(var[:, r]) & (var[:, r] > 0)
+            if not ok.any():
+                continue
+            q = floor[ok, r]
+            v = np.diag(var[ok, r]) + np.outer(q, q) * (rho[np.ix_(ok, ok)] - np.eye(int(ok.sum())))
+            w = np.linalg.solve(v, d[ok, r])
+            num += float(w @ c[ok, r])
+            info += float(w @ d[ok, r])
+        if info > 0:
+            stats.append(num**2 / info)
+    if not stats:
         return None, constant
-    return float(np.sum(w * d * c)) ** 2 / info, constant
+    return min(stats), constant
