@@ -9,13 +9,16 @@ flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
 fits and beyond the drift, axis and rate pattern these effects would
-leave, so white noise with these effects measures none), each selected
-extension of these effects whose removal changes the residuals mostly by
-segment (``SEGMENT_CONSTANT`` of the change's sum
-of squares in its segment means) is tested again where the two compete: the segment means of the
-residuals without it, c, against its segment means d, by generalised least
-squares with each segment mean's variance under the noise model (its fit's
-u(C)^2, which holds the wander's floor):
+leave, so white noise with these effects measures none; or
+``fit.spectrum``: the residuals' density near zero frequency lies above
+white), each selected extension of these effects whose removal changes
+the residuals mostly by segment (``SEGMENT_CONSTANT`` of the change's sum
+of squares in its segment means) is tested again where the two compete:
+the segment means of the residuals without it, c, against its segment
+means d, by generalised least squares with the segment means' covariance
+under the noise model (``_segment_test``: each fit's u(C)^2, which holds
+the density near zero frequency and the wander's floor q, and the floor's
+correlation between segments):
 
     chi^2 = (d^T V^-1 c)^2 / (d^T V^-1 d),  on the extension's parameter count.
 
@@ -23,12 +26,12 @@ Where that is not significant at the diagnosis's false-alarm rate the
 wander explains the pattern: the extension is dropped from the model and
 its row says so with the wander's size; where it is, the row says the
 evidence favours the effect over the wander. Without a measured wander
-nothing changes.
+(white noise) nothing changes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -48,31 +51,44 @@ WANDER_TIMES = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 
 @dataclass(frozen=True, eq=False)
 class OffsetNoise:
-    """Each fitted segment's offset uncertainty u(C) and the wander's floor
-    in it, per channel (``fits`` table columns)."""
+    """Each fitted segment's offset uncertainty u(C), the wander's floor in
+    it and the noise density's ratio to white near zero frequency, per
+    channel (``fits`` table columns)."""
 
     u: dict[int, np.ndarray]
     floor: dict[int, np.ndarray]
+    ratio_zero: dict[int, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_fits(cls, fits: pl.DataFrame) -> OffsetNoise:
         u: dict[int, np.ndarray] = {}
         floor: dict[int, np.ndarray] = {}
+        ratio: dict[int, np.ndarray] = {}
         rank = {c: i for i, c in enumerate(CHANNELS)}
-        columns = ("segment", "channel", "u_C", "offset_floor")
-        for seg, ch, u_c, f in fits.filter(pl.col("status") == "ok").select(columns).iter_rows():
+        columns = ("segment", "channel", "u_C", "offset_floor", "noise_ratio_zero")
+        for seg, ch, u_c, f, f0 in fits.filter(pl.col("status") == "ok").select(columns).iter_rows():
             u.setdefault(seg, np.full(3, np.nan))[rank[ch]] = u_c
             floor.setdefault(seg, np.zeros(3))[rank[ch]] = f if f is not None and np.isfinite(f) else 0.0
-        return cls(u, floor)
+            ratio.setdefault(seg, np.ones(3))[rank[ch]] = f0 if f0 is not None and np.isfinite(f0) else 1.0
+        return cls(u, floor, ratio)
 
     @property
     def wanders(self) -> bool:
-        return any(np.any(f > 0) for f in self.floor.values())
+        """Whether the fits measured noise beyond white at the offsets'
+        frequencies: a floor between segments, or a density near zero
+        frequency above white within them."""
+        return (any(np.any(f > 0) for f in self.floor.values())
+                or any(np.any(f > 1) for f in self.ratio_zero.values()))
 
     def size(self) -> str:
-        """The wander's size per channel: the largest floor of its segments."""
+        """The wander's size per channel: the largest floor of its segments,
+        and the largest density ratio near zero frequency where above 1."""
         top = np.max(np.array(list(self.floor.values())), axis=0)
-        return ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, top))
+        text = "largest floor " + ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, top))
+        ratio = np.max(np.array(list(self.ratio_zero.values())), axis=0) if self.ratio_zero else np.ones(3)
+        if np.any(ratio > 1):
+            text += "; density near zero frequency " + ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, ratio)) + " times white"
+        return text
 
 
 def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_unit: str) -> tuple[ModelFit, dict[str, str]]:
@@ -90,7 +106,7 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
             continue
         k = len(cand.names)
         p = chi2_sf(stat, k)
-        size = f"the offsets wander between segments (largest floor {noise.size()} {output_unit})"
+        size = f"the offsets wander ({noise.size()}; floors in {output_unit})"
         if p >= alpha:
             final = reduced
             text = (f"{cand.key} set aside: {size}, and that wander explains its pattern in the segments' offsets "
