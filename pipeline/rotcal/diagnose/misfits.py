@@ -17,9 +17,8 @@ measured:
   squares on a slow regressor has the variance white noise of the density
   at its frequency would give);
 - the static steps' samples prewhitened by the autoregression that
-  describes the recording's residuals (Yule-Walker on the autocovariance
-  pooled within segments, order by Akaike's criterion, at most
-  ``MAX_AR_ORDER``): what is left correlated, or non-normal, is not the
+  describes the recording's residuals (least squares within segments,
+  order by Akaike's criterion, at most ``MAX_AR_ORDER``): what is left correlated, or non-normal, is not the
   sensor's noise.
 
 Under white noise the fits' covariances are sigma^2 (X^T X)^-1 and the
@@ -32,7 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.linalg import solve_toeplitz
 from scipy.special import ndtr
 
 from rotcal.diagnose.fitting import chi2_sf
@@ -45,7 +43,7 @@ from rotcal.model.physics import CHANNELS
 WANDER_SLOPE = 2.45
 # the highest autoregressive order the static-step test prewhitens with (a second-order low-pass at a
 # tenth of the sample rate needs about 6; each order costs the steps one sample)
-MAX_AR_ORDER = 10
+MAX_AR_ORDER = 12
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,13 +78,20 @@ class SegmentNoise:
             floor.setdefault(seg, np.zeros(3))[r] = q if q is not None and np.isfinite(q) else 0.0
         return cls(cov, sigma, ratio, floor)
 
-    def misfit_chi2(self, sid: int, r: int, coef: np.ndarray) -> float | None:
-        """chi^2 of a segment's (C, A, B) misfit ``coef`` (output units) under
-        its fit's covariance; None where the fit has none."""
+    def misfit_chi2(self, sid: int, r: int, coef: np.ndarray) -> tuple[float, int] | None:
+        """(chi^2, degrees of freedom) of a segment's (C, A, B) misfit
+        ``coef`` (output units) under its fit's covariance; None where the
+        fit has none. Where the fits measured a wander of the offsets (a
+        floor, or a density near zero frequency above white), that wander
+        is the C's scatter by construction (``fit.wander`` sizes the floor
+        from it) and ``wander.against_wander`` tests their pattern: the
+        sine terms (A, B) alone are tested."""
         cov = self.cov.get(sid)
         if cov is None or not np.all(np.isfinite(cov[r])):
             return None
-        return float(coef @ np.linalg.pinv(cov[r]) @ coef)
+        keep = slice(1, 3) if self.floor[sid][r] > 0 or self.ratio_zero[sid][r] > 1 else slice(0, 3)
+        c = coef[keep]
+        return float(c @ np.linalg.pinv(cov[r][keep, keep]) @ c), c.size
 
     def trend_variance(self, sid: int, r: int, s_tt: float, duration_s: float) -> float | None:
         """A least-squares trend's variance over a segment of ``duration_s``
@@ -135,18 +140,22 @@ def segment_scan(res: Residuals, alpha: float, noise: SegmentNoise | None = None
             x2, coef = _segment_chi2(e, basis, starts, grams)
             for k, (sid, part) in enumerate(segs):
                 size = coef[k] * res.sigma[r]
-                chi2 = None
+                tested: tuple[float, int] | None = None
                 if noise is not None and kind == "inconsistent":
-                    chi2 = noise.misfit_chi2(sid, r, size)
+                    tested = noise.misfit_chi2(sid, r, size)
                 elif noise is not None:
                     t_seg = res.t_s[rows[starts[k]:starts[k + 1] if k + 1 < starts.size else rows.size]]
                     var = noise.trend_variance(sid, r, float(grams[k, 0, 0]), float(t_seg[-1] - t_seg[0]))
-                    chi2 = None if var is None else float(size[0] ** 2 / var)
-                stats.append((float(x2[k]) if chi2 is None else chi2, basis.shape[1], sid, part, r, size))
+                    tested = None if var is None else (float(size[0] ** 2 / var), 1)
+                stats.append((float(x2[k]), basis.shape[1], sid, part, r, size) if tested is None
+                             else (tested[0], tested[1], sid, part, r, size))
         if not stats:
             continue
         total = sum(st[0] for st in stats)
-        dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
+        # the combined model's parameters per rate and channel: its responsivities (3), and its offset where
+        # any segment's C was tested
+        taken = sum(n_rates * (3 + any(st[1] == 3 for st in stats if st[4] == r)) for r in range(3))
+        dof = sum(st[1] for st in stats) - (taken if kind == "inconsistent" else 0)
         p = min(1.0, chi2_sf(total, max(dof, 1)) * 2)
         if p >= alpha:
             continue
@@ -170,10 +179,11 @@ def residual_autoregression(res: Residuals, max_order: int = MAX_AR_ORDER) -> li
     """Per channel, the coefficients a_1..a_p of the autoregression
     x_t = sum a_k x_t-k + e_t that describes the residuals (each segment's
     taken about its mean: a wander slower than a segment is the offsets'
-    floor), from the autocovariance pooled over pairs within a segment
-    (Yule-Walker, ``scipy.linalg.solve_toeplitz``), of the order
-    0..``max_order`` with the least AIC = N log v_p + 2 p (v_p the
-    innovation variance)."""
+    floor), by least squares on the samples with ``max_order`` consecutive
+    predecessors in their segment (the covariance method: Yule-Walker's
+    tapering biases a filter's steep spectrum, Percival & Walden 1993
+    section 9.7), of the order 0..``max_order`` with the least
+    AIC = N log v_p + 2 p (v_p the innovations' mean square)."""
     out = []
     for r in range(3):
         rows, starts, segs = _used_segments(res, r, lambda part: True)
@@ -181,24 +191,26 @@ def residual_autoregression(res: Residuals, max_order: int = MAX_AR_ORDER) -> li
             out.append(np.zeros(0))
             continue
         x = res.resid[rows, r].astype(float)
-        bounds = np.r_[starts, rows.size]
-        counts = np.diff(bounds)
+        counts = np.diff(np.r_[starts, rows.size])
         x -= np.repeat(np.add.reduceat(x, starts) / counts, counts)
-        # pairs k apart within a segment and in consecutive samples (a clipped gap breaks them)
         seg_of = np.repeat(np.arange(starts.size), counts)
-        acov = np.zeros(max_order + 1)
-        for k in range(max_order + 1):
-            same = (seg_of[k:] == seg_of[:x.size - k]) & (rows[k:] - rows[:x.size - k] == k)
-            acov[k] = float(np.sum(x[k:][same] * x[:x.size - k][same])) / x.size
-        best, best_aic = np.zeros(0), x.size * np.log(max(acov[0], 1e-300))
+        # the samples whose max_order predecessors are the samples before, in their segment
+        t = np.arange(max_order, x.size)
+        ok = (seg_of[t] == seg_of[t - max_order]) & (rows[t] - rows[t - max_order] == max_order)
+        t = t[ok]
+        if t.size < 10 * (max_order + 1):
+            out.append(np.zeros(0))
+            continue
+        lagged = np.stack([x[t - k] for k in range(1, max_order + 1)], axis=1)
+        y = x[t]
+        best, best_aic = np.zeros(0), t.size * np.log(max(float(y @ y) / t.size, 1e-300))
         for p in range(1, max_order + 1):
-            if acov[0] <= 0:
-                break
-            a = solve_toeplitz(acov[:p], acov[1:p + 1])
-            v = acov[0] - float(a @ acov[1:p + 1])
+            a, *_ = np.linalg.lstsq(lagged[:, :p], y, rcond=None)
+            e = y - lagged[:, :p] @ a
+            v = float(e @ e) / t.size
             if not np.isfinite(v) or v <= 0:
                 break
-            aic = x.size * np.log(v) + 2 * p
+            aic = t.size * np.log(v) + 2 * p
             if aic < best_aic:
                 best, best_aic = a, aic
         out.append(best)
