@@ -15,10 +15,14 @@ remains unexplained.
    scored again. Competing explanations of one signature are so decided by
    evidence, never by the order of a list. Backward elimination then drops
    any extension the others made redundant.
-4. Scans of the final residuals (``scans``) for structure no catalogue
+4. The offset effects and the step against the offsets' measured wander
+   (``wander``), every extension against the noise's measured density at
+   its signature's frequencies (``spectral``).
+5. Scans of the final residuals (``scans``) for structure no catalogue
    effect explains: tones, rotation harmonics, segment misfits and trends,
    static-step correlation and normality (Geist 2017 Appendix B), and
-   responsivity changing with rate.
+   responsivity changing with rate, each against the noise the recording
+   shows (``scans``, ``misfits``).
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from rotcal.diagnose.scans import (
     step_scan,
     tone_scan,
 )
+from rotcal.diagnose.spectral import against_spectrum
 from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
@@ -320,6 +325,10 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final = with_phases_free(final, phases["segment"].to_numpy())
     # offset effects against the offsets' measured wander (``wander``)
     final, wander = against_wander(final, OffsetNoise.from_fits(fits), alpha, output_unit)
+    # every extension against the noise's density at its signature's frequencies (``spectral``)
+    final, spectral = against_spectrum(final, alpha)
+    for name, text in spectral.items():
+        wander[name] = f"{wander[name]}; {text}" if name in wander else text
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
