@@ -193,10 +193,13 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
         powers = []
         for sid, part in segs:
             use = res.use[part, r]
-            e = np.where(use, res.resid[part, r] / res.sigma[r], 0.0)
             n = int(use.sum())
             if n <= TONE_MIN_SAMPLES:  # a channel clipped through most of the segment leaves no spectrum
                 continue
+            # each segment at its own level: a noisier segment (a vibrating rate) would otherwise dominate
+            # the sum, whose law would be that of fewer segments
+            level_seg = float(np.sqrt(np.sum(np.where(use, res.resid[part, r], 0.0) ** 2) / n)) or float(res.sigma[r])
+            e = np.where(use, res.resid[part, r] / level_seg, 0.0)
             power = np.abs(np.fft.rfft(e, n_pad)) ** 2 / max(n, 1)
             duration = n * dt
             rate = abs(res.rate_hz[part.start])
@@ -206,7 +209,7 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
                 valid &= np.abs(freqs - h * rate) > 3.0 / duration
             total += np.where(valid, power, 0.0)
             count += valid
-            powers.append((sid, part, power, n))
+            powers.append((sid, part, power, n, level_seg))
         level_sum, level_count = local_level(total, count)
         ok = (count > 0) & (level_count > 0) & (level_sum > 0)
         if not ok.any():
@@ -221,11 +224,11 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
             continue
         f = freqs[j]
         excess = max(ratio[j] - 1.0, 0.0) * level[j]   # the tone's share of the bin over the local level
-        amps = np.array([2 * res.sigma[r] * np.sqrt(excess * pw[j] / max(ratio[j] * level[j], 1e-300) / n)
-                         for _, _, pw, n in powers])
-        present = [sid for (sid, part, pw, n) in powers if gammaincc(1, pw[j] / level[j]) < 0.01]
+        share = excess / max(ratio[j] * level[j], 1e-300)   # of each segment's ordinate
+        amps = np.array([2 * sd * np.sqrt(share * pw[j] / n) for _, _, pw, n, sd in powers])
+        present = [sid for (sid, part, pw, n, _) in powers if gammaincc(1, pw[j] / level[j]) < 0.01]
         reduction = np.zeros(3)
-        reduction[r] = sum(pw[j] for _, _, pw, _ in powers) * res.sigma[r] ** 2 * excess / max(ratio[j] * level[j], 1e-300)
+        reduction[r] = sum(pw[j] * sd**2 for _, _, pw, _, sd in powers) * share
         where = f"channel {channel}, {len(present)} of {len(segs)} rotation segments"
         out.append(Unexplained(
             "tone", where,
