@@ -27,7 +27,7 @@ autoregression's order is 0, so the tests are the white ones.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -57,6 +57,7 @@ class SegmentNoise:
     sigma: dict[int, np.ndarray]
     ratio_zero: dict[int, np.ndarray]
     floor: dict[int, np.ndarray]
+    samples: dict[int, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_fits(cls, fits: pl.DataFrame) -> SegmentNoise:
@@ -64,8 +65,9 @@ class SegmentNoise:
         sigma: dict[int, np.ndarray] = {}
         ratio: dict[int, np.ndarray] = {}
         floor: dict[int, np.ndarray] = {}
+        samples: dict[int, np.ndarray] = {}
         rank = {c: i for i, c in enumerate(CHANNELS)}
-        columns = ["segment", "channel", "sigma", "noise_ratio_zero", "offset_floor"] + [f"cov_{c}" for c in CHANNELS]
+        columns = ["segment", "channel", "sigma", "noise_ratio_zero", "offset_floor", "n_samples"] + [f"cov_{c}" for c in CHANNELS]
         for row in fits.filter(pl.col("status") == "ok").select(columns).iter_rows(named=True):
             seg, r = int(row["segment"]), rank[row["channel"]]
             own = row[f"cov_{row['channel']}"]
@@ -76,12 +78,15 @@ class SegmentNoise:
             ratio.setdefault(seg, np.ones(3))[r] = f0 if f0 is not None and np.isfinite(f0) and f0 > 0 else 1.0
             q = row["offset_floor"]
             floor.setdefault(seg, np.zeros(3))[r] = q if q is not None and np.isfinite(q) else 0.0
-        return cls(cov, sigma, ratio, floor)
+            samples.setdefault(seg, np.zeros(3))[r] = row["n_samples"] or 0
+        return cls(cov, sigma, ratio, floor, samples)
 
-    def misfit_chi2(self, sid: int, r: int, coef: np.ndarray) -> tuple[float, int] | None:
+    def misfit_chi2(self, sid: int, r: int, coef: np.ndarray, n_used: int) -> tuple[float, int] | None:
         """(chi^2, degrees of freedom) of a segment's (C, A, B) misfit
-        ``coef`` (output units) under its fit's covariance; None where the
-        fit has none. Where the fits measured a wander of the offsets (a
+        ``coef`` (output units), regressed on ``n_used`` of its samples,
+        under its fit's covariance (scaled by the fit's samples over
+        ``n_used`` where the diagnosis models fewer: a thinned capture);
+        None where the fit has none. Where the fits measured a wander of the offsets (a
         floor, or a density near zero frequency above white), that wander
         is the C's scatter by construction (``fit.wander`` sizes the floor
         from it) and ``wander.against_wander`` tests their pattern: the
@@ -91,7 +96,9 @@ class SegmentNoise:
             return None
         keep = slice(1, 3) if self.floor[sid][r] > 0 or self.ratio_zero[sid][r] > 1 else slice(0, 3)
         c = coef[keep]
-        return float(c @ np.linalg.pinv(cov[r][keep, keep]) @ c), c.size
+        fitted = self.samples[sid][r] if sid in self.samples else 0
+        thinned = max(1.0, fitted / n_used) if n_used > 0 else 1.0
+        return float(c @ np.linalg.pinv(cov[r][keep, keep] * thinned) @ c), c.size
 
     def trend_variance(self, sid: int, r: int, s_tt: float, duration_s: float) -> float | None:
         """A least-squares trend's variance over a segment of ``duration_s``
@@ -142,7 +149,8 @@ def segment_scan(res: Residuals, alpha: float, noise: SegmentNoise | None = None
                 size = coef[k] * res.sigma[r]
                 tested: tuple[float, int] | None = None
                 if noise is not None and kind == "inconsistent":
-                    tested = noise.misfit_chi2(sid, r, size)
+                    end = starts[k + 1] if k + 1 < starts.size else rows.size
+                    tested = noise.misfit_chi2(sid, r, size, int(end - starts[k]))
                 elif noise is not None:
                     t_seg = res.t_s[rows[starts[k]:starts[k + 1] if k + 1 < starts.size else rows.size]]
                     var = noise.trend_variance(sid, r, float(grams[k, 0, 0]), float(t_seg[-1] - t_seg[0]))

@@ -101,7 +101,7 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
     # an offset step in every channel moves the offsets of the segments after it alike
     for cand in [c for c in final.active if c.effect in rivals or c == STEP]:
         reduced = without(final, (cand,))
-        stat, constant = _segment_test(final, reduced, noise)
+        stat, constant = _segment_test(final, reduced, noise, cand == STEP)
         if stat is None or constant < SEGMENT_CONSTANT:
             continue
         k = len(cand.names)
@@ -118,7 +118,8 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
     return final, texts
 
 
-def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tuple[float | None, float]:
+def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise,
+                  refloor: bool = False) -> tuple[float | None, float]:
     """(chi^2 of the extension's segment means against the noise model,
     the share of its fitted part that is constant within segments). The
     segment means' covariance is V = diag(u(C)^2) + q_i q_j (rho_ij - delta_ij),
@@ -127,7 +128,10 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tup
     independent offsets). The fits measure q, not T: the statistic is the
     least over ``WANDER_TIMES`` of the recording's duration, the correlation
     time that explains the pattern best (a slow wander moves neighbouring
-    segments alike, as a drift or a step would)."""
+    segments alike, as a drift or a step would). ``refloor``: q measured
+    again from the segment means of ``final``'s residuals (the fits' floor
+    leaves out the catalogue effects' patterns, not an offset step's, so a
+    step would be tested against the wander it makes itself)."""
     seg = final.obs.segment
     ids, idx = np.unique(seg, return_inverse=True)
     if not all(int(s) in noise.u for s in ids):
@@ -146,6 +150,8 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tup
     constant = float(np.sum(count * d**2)) / total
     var = np.array([noise.u[int(s)] for s in ids]) ** 2
     floor = np.array([noise.floor[int(s)] for s in ids])
+    if refloor:
+        var, floor = _refloored(c - d, var, floor, on, final.layout.n_rates)
     t = final.obs.motion.t_s
     centre = np.bincount(idx, t, ids.size) / np.bincount(idx, minlength=ids.size)
     lag = np.abs(centre[:, None] - centre[None, :])
@@ -168,3 +174,23 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise) -> tup
     if not stats:
         return None, constant
     return min(stats), constant
+
+
+def _refloored(means: np.ndarray, var: np.ndarray, floor: np.ndarray, on: np.ndarray,
+               n_rates: int) -> tuple[np.ndarray, np.ndarray]:
+    """(u(C)^2, floor) per segment and channel with the floor measured from
+    the segment ``means`` of a model's residuals (DerSimonian & Laird 1986,
+    the model's offsets per rate taken off the degrees of freedom) in place
+    of the fits'."""
+    within = np.maximum(var - floor**2, 1e-300)
+    out = np.zeros(3)
+    for r in range(3):
+        ok = on[:, r] & np.isfinite(within[:, r])
+        w = 1.0 / within[ok, r]
+        if w.size <= n_rates + 1:
+            continue
+        m = means[ok, r]
+        q = float(np.sum(w * (m - np.sum(w * m) / np.sum(w)) ** 2))
+        out[r] = np.sqrt(max(0.0, (q - (w.size - n_rates)) / (np.sum(w) - np.sum(w**2) / np.sum(w))))
+    floor = np.broadcast_to(out, floor.shape).copy()
+    return within + floor**2, floor
