@@ -348,6 +348,8 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         params += par
     step = step_row(final, dataset, output_unit)
     if step is not None:
+        if STEP.effect in wander:   # what its test against the wander found
+            step[0]["evidence"] += f"; {wander[STEP.effect]}"
         rows.append(step[0])
         before["unexplained: offset step"] = step[1].residuals
     res = _residuals(final, output_unit)

@@ -105,7 +105,9 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
         if stat is None or constant < SEGMENT_CONSTANT:
             continue
         k = len(cand.names)
-        p = chi2_sf(stat, k)
+        # the step's time was chosen where it fits best: Bonferroni over the segment boundaries it could take
+        scanned = max(1, len(np.unique(final.obs.segment)) - 1) if cand == STEP else 1
+        p = min(1.0, chi2_sf(stat, k) * scanned)
         size = f"the offsets wander ({noise.size()}; floors in {output_unit})"
         if p >= alpha:
             final = reduced
@@ -128,10 +130,11 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise,
     independent offsets). The fits measure q, not T: the statistic is the
     least over ``WANDER_TIMES`` of the recording's duration, the correlation
     time that explains the pattern best (a slow wander moves neighbouring
-    segments alike, as a drift or a step would). ``refloor``: q measured
-    again from the segment means of ``final``'s residuals (the fits' floor
-    leaves out the catalogue effects' patterns, not an offset step's, so a
-    step would be tested against the wander it makes itself)."""
+    segments alike, as a drift or a step would). ``refloor``: the fits'
+    floor leaves out the catalogue effects' patterns, not an offset step's,
+    so a step would be tested against the wander it makes itself: the
+    likelihood ratio of the step with q and T fitted under both hypotheses
+    instead (``_likelihood_ratio``)."""
     seg = final.obs.segment
     ids, idx = np.unique(seg, return_inverse=True)
     if not all(int(s) in noise.u for s in ids):
@@ -150,12 +153,16 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise,
     constant = float(np.sum(count * d**2)) / total
     var = np.array([noise.u[int(s)] for s in ids]) ** 2
     floor = np.array([noise.floor[int(s)] for s in ids])
-    if refloor:
-        var, floor = _refloored(c - d, var, floor, on, final.layout.n_rates)
     t = final.obs.motion.t_s
     centre = np.bincount(idx, t, ids.size) / np.bincount(idx, minlength=ids.size)
     lag = np.abs(centre[:, None] - centre[None, :])
     duration = float(t.max() - t.min()) if t.size else 0.0
+    if refloor:
+        within = np.maximum(var - floor**2, 1e-300)
+        ok = on & np.isfinite(within)
+        rate = np.zeros(ids.size, int)
+        rate[idx] = final.obs.rate_idx
+        return _likelihood_ratio(c, d, within, ok, lag, centre - centre.min(), duration, rate), constant
     stats = []
     for share in (0.0,) + WANDER_TIMES:
         rho = np.eye(ids.size) if share == 0.0 or duration <= 0 else np.exp(-lag / (share * duration))
@@ -176,21 +183,53 @@ def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise,
     return min(stats), constant
 
 
-def _refloored(means: np.ndarray, var: np.ndarray, floor: np.ndarray, on: np.ndarray,
-               n_rates: int) -> tuple[np.ndarray, np.ndarray]:
-    """(u(C)^2, floor) per segment and channel with the floor measured from
-    the segment ``means`` of a model's residuals (DerSimonian & Laird 1986,
-    the model's offsets per rate taken off the degrees of freedom) in place
-    of the fits'."""
-    within = np.maximum(var - floor**2, 1e-300)
-    out = np.zeros(3)
+def _log_likelihood(m: np.ndarray, x: np.ndarray | None, v: np.ndarray) -> float:
+    """Gaussian log-likelihood (without constants) of ``m`` ~ N(x beta, v), beta at its GLS value."""
+    chol = np.linalg.cholesky(v)
+    white = np.linalg.solve(chol, m)
+    rss = float(white @ white)
+    if x is not None:
+        wx = np.linalg.solve(chol, x)
+        info = float(wx @ wx)
+        if info > 0:
+            rss -= float(wx @ white) ** 2 / info
+    return -0.5 * (2 * float(np.sum(np.log(np.diag(chol)))) + rss)
+
+
+def _likelihood_ratio(c: np.ndarray, d: np.ndarray, within: np.ndarray, ok: np.ndarray, lag: np.ndarray,
+                      start: np.ndarray, duration: float, rate: np.ndarray) -> float:
+    """2 ln LR of the pattern ``d`` (one free size per channel) in the
+    segment means ``c``, each hypothesis with its own wander: V = diag(
+    ``within``) + q^2 exp(-lag / T), q on a grid to three times the means'
+    spread and T over ``WANDER_TIMES`` of ``duration`` (and independent),
+    or a random walk, q^2 min(t_i, t_j) / duration (``start``: the segments'
+    times from the first), both fitted by maximum likelihood, summed over
+    channels. The means are residuals of a model with an offset per rate
+    (``rate``: each segment's), so the likelihoods are those of the
+    contrasts free of them (restricted maximum likelihood, Patterson &
+    Thompson 1971): everything projected on the complement of the rates'
+    indicators."""
+    total = 0.0
+    shapes = [np.eye(lag.shape[0])] + ([np.exp(-lag / (share * duration)) for share in WANDER_TIMES] if duration > 0 else [])
+    if duration > 0:   # a random walk from the first segment: Cov = q^2 min(t_i, t_j) / duration
+        shapes.append(np.minimum(start[:, None], start[None, :]) / duration)
     for r in range(3):
-        ok = on[:, r] & np.isfinite(within[:, r])
-        w = 1.0 / within[ok, r]
-        if w.size <= n_rates + 1:
+        on = ok[:, r]
+        if on.sum() < 3:
             continue
-        m = means[ok, r]
-        q = float(np.sum(w * (m - np.sum(w * m) / np.sum(w)) ** 2))
-        out[r] = np.sqrt(max(0.0, (q - (w.size - n_rates)) / (np.sum(w) - np.sum(w**2) / np.sum(w))))
-    floor = np.broadcast_to(out, floor.shape).copy()
-    return within + floor**2, floor
+        rates = np.unique(rate[on])
+        if on.sum() <= rates.size + 1:
+            continue
+        indicators = (rate[on][:, None] == rates[None, :]).astype(float)
+        basis = np.linalg.svd(indicators, full_matrices=True)[0][:, rates.size:]   # the contrasts
+        m, x, w = basis.T @ c[on, r], basis.T @ d[on, r], np.diag(within[on, r])
+        spread = float(np.sqrt(np.mean(m**2)))
+        best = [-np.inf, -np.inf]
+        for q in np.r_[0.0, spread * np.geomspace(0.03, 3.0, 12)]:
+            for rho in shapes:
+                v = basis.T @ (w + q**2 * rho[np.ix_(on, on)]) @ basis
+                for h, design in enumerate((None, x)):
+                    best[h] = max(best[h], _log_likelihood(m, design, v))
+        total += max(0.0, 2 * (best[1] - best[0]))
+    return total
+
