@@ -119,3 +119,25 @@ def test_clean_datasets_under_coloured_noise_have_no_finding(tmp_path, request_,
     diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
     found = diagnosis.findings.filter(diagnosis.findings["detected"])
     assert found.height == 0, found.select("effect", "where", "evidence").rows()
+
+
+def test_an_extension_the_noise_spectrum_explains_is_set_aside(tmp_path):
+    """A Gauss-Markov wander of 1.82 counts and 80 s under 8 counts white
+    (seed 9): the forward selection, taking the whitened residuals as
+    white, picks rate_ripple on x (a once-per-turn pattern at the slow
+    rotations' frequencies, where the wander's density is 19 times white);
+    tested again against the noise's density at its signature's
+    frequencies it is set aside, and the row says so with that density.
+    No finding remains."""
+    spec = SimulationSpec().with_noise("white_sd=8,gauss_markov=80.3:1.82")
+    path = write_dataset(simulate(spec, 9), spec, tmp_path / "d")
+    ds = load_dataset(path)
+    config = RunConfig(run=RunSection(workers=1))
+    seg = segment_and_fit(ds, config)
+    reductions = reduce(seg, ds)
+    results, _, _ = determined(reductions, seg, path)
+    diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
+    rows = diagnosis.findings
+    assert rows.filter(rows["detected"]).height == 0
+    ripple = rows.filter(rows["effect"] == "rate_ripple")["evidence"].item()
+    assert "rate_ripple@x set aside: the noise's density at its signature's frequencies is u 1" in ripple, ripple
