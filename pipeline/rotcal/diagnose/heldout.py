@@ -41,7 +41,7 @@ from rotcal.combine.heldout import HeldOut, signed_rank
 from rotcal.diagnose.fitting import ModelFit, fit_model
 from rotcal.diagnose.model import Linearisation, Structure, weighted
 
-MIN_UNITS = 8  # fewer segments than this: each is cut into blocks, so that the test has degrees of freedom
+MIN_UNITS = 12  # fewer segments than this: each is cut into blocks, so that the test has degrees of freedom
 BLOCKS = 4     # blocks of a segment held out one at a time where the segment itself cannot be
 CONDITION = 1e-10  # smallest eigenvalue (unit-diagonal scale) of the normal matrix without a unit that determines the rest
 
