@@ -112,3 +112,19 @@ def test_ranks_where_the_gains_differ_by_decades():
     assert ranked.better and ranked.p_value < 2e-3
     assert compare(simple, rich).p_value > 0.02
     assert not signed_rank(rich, simple).better
+
+
+def test_a_segment_that_alone_determines_a_parameter_is_held_out_by_blocks(tmp_path):
+    """Two axes (x, z), five rates: each rate's rotation about z alone
+    determines its responsivities' x components (and about x, z's), the
+    static steps of one axis alone the static result's: every segment is
+    cut into blocks, each block predicted from the rest."""
+    spec = SimulationSpec(plan=Plan(axes=("x", "z"), rates_hz=(0.01, 0.02, 0.05, 0.1, 0.5), rotation_samples=1500))
+    spec = spec.with_effects("cubic_nonlinearity:k3_u=-1e-3")
+    outcome = run_dataset(write_dataset(simulate(spec, 3), spec, tmp_path / "data"), tmp_path / "out", config=ONE_WORKER)
+    final = outcome.diagnosis.final
+    units = held_out_units(final)
+    assert units.max() + 1 == 12 and _press(final, units, final.sigma)[1] == list(range(12))
+    verdict, unit = segments_held_out(final)
+    assert unit == "segment block" and verdict.dof + 1 == 48 and verdict.better
+    assert outcome.recommended.model == "refined" and "left out one segment block at a time" in outcome.recommended.reason

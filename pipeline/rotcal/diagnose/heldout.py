@@ -80,11 +80,15 @@ def _split(units: np.ndarray, unit: int) -> np.ndarray:
     return out
 
 
-def _determined(G: np.ndarray) -> bool:
-    scale = np.sqrt(np.diag(G))
-    if np.any(scale == 0):
+def _determined(rest: np.ndarray, every: np.ndarray) -> bool:
+    """Whether the normal matrix without a unit (``rest``) still determines
+    every parameter: its smallest eigenvalue on the scale of ``every``
+    sample's (unit diagonal there) above ``CONDITION``; a parameter only the
+    unit determines leaves a diagonal of rounding, of either sign."""
+    scale = np.sqrt(np.diag(every))
+    if np.any(scale == 0) or np.any(np.diag(rest) <= CONDITION * np.diag(every)):
         return False
-    return bool(np.linalg.eigvalsh(G / np.outer(scale, scale))[0] > CONDITION)
+    return bool(np.linalg.eigvalsh(rest / np.outer(scale, scale))[0] > CONDITION)
 
 
 def _press(fit: ModelFit, units: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, list[int]]:
@@ -102,7 +106,7 @@ def _press(fit: ModelFit, units: np.ndarray, sigma: np.ndarray) -> tuple[np.ndar
             continue
         G_k, b_k, chi2_k, n_k = _unit_equations(lin, use, idx, sigma)
         rest = G_all - G_k
-        if not _determined(rest):
+        if not _determined(rest, G_all):
             undetermined.append(k)
             errors.append(np.nan)
             continue
