@@ -12,16 +12,17 @@ without unit k moves the parameters by
     delta_k = (G - G_k)^-1 (b - b_k),
 
 with G = J' W J and b = J' W r the weighted normal equations of every
-sample and G_k, b_k those of unit k alone (the leave-one-out update,
-Cook and Weisberg 1982, 3.4), and unit k's squared prediction error is
+sample and G_k, b_k those of unit k alone (the case-deletion update of
+Cook and Weisberg 1982, Residuals and Influence in Regression), and unit
+k's squared prediction error is
 |r_k - J_k delta_k|^2_W = chi2_k - 2 delta_k' b_k + delta_k' G_k delta_k.
 Both models are weighed alike (the refined model's noise per channel,
 whitened as the diagnosis fits) and each unit's error is divided by its
 number of residuals, so 1 is a unit predicted to its noise.
 
 "Better by more than chance" is Wilcoxon's one-sided signed-rank test of
-the per-unit log ratios of the two errors (``combine.heldout.signed_rank``,
-exact on the units' number): a table's segments run at rates a decade
+the per-unit log ratios of the two errors (``combine.heldout.signed_rank``;
+exact up to 50 units without ties, normal beyond): a table's segments run at rates a decade
 apart, so an effect's gain differs by orders of magnitude between them and
 the paired t test of the static poses would take that spread for chance.
 The test draws its chance from the units themselves, so segments that
@@ -110,7 +111,12 @@ def _press(fit: ModelFit, units: np.ndarray, sigma: np.ndarray) -> tuple[np.ndar
             undetermined.append(k)
             errors.append(np.nan)
             continue
-        delta = np.linalg.solve(rest, b_all - b_k)
+        try:
+            delta = np.linalg.solve(rest, b_all - b_k)
+        except np.linalg.LinAlgError:  # singular to working precision after all: not predicted
+            undetermined.append(k)
+            errors.append(np.nan)
+            continue
         errors.append(max(chi2_k - 2 * delta @ b_k + delta @ G_k @ delta, 0.0) / n_k)
     return np.array(errors), undetermined
 
