@@ -269,10 +269,8 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         angle = part["angle_deg"]
         theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
-        fit = _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
-        fit = rounding_repeats(fit, theta, channels)  # below the output step, a sample's rounding follows its angle
-        dt_s = (part["t_ns"][-1] - part["t_ns"][0]) / 1e9 / max(part.height - 1, 1)
-        return with_spectrum(fit, theta, channels, row["rate_hz"] if row["kind"] == "rotation" else None, dt_s)
+        return segment_fit(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels,
+                           int(part["t_ns"][0]), int(part["t_ns"][-1]), config)
 
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(cores(workers), max(len(todo_rows), 1))
@@ -284,8 +282,28 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     t_ns = samples["t_ns"].to_numpy()
     first, last = (np.array([rows[r["segment"]][0] + k * (rows[r["segment"]][1] - 1) for r in todo_rows], np.int64) for k in (0, 1))
     t_first, t_last = (t_ns[i] / 1e9 if len(t_ns) else np.zeros(0) for i in (first, last))
-    return offset_floor(spectrum_widened(fits), (t_first + t_last) / 2, t_last - t_first,
-                        [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows])
+    return across_segments(fits, t_first, t_last, [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows])
+
+
+def segment_fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
+                channels: tuple[np.ndarray, ...], t_first_ns: int, t_last_ns: int, config: FitConfig) -> SegmentFit:
+    """One segment's fit from its own samples (angles, channels, first and
+    last stamps), as every run fits it, in memory or block by block: the fit,
+    widened where its rounding repeats (below the output step a sample's
+    rounding follows its angle), with its residuals' periodogram."""
+    fit = _fit_channels(segment, kind, rate_hz, angle_source, theta_deg, channels, config)
+    fit = rounding_repeats(fit, theta_deg, channels)
+    dt_s = (t_last_ns - t_first_ns) / 1e9 / max(theta_deg.size - 1, 1)
+    return with_spectrum(fit, theta_deg, channels, rate_hz if kind == "rotation" else None, dt_s)
+
+
+def across_segments(fits: list[SegmentFit], t_first_s: np.ndarray, t_last_s: np.ndarray,
+                    kinds: list[tuple[str, float]], axes: list[str | None]) -> list[SegmentFit]:
+    """The fits (each segment's own, ``segment_fit``) widened by what only
+    all segments together measure: the noise's spectrum pooled over them
+    (``fit.spectrum``) and the offsets' wander between them (``fit.wander``),
+    the segments' spans in seconds ``t_first_s`` to ``t_last_s``."""
+    return offset_floor(spectrum_widened(fits), (t_first_s + t_last_s) / 2, t_last_s - t_first_s, kinds, axes)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

@@ -125,7 +125,7 @@ def streamed_segments(ds: StreamedDataset, config: RunConfig) -> tuple[StreamedS
 
 def streamed_fits(blocks: Blocks, ds: Dataset, config: RunConfig) -> list[SegmentFit]:
     """The segment fits of a capture's blocks (``corrected_blocks``'s: the fits under the refined model)."""
-    return stream_segments(blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples).fits
+    return stream_segments(blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples, pool_noise=False).fits
 
 
 def corrected_blocks(streamed: StreamedSegments, segments: pl.DataFrame, fits: pl.DataFrame, diagnosis: Diagnosis) -> Blocks:
