@@ -234,3 +234,32 @@ def test_what_the_streamed_path_cannot_take_is_read_in_memory(centripetal_captur
     assert note in ours.notes and tuple(n for n in ours.notes if n != note) == memory.notes
     for p in (tmp_path / "memory").glob("*.parquet"):
         assert pl.read_parquet(tmp_path / "streamed" / p.name).equals(pl.read_parquet(p)), p.name
+
+
+@pytest.mark.parametrize("stamps", ["regular", "jittered", "two steps"])
+def test_the_sample_interval_counted_block_by_block_is_the_median_step(long_capture, stamps):
+    """The noise model's sample interval, read in blocks of 4999 samples
+    (each block's positive steps counted by value), is
+    ``noise.residuals.sample_interval_s`` of the whole table: regular
+    stamps, stamps jittered by up to 3 us (thousands of distinct steps),
+    and steps of two values half and half (an even count: the mean of
+    the two middle ones, half a nanosecond off either)."""
+    from rotcal.noise.residuals import sample_interval_s
+    from rotcal.run.streaming import label_runs
+
+    rng = np.random.default_rng(4)
+    samples = long_capture.samples
+    t0 = samples["t_ns"][0]
+    if stamps == "jittered":
+        samples = samples.with_columns(pl.col("t_ns") + rng.integers(0, 3_001, samples.height))
+    if stamps == "two steps":  # 299,998 steps: 149,999 of 60 ms and as many of 60 ms + 1 ns
+        samples = samples.head(299_999)
+        steps = rng.permutation(np.repeat([60_000_000, 60_000_001], 149_999))
+        samples = samples.with_columns(t_ns=pl.Series(t0 + np.r_[0, np.cumsum(steps)]))
+    distinct = samples["t_ns"].diff().drop_nulls().n_unique()
+    assert distinct > 1000 if stamps == "jittered" else distinct == 2 if stamps == "two steps" else True
+
+    def blocks():
+        return (samples.slice(a, 4999) for a in range(0, samples.height, 4999))
+
+    assert label_runs(blocks)[2] == sample_interval_s(samples) > 0

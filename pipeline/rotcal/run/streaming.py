@@ -110,8 +110,12 @@ def label_runs(blocks: Blocks) -> tuple[list[_Run], int, float]:
             continue
         t_ns, axis, rate, angle, channels = _columns(block)
         step = np.diff(t_ns) if last_t is None else np.diff(t_ns, prepend=last_t)
-        for value, count in zip(*np.unique(step[step > 0], return_counts=True)):
-            steps[int(value)] = steps.get(int(value), 0) + int(count)
+        step = step[step > 0]
+        if step.size and step.min() == step.max():  # a logger's regular steps: one value, no sort
+            steps[int(step[0])] = steps.get(int(step[0]), 0) + step.size
+        else:
+            for value, count in zip(*np.unique(step, return_counts=True)):
+                steps[int(value)] = steps.get(int(value), 0) + int(count)
         last_t = t_ns[-1]
         start = np.r_[axis[0] != last[0], axis[1:] != axis[:-1]] | _differs(rate, np.r_[last[1], rate[:-1]])
         angle_change = _differs(angle, np.r_[last[2], angle[:-1]])
