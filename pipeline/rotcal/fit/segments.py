@@ -319,7 +319,12 @@ def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.nda
         unwrapped = np.unwrap(theta_deg, period=360.0)
         theta_deg = unwrapped[0] + kappa * (unwrapped - unwrapped[0])
     sin, cos = sincos_deg(theta_deg)
-    resid = np.column_stack(channels) - (fit.coef[:, 0] + sin[:, None] * fit.coef[:, 1] + cos[:, None] * fit.coef[:, 2])
+    # channel by channel into one array (the same operations as broadcasting the three at once, a third of
+    # the temporaries: a long segment read block by block is held whole while it is fitted)
+    resid = np.empty((sin.size, len(channels)))
+    for r, y in enumerate(channels):
+        resid[:, r] = y - (fit.coef[r, 0] + sin * fit.coef[r, 1] + cos * fit.coef[r, 2])
+    del sin, cos
     return replace(fit, spectrum=periodogram(resid, dt_s, cycles))
 
 

@@ -97,7 +97,9 @@ class PooledAllan:
 
     def add(self, piece: np.ndarray) -> None:
         """One piece (n, channels) of residuals."""
-        x = np.concatenate([np.zeros((1, piece.shape[1])), np.cumsum(piece, axis=0)])
+        x = np.empty((piece.shape[0] + 1, piece.shape[1]))  # the phase, 0 then the cumulative sums
+        x[0] = 0.0
+        np.cumsum(piece, axis=0, out=x[1:])
         self.sizes.append(piece.shape[0])
         for k, m in enumerate(self.factors):
             if x.shape[0] - 1 >= 2 * m:
