@@ -103,7 +103,10 @@ class PooledAllan:
         self.sizes.append(piece.shape[0])
         for k, m in enumerate(self.factors):
             if x.shape[0] - 1 >= 2 * m:
-                d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+                # x_{i+2m} - 2 x_{i+m} + x_i, into one array (a long segment is held whole while it is pooled)
+                d = np.multiply(x[m:-m], 2.0)
+                np.subtract(x[2 * m:], d, out=d)
+                np.add(d, x[:-2 * m], out=d)
                 self.total[k], self.count[k] = self.total[k] + np.einsum("ij,ij->j", d, d), self.count[k] + d.shape[0]
 
     def result(self, fs_hz: float, factors: np.ndarray | None = None) -> list[AllanVariance]:

@@ -47,7 +47,10 @@ def fit_residual_pieces(t_ns: np.ndarray, y: np.ndarray, angle_deg: np.ndarray, 
     if rate_hz and rate_fit_hz is not None and np.isfinite(rate_fit_hz):  # the four-parameter fit's rate
         theta = theta[0] + rate_fit_hz / rate_hz * (np.unwrap(theta) - theta[0])
     z = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
-    return _split(t_ns, y - z @ coef.T, dt_s)
+    del theta
+    resid = z @ coef.T
+    del z
+    return _split(t_ns, np.subtract(y, resid, out=resid), dt_s)
 
 
 def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
