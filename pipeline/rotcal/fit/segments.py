@@ -303,7 +303,8 @@ def across_segments(fits: list[SegmentFit], t_first_s: np.ndarray, t_last_s: np.
     all segments together measure: the noise's spectrum pooled over them
     (``fit.spectrum``) and the offsets' wander between them (``fit.wander``),
     the segments' spans in seconds ``t_first_s`` to ``t_last_s``."""
-    return offset_floor(spectrum_widened(fits), (t_first_s + t_last_s) / 2, t_last_s - t_first_s, kinds, axes)
+    axis_of: list[object] = list(axes)
+    return offset_floor(spectrum_widened(fits), (t_first_s + t_last_s) / 2, t_last_s - t_first_s, kinds, axis_of)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

@@ -104,7 +104,8 @@ def label_runs(blocks: Blocks) -> tuple[list[_Run], int, float]:
     distinct steps)."""
     runs: list[_Run] = []
     last = (np.int64(-2), np.nan, np.nan)  # the previous sample's axis, rate, angle (none before the first)
-    offset, steps, last_t = 0, {}, None
+    offset, last_t = 0, None
+    steps: dict[int, int] = {}
     for block in blocks():
         if block.height == 0:
             continue
