@@ -30,7 +30,7 @@ def _segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
     return {int(seg): (int(a), int(k)) for seg, a, k in zip(runs["value"], starts, lengths) if seg is not None}
 
 
-def _split(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]:
+def split_at_pauses(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]:
     """``resid`` (n, 3) cut at the logger's pauses."""
     cuts = np.flatnonzero(np.diff(t_ns) > GAP_FACTOR * dt_s * 1e9) + 1
     return [p for p in np.split(resid, cuts) if p.shape[0] >= 2]
@@ -50,7 +50,7 @@ def fit_residual_pieces(t_ns: np.ndarray, y: np.ndarray, angle_deg: np.ndarray, 
     del theta
     resid = z @ coef.T
     del z
-    return _split(t_ns, np.subtract(y, resid, out=resid), dt_s)
+    return split_at_pauses(t_ns, np.subtract(y, resid, out=resid), dt_s)
 
 
 def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
@@ -89,7 +89,7 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         first, count = rows_of[segment]
         y = y_all[first:first + count]
         if count >= 2:
-            pieces += _split(t_ns[first:first + count], y - y.mean(axis=0), dt_s)
+            pieces += split_at_pauses(t_ns[first:first + count], y - y.mean(axis=0), dt_s)
             done.add(int(segment))
     for row in dwells.iter_rows(named=True) if not pieces else ():
         if row["segment"] in done:
@@ -97,5 +97,5 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         inside = (t_ns >= row["t_start_ns"]) & (t_ns <= row["t_end_ns"])
         y = y_all[inside]
         if y.shape[0] >= 2:
-            pieces += _split(t_ns[inside], y - y.mean(axis=0), dt_s)
+            pieces += split_at_pauses(t_ns[inside], y - y.mean(axis=0), dt_s)
     return pieces

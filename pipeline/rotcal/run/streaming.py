@@ -30,12 +30,23 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
-from rotcal.fit.segments import SegmentFit, across_segments, arc_bounds, arc_from, refusal_from, segment_fit, stuck_from
+from rotcal.fit.segments import (
+    SegmentFit,
+    across_segments,
+    arc_bounds,
+    arc_from,
+    design,
+    fitted_angle,
+    record_noise_pooled,
+    refusal_from,
+    segment_fit,
+    stuck_from,
+)
 from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.noise import FittedNoise
 from rotcal.noise.allan import PooledAllan, octave_factors
-from rotcal.noise.residuals import fit_residual_pieces
+from rotcal.noise.residuals import fit_residual_pieces, split_at_pauses
 from rotcal.segment.labelled import segments_frame
 
 Blocks = Callable[[], Iterator[pl.DataFrame]]
@@ -96,22 +107,23 @@ def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a != b) & ~(np.isnan(a) & np.isnan(b))
 
 
-def label_runs(blocks: Blocks) -> tuple[list[_Run], int, float]:
+def label_runs(blocks: Blocks) -> tuple[list[_Run], int, float, float, tuple[float, float]]:
     """The first pass: every labelled run (segment) with what its refusals
-    read, the number of samples, and the sample interval (s) as
+    read, the number of samples, the sample interval (s) as
     ``noise.residuals.sample_interval_s`` reads it from every stamp (the
-    median positive step: counted by value, so the pass holds only the
-    distinct steps)."""
+    median positive step) and as ``fit.segments.fit_segments`` reads it
+    (the median step), both counted by value, so the pass holds only the
+    distinct steps; and the first and last stamps (s)."""
     runs: list[_Run] = []
     last = (np.int64(-2), np.nan, np.nan)  # the previous sample's axis, rate, angle (none before the first)
-    offset, last_t = 0, None
-    steps: dict[int, int] = {}
+    offset, last_t, first_t = 0, None, None
+    steps: dict[int, int] = {}  # every step between successive stamps, counted by value
     for block in blocks():
         if block.height == 0:
             continue
         t_ns, axis, rate, angle, channels = _columns(block)
         step = np.diff(t_ns) if last_t is None else np.diff(t_ns, prepend=last_t)
-        step = step[step > 0]
+        first_t = int(t_ns[0]) if first_t is None else first_t
         if step.size and step.min() == step.max():  # a logger's regular steps: one value, no sort
             steps[int(step[0])] = steps.get(int(step[0]), 0) + step.size
         else:
@@ -133,7 +145,9 @@ def label_runs(blocks: Blocks) -> tuple[list[_Run], int, float]:
                          int(np.count_nonzero(angle_change[a + 1 : b])) + (1 if start[a] else int(angle_change[a])))
         last = (axis[-1], rate[-1], angle[-1])
         offset += axis.size
-    return runs, offset, _median(steps) / 1e9
+    positive = {v: k for v, k in steps.items() if v > 0}
+    ends = (0.0, 0.0) if first_t is None or last_t is None else (float(first_t) / 1e9, float(last_t) / 1e9)
+    return runs, offset, _median(positive) / 1e9, _median(steps) / 1e9, ends
 
 
 def _median(counts: dict[int, int]) -> float:
@@ -148,7 +162,7 @@ def _median(counts: dict[int, int]) -> float:
 
 
 def fit_pass(blocks: Blocks, runs: list[_Run], angle_source: str, config: FitConfig, rows: np.ndarray,
-             noise: FittedNoise | None = None) -> tuple[dict[int, SegmentFit], pl.DataFrame]:
+             noise: FittedNoise | None = None, record: FittedNoise | None = None) -> tuple[dict[int, SegmentFit], pl.DataFrame]:
     """The second pass: each run of ``runs`` fitted (``fit.segments.segment_fit``)
     once the blocks have given all its samples, its residual pieces pooled
     into ``noise`` (``noise.residuals``), and the samples at the sorted
@@ -177,6 +191,11 @@ def fit_pass(blocks: Blocks, runs: list[_Run], angle_source: str, config: FitCon
                     fit = segment_fit(run.segment, run.kind, run.rate_hz, angle_source, theta, tuple(y.T),
                                       run.t_start_ns, run.t_end_ns, config)
                     fits[run.segment] = fit
+                    if record is not None and fit.status == "ok":  # the offsets' noise model's pieces (``fit_segments``)
+                        resid = y - design(fitted_angle(fit, theta, run.rate_hz)) @ fit.coef.T
+                        for piece in split_at_pauses(t, resid, record.dt_s):
+                            record.pooled.add(piece)
+                        del resid
                     if noise is not None and fit.status == "ok" and np.isfinite(fit.coef).all():
                         for piece in fit_residual_pieces(t, y, theta, np.ascontiguousarray(fit.coef), run.rate_hz,
                                                          fit.rate_fit_hz, noise.dt_s) or ():
@@ -257,7 +276,7 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
     segments with an angle reference (two passes over ``blocks``), with the
     samples the later stages read gathered in the second, and (``pool_noise``)
     their residual pieces pooled for the noise model (``StreamedSegments``)."""
-    runs, n_samples, dt_s = label_runs(blocks)
+    runs, n_samples, dt_s, dt_record, ends = label_runs(blocks)
     angled = [r for r in runs if r.has_angle]
     reasons = {r.segment: r.refusal(angle_source, config) for r in angled}
     fitted = [r for r in angled if reasons[r.segment] is None]
@@ -266,7 +285,9 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
 
     thinned = thinned_rows(np.array([r.first for r in fitted], np.int64), np.array([r.n for r in fitted], np.int64), max_samples)
     noise = FittedNoise(dt_s, PooledAllan(octave_factors(n_samples), len(CHANNELS))) if dt_s > 0 and pool_noise else None
-    own, gathered = fit_pass(blocks, fitted, angle_source, config, np.unique(np.concatenate([[0], thinned, *static])), noise)
+    record = FittedNoise(dt_record, PooledAllan(octave_factors(n_samples), len(CHANNELS))) if dt_record > 0 else None
+    own, gathered = fit_pass(blocks, fitted, angle_source, config, np.unique(np.concatenate([[0], thinned, *static])), noise,
+                             record)
     segments = segments_frame({
         "segment": pl.Series([r.segment for r in runs], dtype=pl.Int32),
         "capture": [gathered["capture"][0]] * len(runs),
@@ -285,7 +306,9 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
     t_first, t_last = (np.array([t / 1e9 for t in ts], float) for ts in
                        ([r.t_start_ns for r in angled], [r.t_end_ns for r in angled]))
     fits = across_segments(fits, t_first, t_last, [(r.kind, r.rate_hz) for r in angled],
-                           [AXES[r.axis] if r.axis >= 0 else None for r in angled])
+                           [AXES[r.axis] if r.axis >= 0 else None for r in angled],
+                           lambda _: None if record is None else record_noise_pooled(record.pooled, dt_record, ends),
+                           modelled=dt_record > 0)
     axis = {r.segment: AXES[r.axis] for r in angled}
     sums = {f.segment: SegmentSums.of_fit(f.segment, axis[f.segment], f.n_samples, f.sums) for f in fits if f.sums is not None}
     sizes = {r.segment: (r.first, r.n) for r in runs}
