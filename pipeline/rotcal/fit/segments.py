@@ -16,7 +16,6 @@ Cov = Sigma (x) (X^T X)^-1 with Sigma the residual covariance matrix.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -26,15 +25,13 @@ import polars as pl
 from rotcal.config import FitConfig
 from rotcal.fit.correlated import noise_scales
 from rotcal.fit.normal import SineSums, coefficient_covariance
+from rotcal.fit.pooled import across_segments, record_noise
 from rotcal.fit.quantization import rounding_repeats
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
-from rotcal.fit.spectrum import Periodogram, periodogram, spectrum_widened
-from rotcal.fit.wander import RecordNoise, offset_floor
+from rotcal.fit.spectrum import Periodogram, periodogram
+from rotcal.fit.wander import RecordNoise
 from rotcal.model.physics import CHANNELS
-from rotcal.noise.allan import PooledAllan, pooled_avars
-from rotcal.noise.means import process_of
-from rotcal.noise.model import identify_channel
 from rotcal.noise.residuals import split_at_pauses
 from rotcal.parallel import cores
 from rotcal.tables import conform, schema
@@ -314,34 +311,6 @@ def segment_fit(segment: int, kind: str, rate_hz: float, angle_source: str, thet
     return with_spectrum(fit, theta_deg, channels, rate_hz if kind == "rotation" else None, dt_s)
 
 
-def across_segments(fits: list[SegmentFit], t_first_s: np.ndarray, t_last_s: np.ndarray, kinds: list[tuple[str, float]],
-                    axes: list[str | None], noise_of: Callable[[list[SegmentFit]], RecordNoise | None],
-                    modelled: bool) -> list[SegmentFit]:
-    """The fits (each segment's own, ``segment_fit``) widened by what only
-    all segments together measure: the noise's spectrum pooled over them
-    (``fit.spectrum``) and the offsets' wander between them (``fit.wander``),
-    the segments' spans in seconds ``t_first_s`` to ``t_last_s``;
-    ``noise_of(fits)``, the recording's noise model, is asked for only where
-    some offset's noise is coloured (white noise: its cost spared)."""
-    fits = spectrum_widened(fits)
-    coloured = any(f.noise_ratio is not None and np.any(f.noise_ratio[0] > 1.0) for f in fits)
-    axis_of: list[object] = list(axes)
-    return offset_floor(fits, (t_first_s + t_last_s) / 2, t_last_s - t_first_s, kinds, axis_of,
-                        noise_of(fits) if coloured else None, modelled=modelled)
-
-
-def record_noise_pooled(pooled: PooledAllan, dt_s: float, record_s: tuple[float, float]) -> RecordNoise | None:
-    """``record_noise`` from the pieces' Allan sums pooled as they came
-    (``noise.allan.PooledAllan``: a capture read block by block)."""
-    if not pooled.sizes:
-        return None
-    allan = pooled.result(1 / dt_s)
-    channels = [identify_channel(c, [], 1 / dt_s, "", allan[r], pooled.sizes) for r, c in enumerate(CHANNELS)]
-    if all(ch.reason for ch in channels):
-        return None
-    return RecordNoise(tuple(process_of(ch) for ch in channels), dt_s, record_s)
-
-
 def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.ndarray:
     """The angle the fit's sine terms stand at: a four-parameter fit's scaled rate applied to the table's."""
     kappa = fit.rate_fit_hz / rate_hz if rate_hz else 1.0
@@ -349,21 +318,6 @@ def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.n
         return theta_deg
     unwrapped = np.unwrap(theta_deg, period=360.0)
     return unwrapped[0] + kappa * (unwrapped - unwrapped[0])
-
-
-def record_noise(pieces: list[list[np.ndarray]], dt_s: float, record_s: tuple[float, float]) -> RecordNoise | None:
-    """The recording's noise model (``rotcal.noise``: each channel's Allan
-    variance of the fits' residuals fitted with the IEEE Std 952 terms) as
-    the offsets' covariance needs it; None where no channel could be
-    modelled (too few averaging times)."""
-    flat = [p for ps in pieces for p in ps]
-    if not flat:
-        return None
-    allan = pooled_avars(flat, 1 / dt_s)
-    channels = [identify_channel(c, [p[:, r] for p in flat], 1 / dt_s, "", allan[r]) for r, c in enumerate(CHANNELS)]
-    if all(ch.reason for ch in channels):
-        return None
-    return RecordNoise(tuple(process_of(ch) for ch in channels), dt_s, record_s)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

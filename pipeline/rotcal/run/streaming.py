@@ -30,14 +30,13 @@ import numpy as np
 import polars as pl
 
 from rotcal.config import FitConfig
+from rotcal.fit.pooled import across_segments, record_noise_pooled
 from rotcal.fit.segments import (
     SegmentFit,
-    across_segments,
     arc_bounds,
     arc_from,
     design,
     fitted_angle,
-    record_noise_pooled,
     refusal_from,
     segment_fit,
     stuck_from,
