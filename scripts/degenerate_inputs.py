@@ -144,6 +144,12 @@ def violation(drawn: Drawn, out: Path) -> str | None:
         return f"a refusal of {len(str(exc).splitlines())} lines: {exc}" if "\n" in str(exc) else None
     except Exception as exc:  # noqa: BLE001  (any other exception is the violation reported)
         return f"{type(exc).__name__}: {exc}"
+    return published_violation(drawn.truth, out)
+
+
+def published_violation(truth: np.ndarray, out: Path) -> str | None:
+    """The invariant on a published result in ``out`` (its tables): None,
+    or what broke it."""
     intrinsic = pl.read_parquet(out / "intrinsic.parquet").filter(pl.col("recommended"))
     for name in intrinsic.columns:
         if intrinsic[name].dtype == pl.Float64 and not intrinsic[name].drop_nulls().is_finite().all():
@@ -152,7 +158,7 @@ def violation(drawn: Drawn, out: Path) -> str | None:
         rows = intrinsic.filter(pl.col("rate_hz") == rate)
         value, u = rows["value"].to_numpy(), rows["std_uncertainty"].fill_null(np.nan).to_numpy()
         fitted = u > 0  # a model's fixed parameters (orthogonal axes) have u = 0
-        z = (value - drawn.truth)[fitted] / u[fitted]
+        z = (value - truth)[fitted] / u[fitted]
         if np.any(~(np.abs(z) < Z_MAX)):
             return f"{rate:g} Hz: {np.array(rows['parameter'])[fitted][np.argmax(np.abs(z))]} {np.abs(z).max():.2f} u off the truth"
     diagnosis = out / "diagnosis.parquet"
