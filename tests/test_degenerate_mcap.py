@@ -235,8 +235,8 @@ def _read_all_ways(path: Path) -> dict[str, int | str]:
 
     faulthandler.dump_traceback_later(300, exit=True)  # a deadlock ends the run with every thread's stack, not a hang
     for workers in (1, 2, 3, 4):
-        attempt(f"in memory {workers}", lambda: mcap_source.read_mcap_capture(path, meta, None, Limits(), workers)[0].height)
-        attempt(f"block by block {workers}", lambda: blockwise(workers))
+        attempt(f"in memory {workers}", lambda w=workers: mcap_source.read_mcap_capture(path, meta, None, Limits(), w)[0].height)
+        attempt(f"block by block {workers}", lambda w=workers: blockwise(w))
     topics = {meta.imu_topic, meta.table_topic}
     attempt("per message", lambda: mcap_source._capture(mcap_messages.read_records(path, topics, Limits()), path, meta,
                                                         None, 1, fast=False)[0].height)

@@ -69,9 +69,10 @@ def test_an_integer_output_wrapping_at_2_31_is_named_not_the_pose_geometry(tmp_p
     near one circle" before (the jumps broke the poses apart); now the
     wrap, with the rows where it happens."""
     import polars as pl
-    from posesim import G_LOCAL, hand_placed, samples_frame
 
     from rotcal.run import run_dataset
+
+    from posesim import G_LOCAL, hand_placed, samples_frame
 
     sim = hand_placed(4, n_poses=12, samples=300, move_samples=100)
     wrapped = (pl.col("u").cast(pl.Int64) + 2**31 - 100 + 2**31) % 2**32 - 2**31

@@ -195,11 +195,12 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     captures = samples["capture"].filter(pl.Series(free)).unique(maintain_order=True).to_list()
     for capture in captures:
         idx = np.flatnonzero(free & (samples["capture"] == capture).to_numpy())
-        if idx.size and idx[-1] - idx[0] + 1 == idx.size:  # one run of rows (a whole capture): views, not copies
-            idx = slice(int(idx[0]), int(idx[-1]) + 1)
-        if t_all[idx].size >= 10:
-            seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], _outputs(samples, idx),
-                                            unrepairable.get(capture), config)
+        # one run of rows (a whole capture): views, not copies
+        part: np.ndarray | slice = slice(int(idx[0]), int(idx[-1]) + 1) if idx.size and idx[-1] - idx[0] + 1 == idx.size else idx
+        if idx.size >= 10:
+            del idx
+            seg_col[part] = _segment_capture(found, dataset, capture, t_all[part], _outputs(samples, part),
+                                             unrepairable.get(capture), config)
     hand = (f", {found.counts[3]} chain(s) of dwells about one axis without a table's steps (directions off one great "
             "circle, or unequal steps: poses turned by hand)") if found.counts[3] else ""
     route = (f"{found.counts[0]} constant rotations, {found.counts[1]} static step sequences{hand}, {found.counts[2]} dwells "
