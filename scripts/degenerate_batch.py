@@ -1,8 +1,8 @@
 """The batch acceptance of degenerate recordings (docs/fuzzing.md,
 "Degenerate recordings"): ``rotcal batch`` over ``--good`` good small-plan
 table datasets and one dataset of each degenerate kind of
-``degenerate_inputs`` (and a static recording whose signed 32-bit output
-wraps around at 2^31). Every good dataset must be published within
+``degenerate_inputs`` (the quantized ones at 1000 counts; and a static
+recording whose signed 32-bit output wraps around at 2^31). Every good dataset must be published within
 ``Z_MAX`` uncertainties of its truth with no finding; every degenerate one
 published so too, or quarantined with a one-line reason; no error; the
 exit status 4 (some quarantined, docs/batch.md); all within ``--timeout``
@@ -58,7 +58,9 @@ def build(root: Path, n_good: int, seed: int) -> dict[str, Drawn]:
     kinds = [("static", k) for k in STATIC_KINDS] + [("table", k) for k in TABLE_KINDS]
     for j, (family, kind) in enumerate(kinds):
         make = degenerate_inputs.static_recording if family == "static" else degenerate_inputs.table_recording
-        drawn[f"{family}_{kind}"] = make(np.random.default_rng([seed, 1000 + j]), kind, root / f"{family}_{kind}")
+        # the quantized ones at the coarsest step drawn (1000 counts)
+        drawn[f"{family}_{kind}"] = make(np.random.default_rng([seed, 1000 + j]), kind, root / f"{family}_{kind}",
+                                         1000.0 if kind == "quantized" else None)
     drawn["static_wrapped"] = wrapped(np.random.default_rng([seed, 2000]), root / "static_wrapped")
     return drawn
 
