@@ -74,6 +74,8 @@ def test_dwells_no_result_uses_are_counted():
         *(pl.lit(None, dtype).alias(name) for name, dtype in schema("dwells").polars_schema.items() if name != "segment")
     ).select(schema("dwells").polars_schema.keys()).cast(schema("dwells").polars_schema))
     used = reduce_dwells(dwells, False, 9.81, 0.0, frozenset({4, 5}))
-    assert used.warnings == ("2 of the 5 dwells found are single poses outside every step sequence and are not used: the "
-                             "step sequences give the static result (dwells.parquet lists every dwell and its segment)",)
+    assert used.warnings == ("2 of the 5 still intervals found are not used (still_unused.parquet lists each with its "
+                             "reason): 2 a single pose outside every step sequence, which give the static result "
+                             "(dwells.parquet lists it with its segment)",)
+    assert {t.name: t.data.height for t in used.tables} == {"dwells": 5, "still_unused": 2}
     assert reduce_dwells(dwells, False, 9.81, 0.0, frozenset()).warnings == ()

@@ -34,7 +34,7 @@ from rotcal.fit.means import group_statistics
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
-from rotcal.segment.stillness import StillnessConfig, still_intervals
+from rotcal.segment.stillness import StillnessConfig, still_and_short, unused_rows
 
 LABEL_REFERENCE = {f"{axis}_{side}": tuple(float(sign * (a == axis)) for a in AXES)
                    for axis in AXES for side, sign in (("p", 1), ("a", -1))}
@@ -163,16 +163,22 @@ def sample_poses(samples: pl.DataFrame) -> pl.DataFrame:
     return scatterless_poses(poses)
 
 
-def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
+def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig(), dataset: str = ""
+                ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The still intervals of a recording (``stillness``) as poses of
-    unknown orientation."""
-    intervals = still_intervals(samples["t_ns"].to_numpy(), samples.select(CHANNELS).to_numpy(), config)
+    unknown orientation, and the detector's rejections (a rest too short,
+    or too noisy) as rows of ``still_unused``."""
+    t_ns = samples["t_ns"].to_numpy()
+    intervals, short = still_and_short(t_ns, samples.select(CHANNELS).to_numpy(), config)
     marks = np.zeros(samples.height + 1, np.int64)
     np.add.at(marks, intervals["start"].to_numpy(), np.arange(1, intervals.height + 1))
     np.add.at(marks, intervals["stop"].to_numpy(), -np.arange(1, intervals.height + 1))
     group = np.cumsum(marks[:-1]) - 1
-    return _pose_frame(samples, group, intervals.height, "stillness", [None] * intervals.height,
-                       np.full((intervals.height, 3), np.nan))
+    poses = _pose_frame(samples, group, intervals.height, "stillness", [None] * intervals.height,
+                        np.full((intervals.height, 3), np.nan))
+    capture = samples["capture"].gather(short["start"]) if "capture" in samples.columns else ""
+    interval_s = float(np.median(np.diff(t_ns))) / 1e9 if t_ns.size > 1 else 0.0
+    return poses, unused_rows(dataset, capture, short, interval_s)
 
 
 def references(poses: pl.DataFrame) -> np.ndarray:

@@ -22,12 +22,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import TypeAlias
+from typing import TypeAlias, TypeVar
 
 import numpy as np
 import polars as pl
 
 from rotcal.combine.channels import channel_fault
+from rotcal.combine.datasheet import with_datasheet
 from rotcal.combine.directions import reference_fault
 from rotcal.combine.multiposition import ORTHOGONAL, OrientationFreeFit, orientation_free, pose_arrays
 from rotcal.combine.placement import label_tilts, off_label
@@ -149,20 +150,55 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         return Failure(0.0, f"{single.height} of the {positions.height} labelled poses have one sample each: a pose's "
                             "scatter needs two or more (one row per pose? give its mean, standard deviation and count "
                             "as pose summaries, docs/inputs.md)")
+    unused = None
     if positions.height == 0:
-        positions = still_poses(samples)
+        positions, unused = still_poses(samples, dataset=dataset)
         if positions.height == 0:
-            return Failure(0.0, "no still intervals found")
+            return Failure(0.0, "no still intervals found" + (f" that the stillness detector accepts ({unused.height} "
+                                                              "rejected: too short or too noisy)" if unused.height else ""))
     # (a jig's references are exact: a hand's labels are placed off them by ``placement``'s measure)
     fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
     if fault is not None:
         return Failure(0.0, fault)
     reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
+    if not isinstance(reduction, Failure) and reduction.results:
+        reduction = _with_datasheet(reduction, placement)
+    if unused is not None and unused.height and not isinstance(reduction, Failure):
+        reduction = with_unused(reduction, unused, positions.height)
     if isinstance(reduction, Failure) or not without_scatter(positions):
         return reduction
     return replace(reduction, notes=reduction.notes + (
         f"{positions.height} pose means without scatter: no pose noise is known, so the scatter is taken from the fit's "
         "residuals (its residual degrees of freedom, n - p, set the coverage factor)",))
+
+
+def _with_datasheet(reduction: StaticReduction, placement: Placement) -> StaticReduction:
+    """The reduction's results (its own and the nested models') joined to
+    the datasheet's priors of ``[device]`` (``combine.datasheet``), with the
+    note naming the parameters that rest on them."""
+    result, note = with_datasheet(reduction.result, placement)
+    if note is None:
+        return reduction
+    nested = tuple((name, with_datasheet(r, placement)[0]) for name, r in reduction.nested)
+    return replace(reduction, results=(result,) + reduction.results[1:], nested=nested, notes=reduction.notes + (note,))
+
+
+AnyReduction = TypeVar("AnyReduction", bound=Reduction)
+
+
+def with_unused(reduction: AnyReduction, unused: pl.DataFrame, used: int) -> AnyReduction:
+    """``reduction`` with the still intervals found and not used: the
+    ``still_unused`` table and the console's count (in a refusal's reason
+    too)."""
+    kind = unused["reason"].str.split(":").list.first().alias("kind")  # the reason's first clause: its kind
+    why = "; ".join(f"{n} {reason}" for reason, n in unused.group_by(kind, maintain_order=True).len().iter_rows())
+    warning = (f"{unused.height} of the {used + unused.height} still intervals found are not used (still_unused.parquet "
+               f"lists each with its reason): {why}")
+    # a refusal is all the console shows: it carries the count too
+    failures = reduction.failures if reduction.results else tuple(
+        Failure(f.rate_hz, f"{f.reason} ({warning})") for f in reduction.failures)
+    return replace(reduction, tables=reduction.tables + (Table("still_unused", unused),), failures=failures,
+                   warnings=reduction.warnings + (warning,))
 
 
 def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertainty: float,

@@ -20,7 +20,10 @@ from rotcal.combine.labelled import segment_coefficients
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free
 from rotcal.combine.phasefree import PhaseFreeFit, PhaseSegment, solve_phase_free
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
+from rotcal.segment.stillness import unused_rows
 
+SINGLE_POSE = ("a single pose outside every step sequence, which give the static result (dwells.parquet lists it with "
+               "its segment)")
 CONSISTENCY = 1e-3  # chi-square p-value below which the components measured twice disagree
 
 
@@ -74,16 +77,22 @@ def segment_phases(fits: pl.DataFrame, segments: pl.DataFrame, own_phase: frozen
 
 
 def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float,
-                  single: frozenset[int] = frozenset()) -> Reduction:
+                  single: frozenset[int] = frozenset(), rejected: pl.DataFrame | None = None) -> Reduction:
     """The static result (rate 0) from the dwells when ``need_static``, and
     the ``dwells`` table (with |a| after calibration when they gave it);
-    otherwise a warning counting the dwells of ``single`` (segments of one
-    pose, outside every step sequence) that no result uses."""
+    otherwise the dwells of ``single`` (segments of one pose, outside every
+    step sequence) are not used. Every still interval not used (those and
+    the detector's ``rejected`` ones) is listed in ``still_unused`` and
+    counted in a warning."""
+    from rotcal.combine.static import with_unused  # here: static imports the pose machinery this module need not
+
     results: tuple[IntrinsicResult, ...] = ()
     failures: tuple[Failure, ...] = ()
-    unused = 0 if need_static or not dwells.height else dwells.filter(pl.col("segment").is_in(list(single))).height
-    warnings = (f"{unused} of the {dwells.height} dwells found are single poses outside every step sequence and are not "
-                "used: the step sequences give the static result (dwells.parquet lists every dwell and its segment)",) if unused else ()
+    idle = dwells.filter(pl.col("segment").is_in(list(single))) if not need_static and dwells.height else dwells.clear()
+    parts = [unused_rows(str(idle["dataset"][0]), idle["capture"], idle.with_columns(reason=pl.lit(SINGLE_POSE)), 0.0
+                         ).with_columns(rest_s=idle["dwell_s"])
+             ] if idle.height else []
+    parts += [rejected] if rejected is not None and rejected.height else []
     fault = channel_fault(dwells) if need_static and dwells.height else None
     if fault is not None:
         failures = (Failure(0.0, f"static dwells: {fault}"),)
@@ -94,4 +103,7 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
             dwells = dwells.with_columns(g_magnitude=pl.Series(fit.magnitude))
         else:
             failures = (Failure(0.0, f"static dwells: {fit.reason}"),)
-    return Reduction("intrinsic", results, failures, (Table("dwells", dwells),) if dwells.height else (), warnings)
+    reduction = Reduction("intrinsic", results, failures, (Table("dwells", dwells),) if dwells.height else (), ())
+    if not parts:
+        return reduction
+    return with_unused(reduction, pl.concat(parts).sort("t_start_ns"), dwells.height - idle.height)

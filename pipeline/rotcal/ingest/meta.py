@@ -71,6 +71,8 @@ class DatasetMeta:
     output_unit: str = "bit"
     full_scale: float | None = None
     cross_axis: float | None = None
+    # [device] sensitivity, sensitivity_tolerance, offset_tolerance (``combine.datasheet``)
+    datasheet: tuple[float | None, float | None, float | tuple[float, ...] | None] = (None, None, None)
     label_tolerance_deg: float = 4.0
     pose_means: bool = False
     g_local: float = STANDARD_GRAVITY
@@ -91,7 +93,7 @@ class DatasetMeta:
     @property
     def placement(self) -> Placement:
         """What the static reduction takes from ``[device]`` and ``[format]`` about hand-placed poses."""
-        return Placement(self.cross_axis, self.label_tolerance_deg, self.pose_means)
+        return Placement(self.cross_axis, self.label_tolerance_deg, self.pose_means, *self.datasheet)
 
 
 def _parse(text: str, path: Path, what: str = "dataset.toml") -> dict:
@@ -205,6 +207,9 @@ def load_meta(path: Path | None) -> DatasetMeta:
                          "nanoseconds): the logger's rate in Hz?", path=path)
     if not csv_format.header and csv_format.names is None:
         raise InputError("invalid dataset.toml value: [format] header = false needs names = [...]", path=path)
+    if "sensitivity_tolerance" in device and "sensitivity" not in device:
+        raise InputError("invalid dataset.toml value: [device] sensitivity_tolerance needs sensitivity, the nominal "
+                         "value it bounds (output unit per g, e.g. 16384 for an MPU-6050 at +-2 g)", path=path)
     files = [c["file"] for c in doc.get("capture", ())]
     twice = sorted({f for f in files if files.count(f) > 1})
     if twice:
@@ -215,6 +220,9 @@ def load_meta(path: Path | None) -> DatasetMeta:
         output_unit=device.get("output_unit", "bit"),
         full_scale=device.get("full_scale"),
         cross_axis=device.get("cross_axis"),
+        datasheet=(device.get("sensitivity"), device.get("sensitivity_tolerance"),
+                   tuple(device["offset_tolerance"]) if isinstance(device.get("offset_tolerance"), list)
+                   else device.get("offset_tolerance")),
         label_tolerance_deg=float(fmt.get("label_tolerance_deg", 4.0)),
         pose_means=bool(fmt.get("pose_means", False)),
         g_local=float(site.get("g_local", STANDARD_GRAVITY)),

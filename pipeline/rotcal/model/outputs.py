@@ -64,6 +64,7 @@ OUTPUTS: tuple[Output, ...] = (
     Output("frequency_response_png", "frequency_response.png", "result", None),
     _table("monte_carlo"),
     _table("poses", "input"),
+    _table("still_unused", "input"),
     _table("noise"),
     Output("noise_allan_png", "noise_allan.png", "result", None),
     # views of the files published before them: last

@@ -1,4 +1,5 @@
 """What the user states about hand-placed poses (``[device] cross_axis``,
+``sensitivity``, ``sensitivity_tolerance``, ``offset_tolerance``,
 ``[format] label_tolerance_deg`` and ``pose_means`` of dataset.toml), read by the static
 reduction (``combine.placement``). Imports nothing heavy: ``ingest.meta``
 builds it when reading a dataset's metadata."""
@@ -23,6 +24,11 @@ class Placement:
     cross_axis: float | None = None
     tolerance_deg: float = DEFAULT_TOLERANCE_DEG
     pose_means: bool = False  # each row of the capture is one pose's mean (``[format] pose_means``)
+    # the datasheet's bounds ([device]; ``combine.datasheet``): nominal sensitivity (output unit per standard g),
+    # its tolerance (fraction) and the zero-g offset's (output units, one or one per axis)
+    sensitivity: float | None = None
+    sensitivity_tolerance: float | None = None
+    offset_tolerance: float | tuple[float, ...] | None = None
 
     @property
     def misalignment_u(self) -> float:

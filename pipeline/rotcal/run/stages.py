@@ -55,6 +55,7 @@ class Segmented:
     streamed: StreamedSegments | None = None  # a capture read block by block: ``samples`` holds only what ``_from_stream`` keeps
     clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``Inference``)
     sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
+    unused: pl.DataFrame | None = None  # still intervals the detector rejected (``still_unused`` rows; a table recording's)
 
     @cached_property
     def labelled_fits(self) -> pl.DataFrame:
@@ -128,13 +129,13 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
                      tuple(timebase.warnings) + partial + (inferred.warnings if table else ()),
                      ds.notes + (inferred.notes if table else _static_route(inferred.route)),
                      sums={f.segment: f.sums for f in fitted if f.sums is not None},
-                     clock_factor=inferred.clock_factor if table else 1.0)
+                     clock_factor=inferred.clock_factor if table else 1.0, unused=inferred.unused if table else None)
 
 
 def _static_route(evidence: str) -> tuple[str, ...]:
     """The static route's note: what the signals showed instead of a table's segments."""
-    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval enters the "
-            "static fit",) if evidence else ()
+    return (f"route: static poses, the signals showing no table segments ({evidence}); every still interval the detector "
+            "accepts enters the static fit",) if evidence else ()
 
 
 def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
@@ -150,7 +151,7 @@ def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
     return Segmented(inferred.samples, inferred.segments, fits, inferred.own_phase, inferred.dwells, True,
                      (Table("segments", inferred.segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(ds.timebase.warnings) + inferred.warnings, ds.notes + inferred.notes, streamed,
-                     clock_factor=inferred.clock_factor)
+                     clock_factor=inferred.clock_factor, unused=inferred.unused)
 
 
 def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
@@ -168,7 +169,7 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name, seg.labelled_rates)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
     single = frozenset(seg.segments.filter(pl.col("kind") == "pose")["segment"].to_list())
-    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single)
+    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single, seg.unused)
     return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
 
 

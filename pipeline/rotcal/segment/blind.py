@@ -38,10 +38,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import polars as pl
 
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.model.physics import AXES
-from rotcal.segment.stillness import StillnessConfig, still_intervals
+from rotcal.segment.stillness import StillnessConfig, still_and_short
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,7 @@ class BlindSegmentation:
     noise_sd: np.ndarray
     offset: np.ndarray
     hand_chains: int = 0  # chains of dwells about one axis without a table's evidence (``table_steps``): poses
+    short: pl.DataFrame | None = None  # the stillness detector's rejections (``still_and_short``)
 
 
 def axis_from_normal(normal: np.ndarray) -> tuple[str, float]:
@@ -332,7 +334,7 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     """Segment one capture's samples (time order) by their signals alone."""
     n = t_ns.size
     dt_ns = float(np.median(np.diff(t_ns))) if n > 1 else 1e9
-    still = still_intervals(t_ns, y, config.stillness)
+    still, short = still_and_short(t_ns, y, config.stillness)
     raw = still.select("start", "stop").to_numpy().reshape(-1, 2)
     # a still interval reaches up to a window into the moves on either side: its core does not
     w_still = max(3, int(round(config.stillness.window_s * 1e9 / dt_ns)))
@@ -405,7 +407,7 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     gaps_before = np.r_[0, np.cumsum(np.diff(t_ns) > config.stillness.gap_factor * dt_ns)]
     recorded = gaps_before[dwells[1:, 0]] == gaps_before[dwells[:-1, 1] - 1]
     sequences, hand = _sequences(y, dwells, means, offset, moving, recorded, config)
-    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset, hand)
+    return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset, hand, short)
 
 
 def noise_sd_of(y: np.ndarray, dwells: np.ndarray) -> np.ndarray:

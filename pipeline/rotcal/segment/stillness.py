@@ -28,6 +28,9 @@ import polars as pl
 
 from rotcal.model.physics import CHANNELS
 
+NOISY_FACTOR = 10.0  # a noisy rest: windows up to this many times the threshold's variance (about 3.2 x its std)
+TREND_SIGMAS = 4.0  # a move: its first and last thirds' means differ by more than this many standard errors
+
 
 @dataclass(frozen=True)
 class StillnessConfig:
@@ -65,15 +68,17 @@ def column_variance(y: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
-    """Which windows (by first sample, ``n - window + 1`` of them) are quiet, and the window length."""
+def window_ratios(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
+    """Every window's (by first sample, ``n - window + 1`` of them) largest
+    variance ratio to its channel's noise floor (inf across a time gap),
+    and the window length."""
     n = t_ns.size
     dt_s = float(np.median(np.diff(t_ns))) / 1e9 if n > 1 else 1.0
     window = max(3, int(round(config.window_s / dt_s)))
     if n < window:
-        return np.zeros(0, bool), window
+        return np.zeros(0), window
     integer = all(np.all(y[:, r] == np.round(y[:, r])) for r in range(y.shape[1]))
-    quiet = np.ones(n - window + 1, bool)
+    ratio = np.zeros(n - window + 1)
     for r in range(y.shape[1]):  # a column at a time: its temporaries, not the table's
         second = np.diff(y[:, r], 2)
         second -= np.median(second)
@@ -81,11 +86,19 @@ def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = Sti
         del second
         var = column_variance(y[:, r], window)
         floor = max(min(float(np.percentile(var, config.floor_percentile)), white), 1.0 / 12.0 if integer else 1e-12)
-        quiet &= var / floor < config.threshold
+        var /= floor
+        np.maximum(ratio, var, out=ratio)
     gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
     gap_before = np.concatenate([[0], np.cumsum(gap)])
-    quiet &= gap_before[window - 1 :] == gap_before[: n - window + 1]  # no gap inside the window
-    return quiet, window
+    inside = gap_before[window - 1 :] != gap_before[: n - window + 1]  # a gap inside the window
+    ratio[inside] = np.inf
+    return ratio, window
+
+
+def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
+    """Which windows (by first sample, ``n - window + 1`` of them) are quiet, and the window length."""
+    ratio, window = window_ratios(t_ns, y, config)
+    return ratio < config.threshold, window
 
 
 def _covered(quiet: np.ndarray, window: int, n: int) -> np.ndarray:
@@ -100,7 +113,20 @@ def _covered(quiet: np.ndarray, window: int, n: int) -> np.ndarray:
 def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
     """Still intervals at least ``min_dwell_s`` long: sample range, times,
     per-channel mean and standard deviation."""
-    quiet, window = quiet_windows(t_ns, y, config)
+    return still_and_short(t_ns, y, config)[0]
+
+
+def still_and_short(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()
+                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The still intervals (``still_intervals``) and the detector's
+    rejections, each with its ``reason``: runs of still samples shorter
+    than ``min_dwell_s`` (cut by a time gap or a jump), and *noisy rests*,
+    at least ``min_dwell_s`` of windows whose variance exceeds the
+    threshold but stays within ``NOISY_FACTOR`` times it with no trend in
+    the mean (a DUT held by hand, or shaken: no move between two poses, yet
+    noisier than the recording's rests)."""
+    ratio, window = window_ratios(t_ns, y, config)
+    quiet = ratio < config.threshold
     mask = _covered(quiet, window, t_ns.size)
     dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
     gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
@@ -109,14 +135,73 @@ def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = S
     i = np.arange(t_ns.size)
     spanning = (starts_before[np.clip(i, 0, quiet.size)] - starts_before[np.clip(i - window + 1, 0, quiet.size)])
     gap |= np.r_[False, mask[:-1] & mask[1:]] & (spanning == 0)
-    # runs of still samples, split at time gaps and jumps
+    starts, ends = _runs(mask, gap)
+    long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
+    short = _interval_frame(t_ns, y, starts[~long], ends[~long]).with_columns(reason=pl.lit(short_reason(config)))
+    return _interval_frame(t_ns, y, starts[long], ends[long]), pl.concat([short, _noisy_rests(
+        t_ns, y, ratio, window, mask, gap, config)]).sort("t_start_ns")
+
+
+def _runs(mask: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and end (exclusive) samples of the runs of ``mask``, split at ``gap``."""
     starts = np.flatnonzero(mask & (np.r_[True, ~mask[:-1]] | gap))
     ends = np.flatnonzero(mask & (np.r_[~mask[1:], True] | np.r_[gap[1:], True])) + 1
-    long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
-    starts, ends = starts[long], ends[long]
+    return starts, ends
+
+
+def _noisy_rests(t_ns: np.ndarray, y: np.ndarray, ratio: np.ndarray, window: int, still: np.ndarray,
+                 gap: np.ndarray, config: StillnessConfig) -> pl.DataFrame:
+    """The noisy rests (``still_and_short``) outside the still samples
+    ``still``, with their reason: the scatter, relative to the noise floor,
+    of their quietest half of windows."""
+    loose = _covered(ratio < config.threshold * NOISY_FACTOR, window, t_ns.size) & ~still
+    starts, ends = _runs(loose, gap)
+    dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
+    kept: list[tuple[int, int]] = []
+    scatter: list[float] = []
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        third = (b - a) // 3
+        # two windows at least: a rest's edge (windows over the rest and the move's start) is not a rest
+        if (t_ns[b - 1] - t_ns[a] + dt_ns) / 1e9 < max(config.min_dwell_s, 2 * config.window_s) or third < 2:
+            continue
+        # a move (a hand turning the DUT slowly) has a trend in its mean; a noisy rest does not
+        first, last = y[a : a + third], y[b - third : b]
+        se = np.sqrt((first.var(axis=0, ddof=1) + last.var(axis=0, ddof=1)) / third)
+        if np.all(np.abs(last.mean(axis=0) - first.mean(axis=0)) <= TREND_SIGMAS * np.maximum(se, 1e-300)):
+            kept.append((a, b))
+            scatter.append(float(np.sqrt(np.median(ratio[a : max(a + 1, b - window + 1)]))))
+    bounds = np.array(kept, dtype=np.int64).reshape(-1, 2)
+    limit = float(np.sqrt(config.threshold))
+    return _interval_frame(t_ns, y, bounds[:, 0], bounds[:, 1]).with_columns(reason=pl.Series([
+        f"too noisy for a rest: its samples scatter {x:.2g} times the recording's noise floor (a rest's may reach "
+        f"{limit:.2g} times); held by hand, or vibration? not a move (no trend in its mean), so it is listed, not used"
+        for x in scatter], dtype=pl.String))
+
+
+def _interval_frame(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> pl.DataFrame:
     rows = {"start": starts, "stop": ends, "t_start_ns": t_ns[starts], "t_end_ns": t_ns[ends - 1],
             "n_samples": ends - starts}
     for r, c in enumerate(CHANNELS):
-        rows[f"mean_{c}"] = np.array([y[a:b, r].mean() for a, b in zip(starts, ends)])
-        rows[f"std_{c}"] = np.array([y[a:b, r].std(ddof=1) for a, b in zip(starts, ends)])
+        rows[f"mean_{c}"] = np.array([y[a:b, r].mean() for a, b in zip(starts, ends)], dtype=float)
+        rows[f"std_{c}"] = np.array([y[a:b, r].std(ddof=1) if b - a > 1 else np.nan for a, b in zip(starts, ends)],
+                                    dtype=float)
     return pl.DataFrame(rows)
+
+
+def unused_rows(dataset: str, capture: pl.Series | str, intervals: pl.DataFrame, interval_s: float) -> pl.DataFrame:
+    """Still intervals (rows of ``still_and_short``'s columns, with their
+    ``reason``) as rows of the ``still_unused`` table: each with its capture
+    and why no result uses it."""
+    from rotcal.tables import conform  # here: the detector itself needs no table contracts
+
+    return conform(intervals.select(
+        pl.lit(dataset).alias("dataset"), pl.lit(capture).alias("capture") if isinstance(capture, str) else capture.alias("capture"),
+        "t_start_ns", "t_end_ns", rest_s=(pl.col("t_end_ns") - pl.col("t_start_ns")).cast(pl.Float64) / 1e9 + interval_s,
+        n_samples=pl.col("n_samples").cast(pl.Int64), mean_u="mean_u", mean_v="mean_v", mean_w="mean_w",
+        reason="reason"), "still_unused")
+
+
+def short_reason(config: StillnessConfig) -> str:
+    """Why the detector rejects a still run shorter than ``min_dwell_s``."""
+    return (f"shorter than the stillness detector's minimum rest of {config.min_dwell_s:g} s (a time gap or a jump cut "
+            "it): too short a mean to enter a fit")

@@ -24,6 +24,7 @@ from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
 from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
+from rotcal.segment.stillness import unused_rows
 from rotcal.tables import conform, schema
 from rotcal.timebase.rates import PLAN_MATCH, ClockDrift, clock_drift, nominal_rate, rate_classes
 
@@ -44,6 +45,7 @@ class Inference:
     notes: tuple[str, ...]
     clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``ClockDrift.factor``)
     route: str = ""  # what the signals showed: rotations, step sequences, chains by hand, dwells (the route's evidence)
+    unused: pl.DataFrame | None = None  # the stillness detector's rejections (``still_unused`` rows)
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +75,7 @@ class _Found:
     rows: list[dict] = field(default_factory=list)
     rotations: list[_Rotation] = field(default_factory=list)
     dwells: list[pl.DataFrame] = field(default_factory=list)
+    unused: list[pl.DataFrame] = field(default_factory=list)
     counts: np.ndarray = field(default_factory=lambda: np.zeros(4, int))
 
 
@@ -98,6 +101,8 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
         segment[r.start : r.stop] = found.key
         found.key += 1
     found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells), blind.hand_chains]
+    if blind.short is not None and blind.short.height:
+        found.unused.append(unused_rows(dataset, capture, blind.short, float(np.median(np.diff(t))) / 1e9))
     if not len(blind.dwells):
         return segment
     # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
@@ -236,5 +241,6 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
             segment=pl.col("segment").replace_strict(renumber, return_dtype=pl.Int32),
             g_magnitude=pl.lit(None, pl.Float64)), "dwells")
     return Inference(samples, conform(every, "segments"), numbered, frozenset(f.segment for f in numbered), dwells,
-                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor, route)
+                     (drift.finding(dataset),) if found.rotations else (), tuple(warnings), tuple(notes), drift.factor, route,
+                     pl.concat(found.unused) if found.unused else None)
 
