@@ -146,7 +146,7 @@ def rounding_covariance(step: np.ndarray, coef: np.ndarray, theta_deg: np.ndarra
         return floor.ravel()
     rad = np.radians(theta_deg)
     design = np.column_stack([np.ones(theta_deg.size), np.sin(rad), np.cos(rad)])
-    solve = np.linalg.lstsq(design, np.eye(theta_deg.size), rcond=None)[0] if theta_deg.size <= 2048 else None
+    solve = np.linalg.pinv(design)  # (3, n): the least-squares (minimum-norm) coefficients of any samples
     rng = np.random.default_rng(0)
     for r in coarse:
         delta, sigma = float(step[r]), float(np.sqrt(max(noise_var[r], 0.0)))
@@ -156,7 +156,7 @@ def rounding_covariance(step: np.ndarray, coef: np.ndarray, theta_deg: np.ndarra
             true = signal + place * delta
             rounded = np.round((true + sigma * rng.standard_normal(true.size)) / delta) * delta
             error = rounded - true
-            errors[j] = solve @ error if solve is not None else np.linalg.lstsq(design, error, rcond=None)[0]
+            errors[j] = solve @ error
         floor[r] = np.mean(errors**2, axis=0)
         if np.hypot(coef[r, 1], coef[r, 2]) < SMALL_SINE_STEPS * delta:
             # a sine within a few steps is not known from its rounded samples (a few counts' sine at a step's
