@@ -29,8 +29,12 @@ from rotcal.fit.quantization import rounding_repeats
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
 from rotcal.fit.spectrum import Periodogram, periodogram, spectrum_widened
-from rotcal.fit.wander import offset_floor
+from rotcal.fit.wander import RecordNoise, offset_floor
 from rotcal.model.physics import CHANNELS
+from rotcal.noise.allan import pooled_avars
+from rotcal.noise.means import process_of
+from rotcal.noise.model import identify_channel
+from rotcal.noise.residuals import split_at_pauses
 from rotcal.parallel import cores
 from rotcal.tables import conform, schema
 
@@ -274,6 +278,12 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         dt_s = (part["t_ns"][-1] - part["t_ns"][0]) / 1e9 / max(part.height - 1, 1)
         return with_spectrum(fit, theta, channels, row["rate_hz"] if row["kind"] == "rotation" else None, dt_s)
 
+    def residuals(fit: SegmentFit, row: dict) -> list[np.ndarray]:  # the noise model's pieces (``record_noise``)
+        part = samples.slice(*rows[row["segment"]])
+        theta = part["angle_deg"].fill_null(np.nan).to_numpy()
+        y = np.column_stack([part[c].to_numpy() for c in CHANNELS])
+        return split_at_pauses(part["t_ns"].to_numpy(), y - design(fitted_angle(fit, theta, row["rate_hz"])) @ fit.coef.T, dt)
+
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(cores(workers), max(len(todo_rows), 1))
     if n_workers == 1 or sum(rows[r["segment"]][1] for r in todo_rows) < THREADED_MIN_SAMPLES:
@@ -284,8 +294,38 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     t_ns = samples["t_ns"].to_numpy()
     first, last = (np.array([rows[r["segment"]][0] + k * (rows[r["segment"]][1] - 1) for r in todo_rows], np.int64) for k in (0, 1))
     t_first, t_last = (t_ns[i] / 1e9 if len(t_ns) else np.zeros(0) for i in (first, last))
-    return offset_floor(spectrum_widened(fits), (t_first + t_last) / 2, t_last - t_first,
-                        [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows])
+    fits = spectrum_widened(fits)
+    dt = float(np.median(np.diff(t_ns))) / 1e9 if len(t_ns) > 1 else 0.0
+    # the noise model only where some offset's noise is coloured (white noise: its cost spared)
+    coloured = any(f.noise_ratio is not None and np.any(f.noise_ratio[0] > 1.0) for f in fits)
+    noise = record_noise([residuals(f, r) for f, r in zip(fits, todo_rows) if f.status == "ok"], dt,
+                         (float(t_ns[0]) / 1e9, float(t_ns[-1]) / 1e9)) if coloured and dt > 0 else None
+    return offset_floor(fits, (t_first + t_last) / 2, t_last - t_first, [(r["kind"], r["rate_hz"]) for r in todo_rows],
+                        [r["axis"] for r in todo_rows], noise, modelled=dt > 0)
+
+
+def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.ndarray:
+    """The angle the fit's sine terms stand at: a four-parameter fit's scaled rate applied to the table's."""
+    kappa = fit.rate_fit_hz / rate_hz if rate_hz else 1.0
+    if kappa == 1.0 or not np.isfinite(kappa):
+        return theta_deg
+    unwrapped = np.unwrap(theta_deg, period=360.0)
+    return unwrapped[0] + kappa * (unwrapped - unwrapped[0])
+
+
+def record_noise(pieces: list[list[np.ndarray]], dt_s: float, record_s: tuple[float, float]) -> RecordNoise | None:
+    """The recording's noise model (``rotcal.noise``: each channel's Allan
+    variance of the fits' residuals fitted with the IEEE Std 952 terms) as
+    the offsets' covariance needs it; None where no channel could be
+    modelled (too few averaging times)."""
+    flat = [p for ps in pieces for p in ps]
+    if not flat:
+        return None
+    allan = pooled_avars(flat, 1 / dt_s)
+    channels = [identify_channel(c, [p[:, r] for p in flat], 1 / dt_s, "", allan[r]) for r, c in enumerate(CHANNELS)]
+    if all(ch.reason for ch in channels):
+        return None
+    return RecordNoise(tuple(process_of(ch) for ch in channels), dt_s, record_s)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,

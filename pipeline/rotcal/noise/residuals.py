@@ -30,7 +30,7 @@ def _segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
     return {int(seg): (int(a), int(k)) for seg, a, k in zip(runs["value"], starts, lengths) if seg is not None}
 
 
-def _split(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]:
+def split_at_pauses(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np.ndarray]:
     """``resid`` (n, 3) cut at the logger's pauses."""
     cuts = np.flatnonzero(np.diff(t_ns) > GAP_FACTOR * dt_s * 1e9) + 1
     return [p for p in np.split(resid, cuts) if p.shape[0] >= 2]
@@ -67,7 +67,7 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         if rate and fitted is not None and np.isfinite(fitted):  # the four-parameter fit's rate
             theta = theta[0] + fitted / rate * (np.unwrap(theta) - theta[0])
         z = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
-        pieces += _split(t_ns[first:first + count], y_all[first:first + count] - z @ coef.T, dt_s)
+        pieces += split_at_pauses(t_ns[first:first + count], y_all[first:first + count] - z @ coef.T, dt_s)
         done.add(segment)
     for segment in segments.filter(pl.col("kind") == "pose")["segment"]:
         if segment not in rows_of:
@@ -75,7 +75,7 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         first, count = rows_of[segment]
         y = y_all[first:first + count]
         if count >= 2:
-            pieces += _split(t_ns[first:first + count], y - y.mean(axis=0), dt_s)
+            pieces += split_at_pauses(t_ns[first:first + count], y - y.mean(axis=0), dt_s)
             done.add(int(segment))
     for row in dwells.iter_rows(named=True) if not pieces else ():
         if row["segment"] in done:
@@ -83,5 +83,5 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         inside = (t_ns >= row["t_start_ns"]) & (t_ns <= row["t_end_ns"])
         y = y_all[inside]
         if y.shape[0] >= 2:
-            pieces += _split(t_ns[inside], y - y.mean(axis=0), dt_s)
+            pieces += split_at_pauses(t_ns[inside], y - y.mean(axis=0), dt_s)
     return pieces

@@ -114,7 +114,16 @@ def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig,
             return allan_png(model, out / "noise_allan.png", f"{ds.name}: Allan deviation of the residuals and the noise model")
 
         outputs.append(Figure("noise_allan_png", draw))
-    return outputs, replace(calibration, noise=calibration_noise(model)), ()
+    return outputs, replace(calibration, noise=calibration_noise(model)), offset_notes(seg.fits)
+
+
+def offset_notes(fits: pl.DataFrame) -> tuple[str, ...]:
+    """The run's notes on the offsets' noise (``fit.wander``): where the
+    noise model could not be identified, or the wander is slower than the record."""
+    from rotcal.fit.wander import NOT_MODELLED, SLOWER_THAN_RECORD
+
+    noted = fits.filter(pl.col("noise_note").is_in([NOT_MODELLED, SLOWER_THAN_RECORD]))["noise_note"]
+    return tuple(f"segment offsets: {note}" for note in dict.fromkeys(noted.to_list()))
 
 
 @dataclass(frozen=True, eq=False)
