@@ -283,9 +283,11 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
 
 
 def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str,
-                     first: AllanVariance | None = None) -> ChannelNoise:
+                     first: AllanVariance | None = None, sizes: list[int] | None = None) -> ChannelNoise:
     """The Allan variance of a channel's residual pieces (``first``, when
-    already computed: ``allan.pooled_avars``), its edf for the noise type of
-    its own local slope, and its fitted model."""
+    already computed: ``allan.pooled_avars``; then ``sizes``, the pieces'
+    lengths, may stand for the pieces), its edf for the noise type of its
+    own local slope, and its fitted model."""
     first = pooled_avar(pieces, fs_hz) if first is None else first
-    return fit_channel(channel, with_edf(first, pieces, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)
+    sizes = [p.size for p in pieces] if sizes is None else sizes
+    return fit_channel(channel, with_edf(first, sizes, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)
