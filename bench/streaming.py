@@ -12,13 +12,12 @@ the largest difference between their fits tables, and the peak of memory
 each allocates beyond the sample table (``tracemalloc``).
 
 Last, ``rotcal run`` on that capture, each in a process of its own under
-``/usr/bin/time -v``: read block by block (``[run] stream_above_samples``
-0) against read whole (the key above the capture); CPU seconds per sample
+``/usr/bin/time -v``: read block by block (the default, ``[run]
+stream_above_samples`` 0) against read whole (the key above the capture); CPU seconds per sample
 (the machine may be loaded: wall time is printed too), peak resident
 memory, and the largest difference between their tables (of the column's
 largest value; ``tests/test_streaming.py`` bounds them). ``--streamed-only``
-(captures beyond memory) runs only the default configuration, which
-streams captures past its key.
+(captures beyond memory) runs only the default configuration.
 
     python bench/streaming.py [--samples 10000000] [--dir /tmp] [--streamed-only] [--block 1048576]
 """

@@ -72,8 +72,9 @@ def _jig_csv(path: Path, t_s: np.ndarray, y: np.ndarray, reference: np.ndarray) 
                                        "g_local_uncertainty = 0.0\n")
 
 
-def static_recording(rng: np.random.Generator, kind: str, path: Path) -> Drawn:
-    """Jig positions of a DUT drawn as ``simulate`` draws one, made ``kind``."""
+def static_recording(rng: np.random.Generator, kind: str, path: Path, step: float | None = None) -> Drawn:
+    """Jig positions of a DUT drawn as ``simulate`` draws one, made ``kind``
+    (``step``: the quantization's, else drawn)."""
     seed = int(rng.integers(2**31))
     n_poses = 4 if kind == "exact" else int(rng.integers(6, 17))
     faces = kind not in ("alike", "exact") and rng.random() < 0.3
@@ -88,7 +89,7 @@ def static_recording(rng: np.random.Generator, kind: str, path: Path) -> Drawn:
     y, detail = sim.y.copy(), f"seed {seed}, {len(directions)} positions, noise {noise:.3g}"
     channel = int(rng.integers(3))
     if kind == "quantized":
-        step = float(rng.choice([1, 2, 5, 10, 50, 100, 200, 500, 1000]))
+        step = float(rng.choice([1, 2, 5, 10, 50, 100, 200, 500, 1000])) if step is None else step
         y = np.round(y / step) * step
         detail += f", step {step:g}"
     elif kind in ("dead", "stuck"):
@@ -102,14 +103,16 @@ def static_recording(rng: np.random.Generator, kind: str, path: Path) -> Drawn:
     return Drawn(path, f"static {kind}", detail, sim.truth)
 
 
-def table_recording(rng: np.random.Generator, kind: str, path: Path) -> Drawn:
-    """A small table plan as per-segment CSV files, made ``kind``."""
+def table_recording(rng: np.random.Generator, kind: str, path: Path, step: float | None = None) -> Drawn:
+    """A small table plan as per-segment CSV files, made ``kind`` (``step``:
+    the quantization's, else drawn)."""
     seed = int(rng.integers(2**31))
     spec = SimulationSpec(plan=SMALL_PLAN, dut=DutSpec(noise_std=0.0) if kind == "noise_free" else DutSpec())
     write_dataset(simulate(spec, seed), spec, path, "csv")
     truth = json.loads((path / "truth.json").read_text())["intrinsic"]
     detail, channel = f"seed {seed}", CHANNELS[int(rng.integers(3))]
-    step = float(rng.choice([1, 2, 5, 10, 50, 100, 200, 500, 1000]))
+    drawn_step = float(rng.choice([1, 2, 5, 10, 50, 100, 200, 500, 1000]))
+    step = drawn_step if step is None else step
     value = float(rng.integers(-30000, 30000))
     change = {"quantized": {c: (pl.col(c) / step).round() * step for c in CHANNELS},
               "dead": {channel: pl.lit(0.0)}, "stuck": {channel: pl.lit(value)},
@@ -144,6 +147,12 @@ def violation(drawn: Drawn, out: Path) -> str | None:
         return f"a refusal of {len(str(exc).splitlines())} lines: {exc}" if "\n" in str(exc) else None
     except Exception as exc:  # noqa: BLE001  (any other exception is the violation reported)
         return f"{type(exc).__name__}: {exc}"
+    return published_violation(drawn.truth, out)
+
+
+def published_violation(truth: np.ndarray, out: Path) -> str | None:
+    """The invariant on a published result in ``out`` (its tables): None,
+    or what broke it."""
     intrinsic = pl.read_parquet(out / "intrinsic.parquet").filter(pl.col("recommended"))
     for name in intrinsic.columns:
         if intrinsic[name].dtype == pl.Float64 and not intrinsic[name].drop_nulls().is_finite().all():
@@ -152,7 +161,7 @@ def violation(drawn: Drawn, out: Path) -> str | None:
         rows = intrinsic.filter(pl.col("rate_hz") == rate)
         value, u = rows["value"].to_numpy(), rows["std_uncertainty"].fill_null(np.nan).to_numpy()
         fitted = u > 0  # a model's fixed parameters (orthogonal axes) have u = 0
-        z = (value - drawn.truth)[fitted] / u[fitted]
+        z = (value - truth)[fitted] / u[fitted]
         if np.any(~(np.abs(z) < Z_MAX)):
             return f"{rate:g} Hz: {np.array(rows['parameter'])[fitted][np.argmax(np.abs(z))]} {np.abs(z).max():.2f} u off the truth"
     diagnosis = out / "diagnosis.parquet"

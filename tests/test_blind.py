@@ -146,3 +146,24 @@ def test_segmentation_survives_every_effect_at_its_large_end(effect):
     np.testing.assert_allclose([r.fit.rate_hz for r in blind.rotations], [p["rate_hz"] * factor for p in rotations], rtol=1e-5)
     assert len(blind.dwells) == len(_truth(sim, "step") + _truth(sim, "pause"))
     assert [len(q.dwells) for q in blind.sequences] == [24, 24, 24]
+
+
+def test_blocks_of_the_rate_and_the_window_variances_change_nothing(monkeypatch):
+    """The angular rate and the window variances are computed block by
+    block (padded by their reach) to bound memory: blocks of 500 and 64
+    samples segment a continuous plan as one block does, every rotation's
+    bounds and fitted rate, every dwell and the noise alike."""
+    import rotcal.segment.blind as blind_module
+    import rotcal.segment.stillness as stillness_module
+
+    sim = simulate(SimulationSpec(plan=Plan(continuous=True)), 11)
+    t, y = _arrays(sim)
+    whole = segment_blind(t, y)
+    for size in (500, 64):
+        monkeypatch.setattr(blind_module, "MOTION_BLOCK", size)
+        monkeypatch.setattr(stillness_module, "VARIANCE_BLOCK", size)
+        blocks = segment_blind(t, y)
+        assert [(r.start, r.stop, r.axis) for r in blocks.rotations] == [(r.start, r.stop, r.axis) for r in whole.rotations]
+        np.testing.assert_allclose([r.fit.rate_hz for r in blocks.rotations], [r.fit.rate_hz for r in whole.rotations], rtol=1e-12)
+        np.testing.assert_array_equal(blocks.dwells, whole.dwells)
+        np.testing.assert_allclose(blocks.noise_sd, whole.noise_sd, rtol=1e-12)

@@ -41,7 +41,7 @@ def test_the_diagnosis_sets_the_wander_aside(wandering):
     named = set(rows.filter(rows["detected"])["effect"].to_list())
     assert named <= {"unexplained"}, named
     evidence = " ".join(rows.filter(rows["effect"].is_in(["axis_tilt", "offset_drift", "centripetal"]))["evidence"].to_list())
-    assert "set aside: the offsets wander between segments (largest floor" in evidence
+    assert "set aside: the offsets wander (largest floor" in evidence
 
 
 def test_offsets_and_the_simultaneous_solution_carry_the_wander(wandering):

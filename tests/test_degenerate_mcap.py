@@ -6,6 +6,7 @@ the chunk pool fails the test instead of hanging the suite."""
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import subprocess
 import sys
@@ -134,13 +135,16 @@ def test_a_damaged_chunk_while_the_next_batch_is_in_flight_is_declined_not_hung(
 
 
 
-def _split_capture(path: Path, second_encoding: str = "cdr") -> Path:
+def _split_capture(path: Path, second_encoding: str = "cdr", second_first: bool = False) -> Path:
     """Imu messages on /imu alternating between two channels (a second
-    channel of the same schema, or of JSON messages), in chunks of 4 kB."""
+    channel of the same schema, or of JSON messages, registered after the
+    Imu one or, ``second_first``, before it), in chunks of 4 kB."""
     with path.open("wb") as fh:
         ros2 = Ros2Writer(fh, chunk_size=4096, compression=CompressionType.ZSTD)
-        imu = ros2.register_msgdef(ros2_msgdefs.IMU_SCHEMA, ros2_msgdefs.IMU)
         raw, other = ros2._writer, None  # the same file: a second channel on the topic
+        if second_first:
+            other = raw.register_channel("/imu", second_encoding, 0)
+        imu = ros2.register_msgdef(ros2_msgdefs.IMU_SCHEMA, ros2_msgdefs.IMU)
         for k in range(IMU_MESSAGES):
             t = 1_000_000_000 + 10_000_000 * k
             message = {"header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}, "frame_id": "imu"},
@@ -199,3 +203,65 @@ def test_a_channel_record_repeated_keeps_the_fast_path(capture, tmp_path):
                      uncompressed_size=len(body))
     path = _rebuilt(capture, tmp_path / "repeated.mcap", [repeated])
     assert mcap_fast.read_topics(path, {"/imu"}, Limits())["/imu"].count == IMU_MESSAGES  # decodes, does not decline
+
+
+READERS = ["in memory", "block by block", "per message"]
+
+
+def _read_all_ways(path: Path) -> dict[str, int | str]:
+    """Each reader's rows (or its refusal) on 1 to 4 threads: the in-memory
+    one (fast path, declining to the per-message one), the block reader
+    of the streamed run (declining to the in-memory one), and the
+    per-message reader alone."""
+    from rotcal.ingest.formats.mcap import reader as mcap_source
+    from rotcal.ingest.formats.mcap import stream as mcap_stream
+    from rotcal.ingest.meta import load_meta
+    from rotcal.ingest.stream import NotBlockwise
+
+    meta, out = load_meta(None), {}
+
+    def attempt(name, read):
+        try:
+            out[name] = read()
+        except InputError as exc:
+            out[name] = str(exc).split(": ", 1)[1]
+
+    def blockwise(workers):
+        try:
+            raw = mcap_stream.open_capture(path, meta, None, Limits(), workers, 1000, "c", None)
+        except NotBlockwise:
+            return mcap_source.read_mcap_capture(path, meta, None, Limits(), workers)[0].height
+        return raw.whole.height if raw.whole is not None else sum(b.height for b in raw.blocks())
+
+    faulthandler.dump_traceback_later(300, exit=True)  # a deadlock ends the run with every thread's stack, not a hang
+    for workers in (1, 2, 3, 4):
+        attempt(f"in memory {workers}", lambda w=workers: mcap_source.read_mcap_capture(path, meta, None, Limits(), w)[0].height)
+        attempt(f"block by block {workers}", lambda w=workers: blockwise(w))
+    topics = {meta.imu_topic, meta.table_topic}
+    attempt("per message", lambda: mcap_source._capture(mcap_messages.read_records(path, topics, Limits()), path, meta,
+                                                        None, 1, fast=False)[0].height)
+    faulthandler.cancel_dump_traceback_later()
+    return out
+
+
+@pytest.mark.parametrize("recipe", ["split", "json first", "json second", "empty", "definitions", "all three"])
+def test_every_mcap_recipe_reads_alike_on_every_path_and_thread_count(capture, tmp_path, recipe):
+    """The issue's MCAP recipes through every reader: the whole topic (the
+    official reader's 3,000 messages), or the one refusal naming both
+    channels of a topic split over different messages; never half of it,
+    a channel of the wrong messages, or a hang."""
+    path = tmp_path / "recipe.mcap"
+    if recipe in ("split", "json first", "json second"):
+        _split_capture(path, "cdr" if recipe == "split" else "json", recipe == "json first")
+    else:
+        chunks = {"empty": [_empty_chunk("")], "definitions": [_definitions_chunk()],
+                  "all three": [_empty_chunk(""), _definitions_chunk(), _empty_chunk("zstd")]}[recipe]
+        _rebuilt(capture, path, chunks)
+    reads = _read_all_ways(path)
+    if recipe.startswith("json"):
+        channels = ["channel 1 (json, schema None)", "channel 2 (cdr, schema 'sensor_msgs/msg/Imu')"]
+        expected = (f"topic '/imu' is split over channels of different messages: "
+                    f"{' and '.join(channels if recipe == 'json first' else [channels[1].replace('2', '1', 1), channels[0].replace('1', '2', 1)])}")
+        assert all(str(v).startswith(expected) for v in reads.values()), reads
+    else:
+        assert set(reads.values()) == {IMU_MESSAGES}, reads

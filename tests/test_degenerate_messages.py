@@ -61,3 +61,31 @@ def test_a_library_warning_during_a_run_becomes_a_note(monkeypatch, tmp_path):
     assert outcome.notes[1].startswith("a library warned (the result stands; tell the maintainers if it recurs): "
                                        "RuntimeWarning in test_degenerate_messages.py:")
     assert outcome.notes[1].endswith("divide by zero encountered in divide")
+
+
+def test_an_integer_output_wrapping_at_2_31_is_named_not_the_pose_geometry(tmp_path):
+    """Hand-placed poses whose channel u sits near 2^31 in a signed 32-bit
+    output, wrapping to near -2^31 and back: "the poses are too alike ...
+    near one circle" before (the jumps broke the poses apart); now the
+    wrap, with the rows where it happens."""
+    import polars as pl
+
+    from rotcal.run import run_dataset
+
+    from posesim import G_LOCAL, hand_placed, samples_frame
+
+    sim = hand_placed(4, n_poses=12, samples=300, move_samples=100)
+    wrapped = (pl.col("u").cast(pl.Int64) + 2**31 - 100 + 2**31) % 2**32 - 2**31
+    path = tmp_path / "ds"
+    path.mkdir()
+    samples_frame(sim).with_columns(u=wrapped).write_csv(path / "session.csv")
+    (path / "dataset.toml").write_text(f'[device]\noutput_unit = "count"\n\n[site]\ng_local = {G_LOCAL}\n')
+    with pytest.raises(InputError, match=r"session.csv: column 'u' jumps from -214748\d{4} to 214748\d{4} between rows "
+                                         r"\d+ and \d+: a signed 32-bit integer output wrapping around at ±2\^31"):
+        run_dataset(path, tmp_path / "out")
+    # an offset of 2^31 counts without a wrap is published (the offset as it is)
+    samples_frame(sim).with_columns(u=pl.col("u") + 2**31).write_csv(path / "session.csv")
+    run_dataset(path, tmp_path / "out2")
+    offset = pl.read_parquet(tmp_path / "out2" / "intrinsic.parquet").filter(
+        pl.col("recommended") & (pl.col("parameter") == "O_u"))
+    assert abs(offset["value"][0] - 2**31 - sim.truth[6]) < 5 * offset["std_uncertainty"][0]

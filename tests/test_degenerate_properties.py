@@ -5,9 +5,6 @@ give results within their uncertainties of the truth, with no finding the
 degeneration alone produced. A short run here; ``scripts/degenerate.py``
 is the long one. Then MCAP files whose chunks and channels are unusual:
 every message read, on any thread count, as the official reader reads it.
-
-Table recordings noise-free or quantized coarsely are left out of the
-short run: their invariant does not hold yet (docs/fuzzing.md).
 """
 
 from __future__ import annotations
@@ -32,7 +29,7 @@ from test_degenerate_mcap import _definitions_chunk, _empty_chunk, _imu_capture,
 
 PROPERTY = settings(max_examples=10, deadline=None, derandomize=True, database=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-HOLDING_TABLE_KINDS = ("dead", "stuck", "radians", "rpm")
+HOLDING_TABLE_KINDS = degenerate_inputs.TABLE_KINDS
 
 
 @PROPERTY

@@ -341,7 +341,8 @@ def test_residual_scans_keep_their_false_alarm_rate(scan):
     """On white, integer-rounded noise each scan's family-wise p-value is
     (at worst slightly conservatively) uniform: at alpha = 0.1 it fires in
     about 10 % of 60 trials, not more."""
-    from rotcal.diagnose.scans import harmonic_scan, static_step_scan, tone_scan
+    from rotcal.diagnose.misfits import static_step_scan
+    from rotcal.diagnose.scans import harmonic_scan, tone_scan
 
     rng = np.random.default_rng({"static_steps": 1, "tone": 2, "harmonic": 3}[scan])
     fired = 0

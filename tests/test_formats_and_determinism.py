@@ -62,7 +62,7 @@ def test_results_do_not_depend_on_the_number_of_workers(make_dataset, tmp_path, 
     assert one == four
     # calibration.json records every configuration key, the worker count too: nothing else differs
     docs = [json.loads((tmp_path / k / "calibration.json").read_text()) for k in ("one", "four")]
-    assert [d["configuration"].pop("run") for d in docs] == [{"workers": w, "stream_above_samples": 20_000_000} for w in (1, 4)] and docs[0] == docs[1]
+    assert [d["configuration"].pop("run") for d in docs] == [{"workers": w, "stream_above_samples": 0} for w in (1, 4)] and docs[0] == docs[1]
 
 
 def test_parquet_files_record_their_schema(make_dataset, tmp_path):

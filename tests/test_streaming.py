@@ -105,13 +105,12 @@ def test_segments_and_fits_streamed_equal_in_memory(long_capture, block):
 
 def test_fits_widened_for_correlated_noise_streamed_equal_in_memory(long_capture):
     """With correlated noise (a first-order autoregression, lag-1 0.6, 10
-    counts sd, added) both ways widen the covariances: in memory from the
-    residuals' spectrum (``fit.spectrum``), streamed from lag-1 and lag-2
-    sums carried across blocks (``fit.correlated``), which read this
-    noise (white plus the autoregression: density ratio 2.8 at zero) as a
-    plain autoregression (4): the standard uncertainties agree within 30 %
-    (measured: offsets 23 %, sine terms 14 %),
-    and everything else is the same."""
+    counts sd, added) both ways widen the covariances from the residuals'
+    spectrum pooled across segments (``fit.spectrum``): read in blocks of
+    4999 samples, each segment is fitted whole once its blocks are in, so
+    the widened uncertainties are the in-memory run's bit for bit (lag-1
+    and lag-2 sums carried across blocks had read this noise as a plain
+    autoregression, 23 % off)."""
     from scipy.signal import lfilter
 
     rng = np.random.default_rng(9)
@@ -119,16 +118,16 @@ def test_fits_widened_for_correlated_noise_streamed_equal_in_memory(long_capture
     noisy = long_capture.samples.with_columns(
         pl.col(c) + np.round(lfilter([1.0], [1.0, -0.6], rng.normal(0, 8.0, n))) for c in ("u", "v", "w"))
     labelled, segments = segment_by_labels(noisy, long_capture.name, long_capture.meta.angle_source)
-    assert all(f.lag1.min() > 0.2 for f in fit_segments(labelled, segments, FitConfig()))   # widened, every segment
-    _assert_streamed_fits_equal(long_capture, noisy, 4999, widening=0.3)
+    fitted = fit_segments(labelled, segments, FitConfig())
+    assert all(f.lag1.min() > 0.2 for f in fitted)   # correlated, every segment
+    assert all(np.max(f.noise_ratio) > 2 for f in fitted if f.noise_ratio is not None)  # and widened for it
+    _assert_streamed_fits_equal(long_capture, noisy, 4999, exact=True)
 
 
-# (the offset floor: in memory the noise model's covariance of the offsets, which a streamed run does not identify)
-WIDENING = ("u_C", "u_A", "u_B", "u_rate_fit_hz", "noise_ratio_zero", "noise_ratio_rate", "offset_floor", "cov_u", "cov_v",
-            "cov_w")
-
-
-def _assert_streamed_fits_equal(ds, samples: pl.DataFrame, block: int, widening: float | None = None) -> None:
+def _assert_streamed_fits_equal(ds, samples: pl.DataFrame, block: int, exact: bool = False) -> None:
+    """The segments and fits of ``samples`` read in blocks of ``block``
+    equal those of the whole table in memory: to 1e-9 of each column's
+    largest value, or (``exact``) bit for bit."""
     config = FitConfig()
     labelled, segments = segment_by_labels(repair_timebase(samples, ds.name).samples, ds.name, ds.meta.angle_source)
     fits = fits_frame(fit_segments(labelled, segments.filter(pl.col("angle_source") != "none"), config), segments, ds.name)
@@ -141,19 +140,20 @@ def _assert_streamed_fits_equal(ds, samples: pl.DataFrame, block: int, widening:
     assert_frame_equal(streamed_segments, segments)
     streamed_fits = fits_frame(streamed, streamed_segments, ds.name)
     assert streamed_fits.height == fits.height == 3 * 15
-    if widening is not None:  # the widening's two estimates of the density (docstring above), then the rest
-        for c in ("u_C", "u_A", "u_B"):
-            np.testing.assert_allclose(streamed_fits[c].to_numpy(), fits[c].to_numpy(), rtol=widening, err_msg=c)
-        streamed_fits, fits = streamed_fits.drop(WIDENING), fits.drop(WIDENING)
+    if exact:
+        assert_frame_equal(streamed_fits, fits, check_exact=True)
+        return
     numbers = [c for c, d in fits.schema.items() if d == pl.Float64]
     assert_frame_equal(streamed_fits.drop(numbers), fits.drop(numbers))
     for c in numbers:
         scale = np.nanmax(np.abs(fits[c].to_numpy()))
         np.testing.assert_allclose(streamed_fits[c].to_numpy(), fits[c].to_numpy(), rtol=1e-9, atol=1e-9 * scale, err_msg=c)
-    for c in ("cov_u", "cov_v", "cov_w") if widening is None else ():
+    for c in ("cov_u", "cov_v", "cov_w"):
         ours, theirs = np.vstack(streamed_fits[c].to_list()), np.vstack(fits[c].to_list())
         np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9 * np.abs(theirs).max(), err_msg=c)
 
+
+WHOLE = 10**12  # ``[run] stream_above_samples`` that reads any capture whole
 
 # statistics of the difference of two near-equal estimates (consistency checks, the simultaneous solution
 # against the per-segment one): rounding of the estimates, ~1e-12, grows by their ratio to the difference
@@ -197,35 +197,69 @@ def centripetal_capture(tmp_path_factory):
 
 def test_the_whole_run_streamed_equals_in_memory(centripetal_capture, tmp_path, monkeypatch):
     """``rotcal run`` on a capture read in blocks of 7,777 samples (every
-    rotation and static sequence cut by block boundaries) publishes the
-    tables of the run in memory: the segments and fits from sums, the
-    diagnosis on the same thinned samples (it finds the centripetal
+    rotation and static sequence cut by block boundaries), the default,
+    publishes the tables of the run with the capture held whole: the
+    segments and fits (each segment fitted whole by the same functions: the
+    rounding's repeats, the residuals' periodogram pooled across segments),
+    the diagnosis on the same thinned samples (it finds the centripetal
     acceleration and the refined model is recommended), the refits of the
-    samples less the effect, the static steps' poses and corrections, and
-    Geist's simultaneous solution from per-segment sums."""
-    memory = run_dataset(centripetal_capture, tmp_path / "memory")
+    samples less the effect, the static steps' poses and corrections,
+    Geist's simultaneous solution from per-segment sums and the noise model
+    from the residuals' Allan sums pooled segment by segment."""
+    memory = run_dataset(centripetal_capture, tmp_path / "memory", config=with_options(RunConfig(), run={"stream_above_samples": WHOLE}))
     assert memory.recommended.model == "refined"
     assert memory.diagnosis is not None and memory.diagnosis.findings.filter(pl.col("detected"))["effect"].to_list() == ["centripetal"]
     monkeypatch.setattr(streamed, "BLOCK_SAMPLES", 7_777)
     taken = []
     original = stages._from_stream
     monkeypatch.setattr(stages, "_from_stream", lambda ds, s: taken.append(s) or original(ds, s))
-    config = with_options(RunConfig(), run={"stream_above_samples": 200_000})
-    ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=config)
+    ours = run_dataset(centripetal_capture, tmp_path / "streamed")
     assert len(taken) == 1 and taken[0].n_samples == 243_600  # streamed, not read in memory
-    # the one documented difference: a capture read in blocks keeps no samples to identify the noise model from
-    unidentified = "noise model not identified: the capture was read block by block (its samples are not kept)"
-    assert ours.notes == (*memory.notes, unidentified) and ours.warnings == memory.warnings
+    assert ours.notes == memory.notes and ours.warnings == memory.warnings
     assert ours.recommended.model == "refined"
-    assert assert_tables_match(tmp_path / "streamed", tmp_path / "memory", only_theirs=("noise.parquet",)) == 15
+    assert assert_tables_match(tmp_path / "streamed", tmp_path / "memory") == 16
+    # the segment fits, their uncertainties and what follows from them: the same numbers, bit for bit
+    for name in ("fits", "intrinsic", "uncertainty_budget", "simultaneous", "noise", "poses", "correction"):
+        if (tmp_path / "memory" / f"{name}.parquet").exists():
+            assert_frame_equal(pl.read_parquet(tmp_path / "streamed" / f"{name}.parquet"),
+                               pl.read_parquet(tmp_path / "memory" / f"{name}.parquet"), check_exact=True)
 
 
 def test_what_the_streamed_path_cannot_take_is_read_in_memory(centripetal_capture, tmp_path):
     """Four-parameter fits read every sample: the capture is read whole, with a note, and the tables are the in-memory run's."""
     four = with_options(RunConfig(), fit={"sine_fit": "four_parameter"}, diagnosis={"enabled": False})
-    memory = run_dataset(centripetal_capture, tmp_path / "memory", config=four)
-    ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=with_options(four, run={"stream_above_samples": 0}))
+    memory = run_dataset(centripetal_capture, tmp_path / "memory", config=with_options(four, run={"stream_above_samples": WHOLE}))
+    ours = run_dataset(centripetal_capture, tmp_path / "streamed", config=four)
     note = "read in memory, not block by block: four-parameter fits ([fit] sine_fit)"
     assert note in ours.notes and tuple(n for n in ours.notes if n != note) == memory.notes
     for p in (tmp_path / "memory").glob("*.parquet"):
         assert pl.read_parquet(tmp_path / "streamed" / p.name).equals(pl.read_parquet(p)), p.name
+
+
+@pytest.mark.parametrize("stamps", ["regular", "jittered", "two steps"])
+def test_the_sample_interval_counted_block_by_block_is_the_median_step(long_capture, stamps):
+    """The noise model's sample interval, read in blocks of 4999 samples
+    (each block's positive steps counted by value), is
+    ``noise.residuals.sample_interval_s`` of the whole table: regular
+    stamps, stamps jittered by up to 3 us (thousands of distinct steps),
+    and steps of two values half and half (an even count: the mean of
+    the two middle ones, half a nanosecond off either)."""
+    from rotcal.noise.residuals import sample_interval_s
+    from rotcal.run.streaming import label_runs
+
+    rng = np.random.default_rng(4)
+    samples = long_capture.samples
+    t0 = samples["t_ns"][0]
+    if stamps == "jittered":
+        samples = samples.with_columns(pl.col("t_ns") + rng.integers(0, 3_001, samples.height))
+    if stamps == "two steps":  # 299,998 steps: 149,999 of 60 ms and as many of 60 ms + 1 ns
+        samples = samples.head(299_999)
+        steps = rng.permutation(np.repeat([60_000_000, 60_000_001], 149_999))
+        samples = samples.with_columns(t_ns=pl.Series(t0 + np.r_[0, np.cumsum(steps)]))
+    distinct = samples["t_ns"].diff().drop_nulls().n_unique()
+    assert distinct > 1000 if stamps == "jittered" else distinct == 2 if stamps == "two steps" else True
+
+    def blocks():
+        return (samples.slice(a, 4999) for a in range(0, samples.height, 4999))
+
+    assert label_runs(blocks)[2] == sample_interval_s(samples) > 0

@@ -52,12 +52,12 @@ def _executor(value: str) -> str:
 
 @dataclass(frozen=True, config=_TABLE)
 class RunSection:
-    """``rotcal run``: how many cores one run may use, and past what length a capture is streamed."""
+    """``rotcal run``: how many cores one run may use, and whether captures may be read whole (a check)."""
 
     workers: int = _key(0, "cores one run uses for its threads (segment fits, MCAP decompression); 0 = every core it may run on", ge=0)
     stream_above_samples: int = _key(
-        20_000_000, "a capture of more samples is read block by block, in memory bounded by the block, not the capture "
-        "(docs/streaming.md: what the streamed path takes; anything else is read whole, with a note)", ge=0)
+        0, "0: every capture the block path takes is read block by block (docs/streaming.md lists what it does not "
+        "take); N > 0: captures of at most N samples are read whole instead, as a check", ge=0)
 
 
 @dataclass(frozen=True, config=_TABLE)

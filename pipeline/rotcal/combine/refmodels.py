@@ -117,11 +117,13 @@ def _own_excess(e: np.ndarray, jac: np.ndarray, cov: np.ndarray, dof: int) -> np
 
 
 def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                             full: ReferenceFit | Failure | None = None) -> OrthogonalReferenceFit | Failure:
+                             full: ReferenceFit | Failure | None = None,
+                             misalignment_u: float = 0.0) -> OrthogonalReferenceFit | Failure:
     """The six intrinsic parameters of orthogonal axes (and R) from
     positions of known reference (module docstring); ``full`` the
-    12-parameter fit when already made. A ``Failure`` with the reason when
-    the positions do not determine them."""
+    12-parameter fit when already made; ``misalignment_u`` the prior of the
+    angles' cosines the model fixes (``_misalignment_prior``). A
+    ``Failure`` with the reason when the positions do not determine them."""
     n = poses.height
     if n < MIN_POSITIONS:
         return Failure(0.0, f"{n} positions with a known reference: the orthogonal model's 9 parameters need at "
@@ -159,6 +161,7 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     # the sandwich G (Sigma_k + T) G', G = (J' W J)^-1 J' W: d(parameters)/d(position means)
     gain = np.linalg.solve(wj.T @ wj, wj.T).reshape(9, n, 3) * root_w
     params_cov = np.einsum("pki,kij,qkj->pq", gain, cov + excess[None], gain)
+    prior_cov = _misalignment_prior(gain, s, rotation, ref, misalignment_u)
     # state (C rows, O) of the parameters (s, delta, O): dC_ij/ds_i = R_ij, dC/ddelta_j = D R [e_j]x
     lift = np.zeros((12, 9))
     for i in range(3):
@@ -170,12 +173,32 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     dof = 3 * n - 9
     # the scatter's degrees of freedom: those of the fit that estimated T (the 12-parameter one, as its own result
     # states; its own where that one is exact and estimated none)
-    wander = pose_wander(m, np.einsum("kii->ki", cov), poses, design)
-    parts = with_shared(poses, [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof
-                                                                    else dof)), state_cov)], wander)
+    parts = [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof else dof)), state_cov)]
+    if misalignment_u > 0:
+        parts.append((whole_fit_input("misalignment prior", float("inf")), lift @ prior_cov @ lift.T))
+    parts = with_shared(poses, parts, pose_wander(m, np.einsum("kii->ki", cov), poses, design))
     result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)
+
+
+def _misalignment_prior(gain: np.ndarray, s: np.ndarray, rotation: np.ndarray, ref: np.ndarray,
+                        misalignment_u: float) -> np.ndarray:
+    """(9, 9) the covariance the fixed angles lend the fitted parameters, a
+    Type B input (GUM 4.3) as ``multiposition.orientation_free`` takes
+    one: axis b's row of C tilted towards axis a's by cos(phi_ab) moves
+    position k's mean by s_b (r_a . ref_k) along b, and the fit passes that
+    on through its gain. Where the positions tell a tilt from a change of
+    offset or sensitivity (the faces) the term vanishes; where they lie near
+    one circle it dominates, as the model's assumption then decides the
+    values."""
+    if misalignment_u <= 0:
+        return np.zeros((9, 9))
+    shift = np.zeros((len(ref), 3, 3))  # d(mean_k)/d(cos phi_ab), the pairs uv, vw, wu
+    for pair, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        shift[:, b, pair] = s[b] * (ref @ rotation[a])
+    sensitivity = np.einsum("pki,kic->pc", gain, shift) * misalignment_u
+    return sensitivity @ sensitivity.T
 
 
 def _orthogonal_angles(result: IntrinsicResult) -> IntrinsicResult:
@@ -188,15 +211,17 @@ def _orthogonal_angles(result: IntrinsicResult) -> IntrinsicResult:
     return replace(result, value=value, cov=cov, budget=budget)
 
 
-def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ModelChoice | Failure:
+def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
+                           misalignment_u: float = 0.0) -> ModelChoice | Failure:
     """Both models fitted to positions of known reference and the one the
-    evidence chooses; a ``Failure`` when the references lie within
+    evidence chooses (the orthogonal one with the angles' prior
+    ``misalignment_u``); a ``Failure`` when the references lie within
     ``MIN_CONE_DEG`` of one direction (neither model determined)."""
     cone = gravity_cone(references(poses))
     if cone is not None:
         return Failure(0.0, cone)
     full = reference_fit(poses, g_local, g_uncertainty)
-    orthogonal = orthogonal_reference_fit(poses, g_local, g_uncertainty, full)
+    orthogonal = orthogonal_reference_fit(poses, g_local, g_uncertainty, full, misalignment_u)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):
         return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")
     s_full = float(np.sum(full.residuals**2 * orthogonal.weights))  # ordinary least squares: the minimum for these weights too

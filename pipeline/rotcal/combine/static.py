@@ -209,8 +209,10 @@ def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertaint
     """``reduce_static`` of a pose table."""
     source = positions["source"][0]
     if source == "jig":
-        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty), "reference",
-                       {"baseline": reference_fit, "orthogonal": orthogonal_reference_fit}, g_local, g_uncertainty)
+        prior = placement.misalignment_u
+        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty, prior), "reference",
+                       {"baseline": reference_fit, "orthogonal": partial(orthogonal_reference_fit, misalignment_u=prior)},
+                       g_local, g_uncertainty)
     # the raw means' directions: gravity's when the offsets are small beside g (the refusal's reason only)
     cone = gravity_cone(pose_arrays(positions)[0])
     choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u)

@@ -15,10 +15,14 @@ remains unexplained.
    scored again. Competing explanations of one signature are so decided by
    evidence, never by the order of a list. Backward elimination then drops
    any extension the others made redundant.
-4. Scans of the final residuals (``scans``) for structure no catalogue
+4. The offset effects and the step against the offsets' measured wander
+   (``wander``), every extension against the noise's measured density at
+   its signature's frequencies (``spectral``).
+5. Scans of the final residuals (``scans``) for structure no catalogue
    effect explains: tones, rotation harmonics, segment misfits and trends,
    static-step correlation and normality (Geist 2017 Appendix B), and
-   responsivity changing with rate.
+   responsivity changing with rate, each against the noise the recording
+   shows (``scans``, ``misfits``).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from rotcal.diagnose.candidates import STEP, extensions
 from rotcal.diagnose.clipping import clip_limits, quantum, stuck_values, successive_noise
 from rotcal.diagnose.design import with_columns
 from rotcal.diagnose.fitting import ModelFit, Score, chi2_sf, fit_model, score, swap_bic, without
+from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segment_scan, static_step_scan
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
@@ -42,11 +47,10 @@ from rotcal.diagnose.scans import (
     Unexplained,
     harmonic_scan,
     p_is,
-    segment_scan,
-    static_step_scan,
     step_scan,
     tone_scan,
 )
+from rotcal.diagnose.spectral import against_spectrum
 from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
@@ -197,10 +201,15 @@ def _select(fit: ModelFit, candidates: tuple[Candidate, ...], alpha: float) -> M
     return fit
 
 
-def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Unexplained]:
+def rate_dependence(final: ModelFit, alpha: float, output_unit: str,
+                    baseline: tuple[IntrinsicResult, ...] = ()) -> list[Unexplained]:
     """Whether the responsivity matrices of the rates differ beyond their
     uncertainties (Wald test of R_f = R_0 for every rate f), after every
-    modelled effect: a frequency response no catalogue effect explains."""
+    modelled effect: a frequency response no catalogue effect explains.
+    The whole-model fit takes the noise as white at the rotation's
+    frequencies; each difference's variance is widened to the ``baseline``
+    results' (from the segment fits, which carry the noise's measured
+    spectrum), where larger, keeping the fit's correlations."""
     layout, m = final.layout, final.layout.n_rates
     if m < 2:
         return []
@@ -214,6 +223,13 @@ def rate_dependence(final: ModelFit, alpha: float, output_unit: str) -> list[Une
         jac[rows, pos[f]] = np.eye(9)
         jac[rows, pos[0]] -= np.eye(9)
     cov_diff = jac @ cov @ jac.T
+    by_rate = {r.rate_hz: r.state_cov[:9, :9] for r in baseline}
+    if all(float(rate) in by_rate for rate in final.obs.rates):
+        # the baseline's rates are independent fits: Var(R_f - R_0) = Var(R_f) + Var(R_0)
+        base = np.concatenate([np.diag(by_rate[float(final.obs.rates[f])]) + np.diag(by_rate[float(final.obs.rates[0])])
+                               for f in range(1, m)])
+        widen = np.sqrt(np.maximum(1.0, base / np.where(np.diag(cov_diff) > 0, np.diag(cov_diff), np.inf)))
+        cov_diff = cov_diff * np.outer(widen, widen)
     stat = float(diff @ np.linalg.pinv(cov_diff) @ diff)
     p = chi2_sf(stat, diff.size)
     if p >= alpha:
@@ -309,6 +325,10 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final = with_phases_free(final, phases["segment"].to_numpy())
     # offset effects against the offsets' measured wander (``wander``)
     final, wander = against_wander(final, OffsetNoise.from_fits(fits), alpha, output_unit)
+    # every extension against the noise's density at its signature's frequencies (``spectral``)
+    final, spectral = against_spectrum(final, alpha)
+    for name, text in spectral.items():
+        wander[name] = f"{wander[name]}; {text}" if name in wander else text
 
     rows, params, before = [], [], {}
     for effect in listed():   # one row per catalogue effect, in docs/effects.md's order
@@ -328,13 +348,16 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         params += par
     step = step_row(final, dataset, output_unit)
     if step is not None:
+        if STEP.effect in wander:   # what its test against the wander found
+            step[0]["evidence"] += f"; {wander[STEP.effect]}"
         rows.append(step[0])
         before["unexplained: offset step"] = step[1].residuals
     res = _residuals(final, output_unit)
+    recorded = replace(res, resid=final.residuals)   # the noise as recorded, which the fits' noise model describes
     a_u = config.unexplained_false_alarm
-    for found in (tone_scan(res, a_u) + harmonic_scan(res, a_u) + segment_scan(res, a_u)
-                  + static_step_scan(replace(res, resid=final.residuals), step_id, a_u)   # of the noise as recorded
-                  + rate_dependence(final, a_u, output_unit)):
+    for found in (tone_scan(recorded, a_u) + harmonic_scan(recorded, a_u) + segment_scan(recorded, a_u, SegmentNoise.from_fits(fits))
+                  + static_step_scan(recorded, step_id, a_u, residual_autoregression(recorded))
+                  + rate_dependence(final, a_u, output_unit, results)):
         rows.append(scan_row(final, found, dataset))
     modelled = bool(final.active) or any(v is not None for v in clip)
     refined = refined_results(final, g_local, g_uncertainty) if modelled else ()

@@ -10,9 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincc, gammaln, ndtr
+from scipy.special import fdtrc, gammaincc, gammaln
 
 from rotcal.diagnose.fitting import chi2_sf
+from rotcal.fit.spectrum import density_ratio_at, periodogram
 from rotcal.model.physics import AXES, CHANNELS
 
 
@@ -140,18 +141,50 @@ def step_scan(res: Residuals) -> tuple[float, float, float]:
 
 # fewest usable samples of one segment and channel whose periodogram the tone scan sums
 TONE_MIN_SAMPLES = 64
+# the tone scan's local noise level: the mean ordinate over up to this many bins either side of the
+# bin tested, leaving out the nearest (a tone's leakage, the zero padding's correlation)
+TONE_LEVEL_BINS = 32
+TONE_GAP_BINS = 3
+
+
+def local_level(total: np.ndarray, count: np.ndarray, half_width: int = TONE_LEVEL_BINS,
+                gap: int = TONE_GAP_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """(sum of ordinates, their count) over the bins ``gap`` to k_j either
+    side of each bin j, k_j = ``half_width`` or less, so that the window
+    stays symmetric about j within the bins holding any ordinate: a smooth
+    spectrum's slope cancels in it, and only its curvature is left."""
+    n = total.size
+    have = np.flatnonzero(count > 0)
+    if have.size == 0:
+        return np.zeros(n), np.zeros(n)
+    j = np.arange(n)
+    k = np.minimum(np.minimum(j - have[0], have[-1] - j), half_width)
+    on = k >= gap
+    sums = []
+    for x in (total, count):
+        cs = np.r_[0.0, np.cumsum(x)]
+        left = cs[np.clip(j - gap + 1, 0, n)] - cs[np.clip(j - k, 0, n)]
+        right = cs[np.clip(j + k + 1, 0, n)] - cs[np.clip(j + gap, 0, n)]
+        sums.append(np.where(on, left + right, 0.0))
+    return sums[0], sums[1]
 
 
 def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplained]:
     """Tones unrelated to the rotation: the periodograms of the rotation
-    segments' residuals, summed per channel on a common frequency grid
-    (each ordinate ~ Exp(1) for white noise, a sum over m segments ~ Gamma(m)),
-    with rotation harmonics and the lowest frequencies left out."""
+    segments' residuals, summed per channel on a common frequency grid, with
+    rotation harmonics and the lowest frequencies left out, each bin against
+    the noise's local level (``local_level``), not a white one: the noise
+    may be coloured (a sensor's filter, a wander). With each ordinate
+    ~ L Exp(1) about a smooth level L, a bin's sum over m segments over the
+    window's mean of M ordinates is F(2m, 2M) (Percival & Walden 1993,
+    section 10.9's test against the local spectrum), M counted at the zero
+    padding's share of independent ordinates."""
     segs = [(sid, part) for sid, part in _segments(res) if res.rotating[part.start] and part.stop - part.start > TONE_MIN_SAMPLES]
     if not segs:
         return []
     dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
     n_pad = 1 << int(np.ceil(np.log2(max(p.stop - p.start for _, p in segs))))
+    independent_share = float(np.mean([(p.stop - p.start) / n_pad for _, p in segs]))
     freqs = np.fft.rfftfreq(n_pad, dt)
     out = []
     for r, channel in enumerate(CHANNELS):
@@ -160,10 +193,13 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
         powers = []
         for sid, part in segs:
             use = res.use[part, r]
-            e = np.where(use, res.resid[part, r] / res.sigma[r], 0.0)
             n = int(use.sum())
             if n <= TONE_MIN_SAMPLES:  # a channel clipped through most of the segment leaves no spectrum
                 continue
+            # each segment at its own level: a noisier segment (a vibrating rate) would otherwise dominate
+            # the sum, whose law would be that of fewer segments
+            level_seg = float(np.sqrt(np.sum(np.where(use, res.resid[part, r], 0.0) ** 2) / n)) or float(res.sigma[r])
+            e = np.where(use, res.resid[part, r] / level_seg, 0.0)
             power = np.abs(np.fft.rfft(e, n_pad)) ** 2 / max(n, 1)
             duration = n * dt
             rate = abs(res.rate_hz[part.start])
@@ -173,26 +209,32 @@ def tone_scan(res: Residuals, alpha: float, harmonics: int = 6) -> list[Unexplai
                 valid &= np.abs(freqs - h * rate) > 3.0 / duration
             total += np.where(valid, power, 0.0)
             count += valid
-            powers.append((sid, part, power, n))
-        ok = count > 0
+            powers.append((sid, part, power, n, level_seg))
+        level_sum, level_count = local_level(total, count)
+        ok = (count > 0) & (level_count > 0) & (level_sum > 0)
         if not ok.any():
             continue
-        p_bins = np.where(ok, gammaincc(np.maximum(count, 1), total), 1.0)
+        level = np.where(ok, level_sum / np.where(ok, level_count, 1.0), 1.0)
+        ratio = np.where(ok, total / np.maximum(count, 1) / level, 0.0)
+        p_bins = np.where(ok, fdtrc(2 * np.maximum(count, 1), 2 * np.maximum(level_count * independent_share, 1), ratio), 1.0)
         j = int(np.argmin(p_bins))
         independent = max(p.stop - p.start for _, p in segs) / 2
         p_family = min(1.0, p_bins[j] * independent * 3)
         if p_family >= alpha:
             continue
         f = freqs[j]
-        amps = np.array([2 * res.sigma[r] * np.sqrt(pw[j] / n) for _, _, pw, n in powers])
-        present = [sid for (sid, part, pw, n) in powers if gammaincc(1, pw[j]) < 0.01]
+        excess = max(ratio[j] - 1.0, 0.0) * level[j]   # the tone's share of the bin over the local level
+        share = excess / max(ratio[j] * level[j], 1e-300)   # of each segment's ordinate
+        amps = np.array([2 * sd * np.sqrt(share * pw[j] / n) for _, _, pw, n, sd in powers])
+        present = [sid for (sid, part, pw, n, _) in powers if gammaincc(1, pw[j] / level[j]) < 0.01]
         reduction = np.zeros(3)
-        reduction[r] = sum(pw[j] for _, _, pw, _ in powers) * res.sigma[r] ** 2
+        reduction[r] = sum(pw[j] * sd**2 for _, _, pw, _, sd in powers) * share
         where = f"channel {channel}, {len(present)} of {len(segs)} rotation segments"
         out.append(Unexplained(
             "tone", where,
             f"tone at {f:.3g} Hz, {np.median(amps):.2g} {res.output_unit} in channel {channel}, "
-            f"in {len(present)} of {len(segs)} rotation segments (not a harmonic of any rotation rate; {p_is(p_family)})",
+            f"in {len(present)} of {len(segs)} rotation segments, {ratio[j]:.3g} times the noise's local level "
+            f"(not a harmonic of any rotation rate; {p_is(p_family)})",
             p_family, reduction, 2 * len(segs),
         ))
     return out
@@ -254,9 +296,35 @@ def _harmonics(theta: np.ndarray, orders) -> list[np.ndarray]:
     return [waves[k] for k in orders]
 
 
+def harmonic_density(e: np.ndarray, starts: np.ndarray, rates_hz: np.ndarray, dt_s: float, orders) -> np.ndarray:
+    """Per segment (rows ``starts[k]:starts[k+1]`` of ``e``, standardised
+    residuals) and order k, the noise's density at k times the segment's
+    rotation frequency in units of e^2 (1 for white noise of e's level):
+    the segment's mean square times the density's ratio to white there,
+    read from the segments' periodograms pooled on one frequency axis
+    (``fit.spectrum.density_ratio_at``: 1 where white noise explains it, so
+    white noise keeps its test). Grenander 1954: a sine term's variance is
+    white noise's at the density of its frequency."""
+    bounds = np.r_[starts, e.size]
+    grams = [periodogram(e[a:b, None], dt_s, abs(rate) * (b - a) * dt_s) for a, b, rate in zip(bounds[:-1], bounds[1:], rates_hz)]
+    pooled: dict[int, tuple[np.ndarray, float]] = {}
+    for gram in grams:
+        for k, sums, count in zip(gram.bands, gram.sums, gram.counts):
+            old = pooled.get(int(k), (np.zeros(1), 0.0))
+            pooled[int(k)] = (old[0] + sums, old[1] + float(count))
+    out = np.ones((starts.size, len(orders)))
+    for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        level = float(e[a:b] @ e[a:b]) / (b - a)
+        for j, k in enumerate(orders):
+            out[i, j] = level * float(density_ratio_at(pooled, k * abs(rates_hz[i]), grams[i].resolution_hz)[0])
+    return out
+
+
 def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[Unexplained]:
     """Harmonics k theta of the rotation in the residuals of each axis's
-    rotation segments, per channel (chi-square with 2 per segment)."""
+    rotation segments, per channel (chi-square with 2 per segment), each
+    segment's against the noise's density at its harmonic's frequency
+    (``harmonic_density``)."""
     tests = []
     # the harmonics of every rotating sample once; each channel takes its used rows
     rotating = np.flatnonzero(res.rotating)
@@ -270,10 +338,13 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
         e = res.resid[rows, r] / res.sigma[r]
         at = None if rows.size == rotating.size else np.searchsorted(rotating, rows)
         seg_axis = np.array([res.axis_idx[part.start] for _, part in segs])
-        for k, wave in zip(orders, waves):
+        dt = float(np.median(np.diff(res.t_s[segs[0][1]])))
+        density = harmonic_density(e, starts, np.array([res.rate_hz[part.start] for _, part in segs]), dt, orders)
+        for j, (k, wave) in enumerate(zip(orders, waves)):
             if at is None and k not in grams:
                 grams[k] = _segment_grams(wave, starts)
             x2, coef = _segment_chi2(e, wave, starts, grams[k]) if at is None else _segment_chi2(e, wave[at], starts)
+            x2 = x2 / density[:, j]
             for ax in np.unique(seg_axis):
                 on = seg_axis == ax
                 stat = float(x2[on].sum())
@@ -291,103 +362,4 @@ def harmonic_scan(res: Residuals, alpha: float, orders=(2, 3, 4, 5, 6)) -> list[
                 f"during rotation about {AXES[ax]} (chi-square {stat:.0f} on {2 * m}; {p_is(p_family)})",
                 p_family, reduction, 2 * m,
             ))
-    return out
-
-
-def segment_scan(res: Residuals, alpha: float) -> list[Unexplained]:
-    """Per segment and channel, what is left in a constant, the first
-    harmonic and a linear trend: the segments disagreeing with the combined
-    model (Geist 2017 section 3 consistency) or drifting within themselves."""
-    out = []
-    n_rates = len(np.unique(res.rate_hz))
-    theta = np.deg2rad(res.theta_deg)
-    first_harmonic = np.empty((theta.size, 3))  # every sample's, once, written in place
-    first_harmonic[:, 0] = 1.0
-    np.sin(theta, out=first_harmonic[:, 1])
-    np.cos(theta, out=first_harmonic[:, 2])
-    used = [_used_segments(res, r, lambda part: True) for r in range(3)]
-    for kind in ("inconsistent", "trend"):
-        stats = []  # (chi2, dof, segment id, slice, channel, coefficient of interest)
-        shared = None  # the Gram matrices of the channels that use every sample (the same rows)
-        for r in range(3):
-            rows, starts, segs = used[r]
-            if not segs:
-                continue
-            e = res.resid[rows, r] / res.sigma[r]
-            whole = rows.size == theta.size
-            if kind == "inconsistent":
-                basis = first_harmonic if whole else first_harmonic[rows]
-            else:
-                t = res.t_s[rows]
-                mean_t = np.add.reduceat(t, starts) / np.diff(np.r_[starts, t.size])
-                basis = (t - np.repeat(mean_t, np.diff(np.r_[starts, t.size])))[:, None]
-            if whole and shared is None:
-                shared = _segment_grams(basis, starts)
-            x2, coef = _segment_chi2(e, basis, starts, shared if whole else None)
-            for k, (sid, part) in enumerate(segs):
-                stats.append((float(x2[k]), basis.shape[1], sid, part, r, coef[k]))
-        if not stats:
-            continue
-        total = sum(st[0] for st in stats)
-        dof = sum(st[1] for st in stats) - (12 * n_rates if kind == "inconsistent" else 0)
-        p = min(1.0, chi2_sf(total, max(dof, 1)) * 2)
-        if p >= alpha:
-            continue
-        _, _, sid, part, r, coef = max(stats, key=lambda st: st[0])
-        reduction = np.zeros(3)
-        for st in stats:
-            reduction[st[4]] += st[0] * res.sigma[st[4]] ** 2
-        size = np.abs(coef).max() * res.sigma[r]
-        what = ("a constant or first-harmonic misfit" if kind == "inconsistent"
-                else f"a trend of {coef[0] * res.sigma[r]:.2g} {res.output_unit} per s")
-        out.append(Unexplained(
-            kind, f"segment {sid} ({_describe(res, part)}), channel {CHANNELS[r]} most",
-            f"segments depart from the combined model by {what} (largest: {size:.2g} {res.output_unit} in segment {sid}, "
-            f"channel {CHANNELS[r]}; chi-square {total:.0f} on {dof}; {p_is(p)})",
-            p, reduction, dof,
-        ))
-    return out
-
-
-def static_step_scan(res: Residuals, step_id: np.ndarray, alpha: float) -> list[Unexplained]:
-    """Geist 2017 Appendix B on the static steps' samples before averaging:
-    no correlation and normality. Each step's samples are taken about their
-    own mean and pooled over steps (a common noise is the model's premise),
-    so the tests are those of one large sample: the lag-1 autocorrelation
-    (E = -1/n for a demeaned step of n samples, variance 1/N) and the
-    D'Agostino-Pearson K^2 test. Combining per-step p-values instead (Fisher)
-    is anti-conservative: K^2 is not calibrated at 50 samples."""
-    out = []
-    static = ~res.rotating & (step_id >= 0)
-    _, first, size = np.unique(step_id[static], return_index=True, return_counts=True)
-    rows = np.flatnonzero(static)
-    for r, channel in enumerate(CHANNELS):
-        pooled, lag_sum, ss_sum, bias = [], 0.0, 0.0, 0.0
-        for n in np.unique(size[size >= 20]):
-            idx = rows[first[size == n]][:, None] + np.arange(n)[None, :]
-            ok = res.use[idx, r].all(axis=1)
-            x = res.resid[idx[ok], r]
-            x = x - x.mean(axis=1, keepdims=True)
-            pooled.append(x.ravel())
-            lag_sum += float(np.sum(x[:, 1:] * x[:, :-1]))
-            ss_sum += float(np.sum(x * x))
-            bias += x.shape[0] * n * (-1.0 / n)
-        if not pooled:
-            continue
-        values = np.concatenate(pooled)
-        if values.size < 200 or ss_sum == 0:
-            continue
-        r1 = lag_sum / ss_sum
-        z = (r1 - bias / values.size) * np.sqrt(values.size)
-        for kind, p, what in (
-            ("correlated", 2 * float(ndtr(-abs(z))), f"lag-1 autocorrelation {r1 + 0.0:.3f} (z = {z:.1f})"),
-            ("non_normal", normal_p(values), "non-normal scatter"),
-        ):
-            p_family = min(1.0, p * 6)
-            if p_family < alpha:
-                out.append(Unexplained(
-                    kind, f"static steps, channel {channel}",
-                    f"static-step samples of channel {channel} show {what} (Geist 2017 Appendix B; {values.size} "
-                    f"samples of {int(np.sum(size >= 20))} steps, {p_is(p_family)})", p_family, np.zeros(3), 0,
-                ))
     return out

@@ -40,10 +40,16 @@ def pose_statistics(t_ns: np.ndarray | None, y: np.ndarray, group: np.ndarray, n
     the step, not by the step over the square root of its count.
     """
     inside = group >= 0
-    g, yy = group[inside], y[inside]
+    first, last = (int(np.argmax(inside)), inside.size - int(np.argmax(inside[::-1]))) if inside.any() else (0, 0)
+    if inside.any() and inside[first:last].all():  # the groups one run of rows (a single pose): views, no copy
+        g, yy = group[first:last], y[first:last]
+    else:
+        g, yy = group[inside], y[inside]
     counts = np.bincount(g, minlength=n_groups).astype(float)
     means = np.column_stack([np.bincount(g, weights=yy[:, r], minlength=n_groups) for r in range(3)]) / counts[:, None]
-    centred = yy - means[g]
+    centred = np.empty(yy.shape)
+    for r in range(3):  # a column at a time: no (n, 3) temporary of the means
+        np.subtract(yy[:, r], means[g, r], out=centred[:, r])
     scatter = np.stack([np.bincount(g, weights=centred[:, i] * centred[:, j], minlength=n_groups)
                         for i in range(3) for j in range(3)], axis=1).reshape(n_groups, 3, 3)
     with np.errstate(divide="ignore", invalid="ignore"):  # a one-sample group: NaN, refused by reduce_static
@@ -71,11 +77,8 @@ def pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.nd
     (``cov_shared``, the same in every row)."""
     starts, stops = np.asarray(starts, np.int64), np.asarray(stops, np.int64)
     group = np.full(t_ns.size, -1, np.int64)
-    marks = np.zeros(t_ns.size + 1, np.int64)
-    np.add.at(marks, starts, np.arange(1, starts.size + 1))
-    np.add.at(marks, stops, -np.arange(1, starts.size + 1))
-    label = np.cumsum(marks[:-1])  # k + 1 inside pose k (poses do not overlap)
-    group[label > 0] = label[label > 0] - 1
+    for k, (a, b) in enumerate(zip(starts, stops)):  # poses do not overlap; a few hundred slices, no n-long temporaries
+        group[a:b] = k
     counts, means, cov, shared = pose_statistics(t_ns, y, group, starts.size)
     return pl.DataFrame({
         "pose": np.arange(starts.size, dtype=np.int64), "t_start_ns": t_ns[starts], "t_end_ns": t_ns[stops - 1],

@@ -108,7 +108,60 @@ def rounding_repeats(fit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...
     # to be small) do not measure it: the rounding's own variance, Delta^2 / 12 of a uniform error
     # (GUM 4.3.7), is taken instead
     factor = factor * np.maximum(share, 1.0)
-    if np.all(factor <= 1.0):
+    scale = np.repeat(np.sqrt(np.maximum(factor, 1.0)), 3)  # the covariance's order: channel, then (C, A, B)
+    cov = fit.cov * np.outer(scale, scale)
+    # below the step the rounding error is a function of the signal: a sine within a few steps (a channel
+    # across the rotation axis), or angles that recur (their errors alias onto the sine), share it
+    floor = rounding_covariance(step, fit.coef, theta_deg, np.asarray(fit.sigma, float) ** 2 - step**2 / 12.0)
+    diagonal = np.diag(cov)
+    widen = np.maximum(np.sqrt(np.divide(floor, diagonal, out=np.ones(9), where=diagonal > 0)), 1.0)
+    cov = cov * np.outer(widen, widen) + np.diag(np.where(diagonal > 0, 0.0, floor))
+    if np.array_equal(cov, fit.cov):
         return fit
-    scale = np.repeat(np.sqrt(factor), 3)  # the covariance's order: channel, then (C, A, B)
-    return replace(fit, cov=fit.cov * np.outer(scale, scale))
+    return replace(fit, cov=cov)
+
+
+# a fitted sine of amplitude below this many steps: its rounded samples do not tell its amplitude and phase
+SMALL_SINE_STEPS = 2.0
+# sub-step places of the signal tried (a regular grid over one step: deterministic)
+ROUNDING_TRIALS = 64
+
+
+def rounding_covariance(step: np.ndarray, coef: np.ndarray, theta_deg: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
+    """(9,) per channel the mean square error that rounding to ``step``
+    lends the fitted (C, A, B) of y = C + A sin(theta) + B cos(theta), by
+    propagating the distribution (GUM Supplement 1): the fitted sine at the
+    segment's own angles, moved by each of ``ROUNDING_TRIALS`` places
+    within a step (where the true signal lies within its step is unknown,
+    uniform), with Gaussian noise of ``noise_var`` (a fixed seed) added,
+    rounded and fitted again. It holds what no closed form for independent
+    errors does: a near-constant channel's one shared error (Delta^2 / 12
+    in C), and the errors of angles that recur, aliased onto the sine.
+    Only channels whose noise before rounding is below half a step (where
+    the rounding is not dithered away: Widrow and Kollar 2008, ch. 5); 0
+    elsewhere."""
+    floor = np.zeros((3, 3))
+    coarse = np.flatnonzero((step > 0) & (np.maximum(noise_var, 0.0) < (step / 2.0) ** 2))
+    if coarse.size == 0 or theta_deg.size < 3:
+        return floor.ravel()
+    rad = np.radians(theta_deg)
+    design = np.column_stack([np.ones(theta_deg.size), np.sin(rad), np.cos(rad)])
+    solve = np.linalg.pinv(design)  # (3, n): the least-squares (minimum-norm) coefficients of any samples
+    rng = np.random.default_rng(0)
+    for r in coarse:
+        delta, sigma = float(step[r]), float(np.sqrt(max(noise_var[r], 0.0)))
+        signal = design @ coef[r]
+        errors = np.empty((ROUNDING_TRIALS, 3))
+        for j, place in enumerate((np.arange(ROUNDING_TRIALS) + 0.5) / ROUNDING_TRIALS - 0.5):
+            true = signal + place * delta
+            rounded = np.round((true + sigma * rng.standard_normal(true.size)) / delta) * delta
+            error = rounded - true
+            errors[j] = solve @ error
+        floor[r] = np.mean(errors**2, axis=0)
+        if np.hypot(coef[r, 1], coef[r, 2]) < SMALL_SINE_STEPS * delta:
+            # a sine within a few steps is not known from its rounded samples (a few counts' sine at a step's
+            # edge rounds to a square wave of amplitude 2 Delta / pi): the bounds of any rounding error's share,
+            # Delta / 2 in C and 2 Delta / pi (a square wave's fundamental) in A and B, as rectangular
+            # distributions (GUM 4.3.7)
+            floor[r] = np.maximum(floor[r], np.array([delta**2 / 12.0, *((2.0 * delta / np.pi) ** 2 / 3.0,) * 2]))
+    return floor.ravel()

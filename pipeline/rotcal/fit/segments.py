@@ -25,15 +25,13 @@ import polars as pl
 from rotcal.config import FitConfig
 from rotcal.fit.correlated import noise_scales
 from rotcal.fit.normal import SineSums, coefficient_covariance
+from rotcal.fit.pooled import across_segments, record_noise
 from rotcal.fit.quantization import rounding_repeats
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
-from rotcal.fit.spectrum import Periodogram, periodogram, spectrum_widened
-from rotcal.fit.wander import RecordNoise, offset_floor
+from rotcal.fit.spectrum import Periodogram, periodogram
+from rotcal.fit.wander import RecordNoise
 from rotcal.model.physics import CHANNELS
-from rotcal.noise.allan import pooled_avars
-from rotcal.noise.means import process_of
-from rotcal.noise.model import identify_channel
 from rotcal.noise.residuals import split_at_pauses
 from rotcal.parallel import cores
 from rotcal.tables import conform, schema
@@ -273,10 +271,8 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
         angle = part["angle_deg"]
         theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
-        fit = _fit_channels(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels, config)
-        fit = rounding_repeats(fit, theta, channels)  # below the output step, a sample's rounding follows its angle
-        dt_s = (part["t_ns"][-1] - part["t_ns"][0]) / 1e9 / max(part.height - 1, 1)
-        return with_spectrum(fit, theta, channels, row["rate_hz"] if row["kind"] == "rotation" else None, dt_s)
+        return segment_fit(row["segment"], row["kind"], row["rate_hz"], row["angle_source"], theta, channels,
+                           int(part["t_ns"][0]), int(part["t_ns"][-1]), config)
 
     def residuals(fit: SegmentFit, row: dict) -> list[np.ndarray]:  # the noise model's pieces (``record_noise``)
         part = samples.slice(*rows[row["segment"]])
@@ -294,14 +290,25 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     t_ns = samples["t_ns"].to_numpy()
     first, last = (np.array([rows[r["segment"]][0] + k * (rows[r["segment"]][1] - 1) for r in todo_rows], np.int64) for k in (0, 1))
     t_first, t_last = (t_ns[i] / 1e9 if len(t_ns) else np.zeros(0) for i in (first, last))
-    fits = spectrum_widened(fits)
     dt = float(np.median(np.diff(t_ns))) / 1e9 if len(t_ns) > 1 else 0.0
-    # the noise model only where some offset's noise is coloured (white noise: its cost spared)
-    coloured = any(f.noise_ratio is not None and np.any(f.noise_ratio[0] > 1.0) for f in fits)
-    noise = record_noise([residuals(f, r) for f, r in zip(fits, todo_rows) if f.status == "ok"], dt,
-                         (float(t_ns[0]) / 1e9, float(t_ns[-1]) / 1e9)) if coloured and dt > 0 else None
-    return offset_floor(fits, (t_first + t_last) / 2, t_last - t_first, [(r["kind"], r["rate_hz"]) for r in todo_rows],
-                        [r["axis"] for r in todo_rows], noise, modelled=dt > 0)
+    record = (float(t_ns[0]) / 1e9, float(t_ns[-1]) / 1e9) if len(t_ns) else (0.0, 0.0)
+
+    def noise_of(widened: list[SegmentFit]) -> RecordNoise | None:
+        return record_noise([residuals(f, r) for f, r in zip(widened, todo_rows) if f.status == "ok"], dt, record) if dt > 0 else None
+    return across_segments(fits, t_first, t_last, [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows],
+                           noise_of, modelled=dt > 0)
+
+
+def segment_fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
+                channels: tuple[np.ndarray, ...], t_first_ns: int, t_last_ns: int, config: FitConfig) -> SegmentFit:
+    """One segment's fit from its own samples (angles, channels, first and
+    last stamps), as every run fits it, in memory or block by block: the fit,
+    widened where its rounding repeats (below the output step a sample's
+    rounding follows its angle), with its residuals' periodogram."""
+    fit = _fit_channels(segment, kind, rate_hz, angle_source, theta_deg, channels, config)
+    fit = rounding_repeats(fit, theta_deg, channels)
+    dt_s = (t_last_ns - t_first_ns) / 1e9 / max(theta_deg.size - 1, 1)
+    return with_spectrum(fit, theta_deg, channels, rate_hz if kind == "rotation" else None, dt_s)
 
 
 def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.ndarray:
@@ -311,21 +318,6 @@ def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.n
         return theta_deg
     unwrapped = np.unwrap(theta_deg, period=360.0)
     return unwrapped[0] + kappa * (unwrapped - unwrapped[0])
-
-
-def record_noise(pieces: list[list[np.ndarray]], dt_s: float, record_s: tuple[float, float]) -> RecordNoise | None:
-    """The recording's noise model (``rotcal.noise``: each channel's Allan
-    variance of the fits' residuals fitted with the IEEE Std 952 terms) as
-    the offsets' covariance needs it; None where no channel could be
-    modelled (too few averaging times)."""
-    flat = [p for ps in pieces for p in ps]
-    if not flat:
-        return None
-    allan = pooled_avars(flat, 1 / dt_s)
-    channels = [identify_channel(c, [p[:, r] for p in flat], 1 / dt_s, "", allan[r]) for r, c in enumerate(CHANNELS)]
-    if all(ch.reason for ch in channels):
-        return None
-    return RecordNoise(tuple(process_of(ch) for ch in channels), dt_s, record_s)
 
 
 def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.ndarray, ...], rate_hz: float | None,
@@ -341,7 +333,12 @@ def with_spectrum(fit: SegmentFit, theta_deg: np.ndarray, channels: tuple[np.nda
         unwrapped = np.unwrap(theta_deg, period=360.0)
         theta_deg = unwrapped[0] + kappa * (unwrapped - unwrapped[0])
     sin, cos = sincos_deg(theta_deg)
-    resid = np.column_stack(channels) - (fit.coef[:, 0] + sin[:, None] * fit.coef[:, 1] + cos[:, None] * fit.coef[:, 2])
+    # channel by channel into one array (the same operations as broadcasting the three at once, a third of
+    # the temporaries: a long segment read block by block is held whole while it is fitted)
+    resid = np.empty((sin.size, len(channels)))
+    for r, y in enumerate(channels):
+        resid[:, r] = y - (fit.coef[r, 0] + sin * fit.coef[r, 1] + cos * fit.coef[r, 2])
+    del sin, cos
     return replace(fit, spectrum=periodogram(resid, dt_s, cycles))
 
 

@@ -27,6 +27,9 @@ MAX_ABS_VALUE = 1e15
 # 9e9 s keeps Unix-epoch times (1.7e9 s now) for two more centuries.
 MAX_ABS_TIME_S = 9e9
 REFERENCES = ("gx", "gy", "gz")
+# signed integer outputs whose overflow wraps a value near +2^(W-1) to near -2^(W-1) between two samples
+WRAP_BITS = (16, 24, 32)
+WRAP_NEAR = 0.75  # both samples of a wrap beyond this fraction of the limit, of opposite signs
 # a jig reference is a unit vector in g; 5 % allows a tilted jig's rounded components
 REFERENCE_TOLERANCE = 0.05
 
@@ -61,6 +64,7 @@ def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("
     present = set(frame.columns)
     checked = [name for name in bounds if name in present and name not in within]
     if not checked:
+        check_wraparound(frame, path)
         return
     first_bad = frame.select(
         (pl.col(name).cast(pl.Float64).is_nan() | (pl.col(name).cast(pl.Float64).abs() > bounds[name]))
@@ -71,6 +75,34 @@ def check_values(frame: pl.DataFrame, path: Path, required: tuple[str, ...] = ("
     for name, row in zip(checked, first_bad):
         if row is not None:
             raise InputError(f"column {name!r}, row {row + 1} {_fault(frame[name][row], bounds[name], name)}", path=path)
+    check_wraparound(frame, path)
+
+
+def check_wraparound(frame: pl.DataFrame, path: Path) -> None:
+    """Refuse a channel whose value jumps between the two ends of a signed
+    W-bit range from one sample to the next (``WRAP_BITS``): an integer
+    output that overflowed (an offset near 2^(W-1), or counts stored in too
+    few bits), which no accelerometer's signal does; the poses, steps and
+    fits would read the jumps as motion. Channels that stay within 3/4 of
+    2^15 (every sensor's usual counts) cost one pass for their extreme."""
+    names = [c for c in ("u", "v", "w") if c in frame.columns and frame.schema[c].is_numeric()]
+    if not names or frame.height < 2:
+        return
+    peaks = frame.select(pl.col(names).cast(pl.Float64).abs().max()).row(0)
+    for name, peak in zip(names, peaks):
+        for bits in WRAP_BITS:
+            limit = 2.0 ** (bits - 1)
+            if peak is None or peak <= WRAP_NEAR * limit or peak > limit:
+                continue
+            y = pl.col(name).cast(pl.Float64)
+            near = (y.abs() > WRAP_NEAR * limit) & (y.abs() <= limit)
+            jump = frame.select((near & near.shift(1) & (y * y.shift(1) < 0)).arg_true().first()).item()
+            if jump is not None:
+                before, after = frame[name][jump - 1], frame[name][jump]
+                raise InputError(f"column {name!r} jumps from {before:.10g} to {after:.10g} between rows {jump} and "
+                                 f"{jump + 1}: a signed {bits}-bit integer output wrapping around at ±2^{bits - 1} "
+                                 "(an offset near the limit, or counts stored in too few bits)", path=path,
+                                 hint="store the counts in a wider integer, or unwrap them before the run")
 
 
 def _within(frame: pl.DataFrame, bounds: dict[str, float]) -> set[str]:

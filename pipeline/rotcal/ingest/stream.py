@@ -28,7 +28,7 @@ from rotcal.tables import conform
 
 Blocks = Callable[[], Iterator[pl.DataFrame]]
 Stamps = Callable[[], Iterator[np.ndarray]]
-BLOCK_SAMPLES = 1 << 20
+BLOCK_SAMPLES = 1 << 18
 COLUMNS = ("t_ns", "u", "v", "w", "axis", "rate_hz", "angle_deg")  # the columns blocks carry
 
 

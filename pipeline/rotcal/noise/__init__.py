@@ -10,11 +10,11 @@ from dataclasses import dataclass
 import polars as pl
 
 from rotcal.model.physics import CHANNELS
-from rotcal.noise.allan import AllanVariance, pooled_avar, pooled_avars
+from rotcal.noise.allan import AllanVariance, PooledAllan, pooled_avar, pooled_avars
 from rotcal.noise.model import ChannelNoise, Term, identify_channel
 from rotcal.noise.residuals import residual_pieces, sample_interval_s
 
-__all__ = ["AllanVariance", "ChannelNoise", "NoiseModel", "Term", "calibration_noise", "identify_noise", "noise_frame",
+__all__ = ["AllanVariance", "ChannelNoise", "FittedNoise", "NoiseModel", "Term", "calibration_noise", "identify_noise", "noise_frame",
            "pooled_avar"]
 
 METHOD = ("overlapping Allan variance of the fitted model's residuals at octave averaging times, fitted with the "
@@ -32,15 +32,36 @@ class NoiseModel:
 
 
 def identify_noise(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
-                   output_unit: str) -> NoiseModel:
-    """Each channel's noise model from the residuals of the fitted model."""
-    dt = sample_interval_s(samples)
+                   output_unit: str, fitted: FittedNoise | None = None) -> NoiseModel:
+    """Each channel's noise model from the residuals of the fitted model;
+    ``fitted``: the fitted segments' pieces already pooled where the samples
+    were read block by block (``samples`` then holds the rest)."""
+    dt = sample_interval_s(samples) if fitted is None else fitted.dt_s
     if dt <= 0:
         return NoiseModel((), 0.0, output_unit)
-    pieces = residual_pieces(samples, segments, fits, dwells, dt)
-    allan = pooled_avars(pieces, 1 / dt) if pieces else [None] * len(CHANNELS)
-    return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit, allan[r])
-                            for r, c in enumerate(CHANNELS)), dt, output_unit)
+    if fitted is None:
+        pieces = residual_pieces(samples, segments, fits, dwells, dt)
+        allan = pooled_avars(pieces, 1 / dt) if pieces else [None] * len(CHANNELS)
+        return NoiseModel(tuple(identify_channel(c, [p[:, r] for p in pieces], 1 / dt, output_unit, allan[r])
+                                for r, c in enumerate(CHANNELS)), dt, output_unit)
+    # the poses' pieces, after the fitted segments' (and the dwells where those give none), as held whole
+    rest = residual_pieces(samples, segments, fits.clear(), dwells if not fitted.pooled.sizes else dwells.clear(), dt)
+    for piece in rest:
+        fitted.pooled.add(piece)  # the caller's copy (``run.streaming.StreamedSegments.noise_pooled``)
+    sizes = fitted.pooled.sizes
+    allan = fitted.pooled.result(1 / dt) if sizes else [None] * len(CHANNELS)
+    return NoiseModel(tuple(identify_channel(c, [], 1 / dt, output_unit, allan[r], sizes) if sizes else
+                            identify_channel(c, [], 1 / dt, output_unit) for r, c in enumerate(CHANNELS)), dt, output_unit)
+
+
+@dataclass(eq=False)
+class FittedNoise:
+    """The fitted segments' residual pieces pooled as a capture read block
+    by block gives them (``allan.PooledAllan``), at the recording's sample
+    interval ``dt_s`` (``residuals.sample_interval_s`` of every sample)."""
+
+    dt_s: float
+    pooled: PooledAllan
 
 
 def noise_frame(model: NoiseModel, dataset: str) -> pl.DataFrame:

@@ -73,33 +73,66 @@ def pooled_avar(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | No
 def pooled_avars(pieces: list[np.ndarray], fs_hz: float, factors: np.ndarray | None = None) -> list[AllanVariance]:
     """``pooled_avar`` of every column of the pieces (n_i, channels) at once."""
     sizes = [p.shape[0] for p in pieces]
-    channels = pieces[0].shape[1] if pieces else 1
-    factors = octave_factors(max(sizes, default=0)) if factors is None else np.asarray(factors)
-    phases = [np.concatenate([np.zeros((1, p.shape[1])), np.cumsum(p, axis=0)]) for p in pieces]
-    tau, avar, count, edf = [], [], [], []
-    for m in (int(k) for k in factors):
-        total, n = np.zeros(channels), 0
-        for x in phases:
+    pooled = PooledAllan(octave_factors(max(sizes, default=0)) if factors is None else np.asarray(factors),
+                         pieces[0].shape[1] if pieces else 1)
+    for piece in pieces:
+        pooled.add(piece)
+    return pooled.result(fs_hz, None if factors is None else np.asarray(factors))
+
+
+class PooledAllan:
+    """The sums ``pooled_avars`` takes over the pieces, added a piece at a
+    time (a capture read block by block gives each segment's pieces as the
+    segment is fitted, then lets them go): per averaging factor of
+    ``factors`` (at least those of the longest piece to come) each
+    channel's sum of squared second differences and their count, and the
+    pieces' lengths. The same sums in the same order as the pieces held whole."""
+
+    def __init__(self, factors: np.ndarray, channels: int):
+        self.factors = [int(m) for m in factors]
+        self.total = [np.zeros(channels) for _ in self.factors]
+        self.count = [0 for _ in self.factors]
+        self.channels = channels
+        self.sizes: list[int] = []
+
+    def add(self, piece: np.ndarray) -> None:
+        """One piece (n, channels) of residuals."""
+        x = np.empty((piece.shape[0] + 1, piece.shape[1]))  # the phase, 0 then the cumulative sums
+        x[0] = 0.0
+        np.cumsum(piece, axis=0, out=x[1:])
+        self.sizes.append(piece.shape[0])
+        for k, m in enumerate(self.factors):
             if x.shape[0] - 1 >= 2 * m:
-                d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
-                total, n = total + np.einsum("ij,ij->j", d, d), n + d.shape[0]
-        dof = _edf(sizes, m, 0)
-        if n == 0 or dof < MIN_EDF:
-            continue
-        tau.append(m / fs_hz)
-        avar.append(total / (2.0 * m * m * n))
-        count.append(n)
-        edf.append(dof)
-    values = np.array(avar).reshape(len(tau), channels)
-    return [AllanVariance(np.array(tau), values[:, c], np.array(count, dtype=np.int64), np.array(edf))
-            for c in range(channels)]
+                # x_{i+2m} - 2 x_{i+m} + x_i, into one array (a long segment is held whole while it is pooled)
+                d = np.multiply(x[m:-m], 2.0)
+                np.subtract(x[2 * m:], d, out=d)
+                np.add(d, x[:-2 * m], out=d)
+                self.total[k], self.count[k] = self.total[k] + np.einsum("ij,ij->j", d, d), self.count[k] + d.shape[0]
+
+    def result(self, fs_hz: float, factors: np.ndarray | None = None) -> list[AllanVariance]:
+        """Each channel's pooled variance at ``factors`` (default the octaves of the longest piece added)."""
+        chosen = octave_factors(max(self.sizes, default=0)) if factors is None else factors
+        tau, avar, count, edf = [], [], [], []
+        for m in (int(k) for k in chosen):
+            k = self.factors.index(m)
+            total, n = self.total[k], self.count[k]
+            dof = _edf(self.sizes, m, 0)
+            if n == 0 or dof < MIN_EDF:
+                continue
+            tau.append(m / fs_hz)
+            avar.append(total / (2.0 * m * m * n))
+            count.append(n)
+            edf.append(dof)
+        values = np.array(avar).reshape(len(tau), self.channels)
+        return [AllanVariance(np.array(tau), values[:, c], np.array(count, dtype=np.int64), np.array(edf))
+                for c in range(self.channels)]
 
 
-def with_edf(av: AllanVariance, pieces: list[np.ndarray], alphas: np.ndarray, fs_hz: float) -> AllanVariance:
+def with_edf(av: AllanVariance, sizes: list[int], alphas: np.ndarray, fs_hz: float) -> AllanVariance:
     """``av`` with each tau's edf for its power-law noise type ``alphas``
     (0 white, -1 flicker, -2 random walk; NIST SP 1065 Table 5.s simple
-    forms); averaging times left with fewer than MIN_EDF are dropped."""
-    sizes = [p.size for p in pieces]
+    forms) over pieces of ``sizes`` samples; averaging times left with
+    fewer than MIN_EDF are dropped."""
     edf = np.array([_edf(sizes, int(round(t * fs_hz)), int(a)) for t, a in zip(av.tau_s, alphas)])
     keep = edf >= MIN_EDF
     return AllanVariance(av.tau_s[keep], av.avar[keep], av.n_terms[keep], edf[keep])

@@ -195,7 +195,12 @@ def _select(av: AllanVariance, dt: float):
             x, chi2, jac = _fit(av, sd, n_gm, dt, first, start)
             start = x[4 + n_gm:]  # the reweighted fit starts where the first ended
             gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
-            sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-300) * np.sqrt(2 / av.edf)
+            # the weights never above a thousandth of the observed variance's: a model that misses some
+            # averaging time by orders (a deterministic misfit left in the residuals) would otherwise
+            # weigh it by 1e300 and overflow the design
+            sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-3 * av.avar) * np.sqrt(2 / av.edf)
+        if not (np.isfinite(chi2) and np.isfinite(jac).all()):
+            break
         aic = chi2 + 2 * (4 + 2 * n_gm)
         if n_gm and not _shown(x, jac, chi2, av.tau_s.size, n_gm):
             continue
@@ -238,7 +243,9 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
             best, kept = (red, found), part
         if red <= 3.0:
             break
-    assert best is not None
+    if best is None:
+        return ChannelNoise(channel, av, (), 0.0, dt, 0.0, "no noise model fits the residuals' Allan variance "
+                                                   "(a deterministic misfit dominates it)")
     _, (_, n_gm, x, chi2, jac) = best
     chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
     cov = _covariance(jac, chi2, kept.tau_s.size, n_gm)
@@ -276,9 +283,11 @@ def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, 
 
 
 def identify_channel(channel: str, pieces: list[np.ndarray], fs_hz: float, unit: str,
-                     first: AllanVariance | None = None) -> ChannelNoise:
+                     first: AllanVariance | None = None, sizes: list[int] | None = None) -> ChannelNoise:
     """The Allan variance of a channel's residual pieces (``first``, when
-    already computed: ``allan.pooled_avars``), its edf for the noise type of
-    its own local slope, and its fitted model."""
+    already computed: ``allan.pooled_avars``; then ``sizes``, the pieces'
+    lengths, may stand for the pieces), its edf for the noise type of its
+    own local slope, and its fitted model."""
     first = pooled_avar(pieces, fs_hz) if first is None else first
-    return fit_channel(channel, with_edf(first, pieces, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)
+    sizes = [p.size for p in pieces] if sizes is None else sizes
+    return fit_channel(channel, with_edf(first, sizes, _alphas(first.tau_s, first.avar), fs_hz), 1 / fs_hz, unit)

@@ -36,6 +36,23 @@ def split_at_pauses(t_ns: np.ndarray, resid: np.ndarray, dt_s: float) -> list[np
     return [p for p in np.split(resid, cuts) if p.shape[0] >= 2]
 
 
+def fit_residual_pieces(t_ns: np.ndarray, y: np.ndarray, angle_deg: np.ndarray, coef: np.ndarray, rate_hz: float,
+                        rate_fit_hz: float | None, dt_s: float) -> list[np.ndarray] | None:
+    """One fitted segment's residual pieces (its stamps, channels (n, 3),
+    angles and fitted coefficients (channel x (C, A, B)) at its commanded
+    and fitted rates), or None where its angles do not serve."""
+    theta = np.deg2rad(angle_deg)
+    if t_ns.size < 2 or not np.isfinite(theta).all():
+        return None
+    if rate_hz and rate_fit_hz is not None and np.isfinite(rate_fit_hz):  # the four-parameter fit's rate
+        theta = theta[0] + rate_fit_hz / rate_hz * (np.unwrap(theta) - theta[0])
+    z = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
+    del theta
+    resid = z @ coef.T
+    del z
+    return split_at_pauses(t_ns, np.subtract(y, resid, out=resid), dt_s)
+
+
 def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame, dwells: pl.DataFrame,
                     dt_s: float) -> list[np.ndarray]:
     """Every contiguous piece (n_i, 3) of residuals of u, v, w: the fitted
@@ -60,14 +77,11 @@ def residual_pieces(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.Data
         if segment not in rows_of or angle is None or not np.isfinite(coef).all():
             continue
         first, count = rows_of[segment]
-        theta = np.deg2rad(angle[first:first + count])
-        if count < 2 or not np.isfinite(theta).all():
+        fitted_pieces = fit_residual_pieces(t_ns[first:first + count], y_all[first:first + count],
+                                            angle[first:first + count], coef, *rates[segment], dt_s)
+        if fitted_pieces is None:
             continue
-        rate, fitted = rates[segment]
-        if rate and fitted is not None and np.isfinite(fitted):  # the four-parameter fit's rate
-            theta = theta[0] + fitted / rate * (np.unwrap(theta) - theta[0])
-        z = np.column_stack([np.ones_like(theta), np.sin(theta), np.cos(theta)])
-        pieces += split_at_pauses(t_ns[first:first + count], y_all[first:first + count] - z @ coef.T, dt_s)
+        pieces += fitted_pieces
         done.add(segment)
     for segment in segments.filter(pl.col("kind") == "pose")["segment"]:
         if segment not in rows_of:

@@ -97,15 +97,12 @@ def diagnosis_outputs(diagnosis: Diagnosis | StaticDiagnosis | None, fits: pl.Da
 def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig,
                   calibration: Calibration) -> tuple[list[Table | Figure], Calibration, tuple[str, ...]]:
     """The ``noise`` table, the Allan-deviation figure (``noise_allan.png``,
-    with figures) and ``calibration`` with the noise model, of a recording
-    held in memory; a streamed capture's samples are not kept, so its noise
-    is not identified (a note says so)."""
-    if seg.streamed is not None:
-        return [], calibration, ("noise model not identified: the capture was read block by block (its samples are "
-                                 "not kept)",)
+    with figures) and ``calibration`` with the noise model (of a capture
+    read block by block, from the residual pieces its fit pass pooled)."""
     from rotcal.noise import calibration_noise, identify_noise, noise_frame
 
-    model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, ds.meta.output_unit)
+    model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, ds.meta.output_unit,
+                           None if seg.streamed is None else seg.streamed.noise_pooled())
     outputs: list[Table | Figure] = [Table("noise", noise_frame(model, ds.name))]
     if config.report.figures:
         def draw(out: Path) -> Path | None:

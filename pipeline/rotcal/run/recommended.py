@@ -44,6 +44,7 @@ from rotcal.run.streamed import corrected_blocks, streamed_fits
 from rotcal.run.streaming import StreamedSegments
 
 if TYPE_CHECKING:
+    from rotcal.combine.heldout import HeldOut
     from rotcal.diagnose import Diagnosis
     from rotcal.diagnose.static import StaticDiagnosis
 
@@ -157,10 +158,27 @@ def recommend_stage(intrinsic: pl.DataFrame, results: tuple[IntrinsicResult, ...
     nested model where the F test chooses it, the baseline otherwise."""
     static = reductions.static
     others = {REFINED: diagnosis.refined if diagnosis else (), **{n: (r,) for n, r in (static.nested if static else ())}}
-    return recommend(intrinsic, results, frames, others,
-                     tuple(diagnosis.before) if diagnosis else (),  # the modelled findings
-                     baseline_reason(diagnosis, reductions, config, diagnosis_notes),
-                     static.chosen if static else None)
+    modelled = tuple(diagnosis.before) if diagnosis else ()  # the modelled findings
+    reason = baseline_reason(diagnosis, reductions, config, diagnosis_notes)
+    held = table_held_out(diagnosis)
+    if held is not None:  # the refined model earns its place only by predicting held-out segments
+        verdict, unit = held
+        reason = verdict.text(BASELINE, REFINED, unit)
+        if not verdict.better:
+            reason = f"{reason}: {', '.join(modelled)} not modelled in the recommended result"
+            modelled = ()
+    return recommend(intrinsic, results, frames, others, modelled, reason, static.chosen if static else None)
+
+
+def table_held_out(diagnosis: Diagnosis | StaticDiagnosis | None) -> tuple[HeldOut, str] | None:
+    """A table diagnosis' refined model against the baseline on held-out
+    segments (``diagnose.heldout``), where it modelled an effect."""
+    final = getattr(diagnosis, "final", None)
+    if final is None or not diagnosis or not diagnosis.refined:
+        return None
+    from rotcal.diagnose.heldout import segments_held_out
+
+    return segments_held_out(final)
 
 
 def correction_stage(seg: Segmented, static: StaticReduction | None, ds: Dataset) -> tuple[list[Table], tuple[str, ...]]:

@@ -1,15 +1,27 @@
-"""The run's load and segment stages for a capture read block by block:
-past ``[run] stream_above_samples`` a single capture's samples are not
-held; the segment stage reads them in passes (``run.streaming``) and keeps
-only what the later stages read: the static segments' samples, the
-diagnosis's thinned rows and each fitted segment's sums.
+"""The run's load and segment stages, block by block: a capture's samples
+are not held; the segment stage reads them in passes (``run.streaming``)
+and keeps only what the later stages read: the static segments' samples,
+the diagnosis's thinned rows, each fitted segment's sums and the noise
+model's pooled residual statistics. The tables are those of the same
+functions on the samples held whole (``[run] stream_above_samples`` N > 0
+reads captures of at most N samples whole, as a check).
 
-What still needs the whole capture is read in memory with one note,
-``read in memory, not block by block: <why>``, the reason given where it
-is known: a format without a block reader or a capture its block reader
-does not take (``ingest.formats``, ``ingest.stream.NotBlockwise``), repaired
-stamps that need a sort (``timebase.blocks``), and what the later stages
-read whole (``why_not``)."""
+What the block path does not take is read whole, each for its reason
+(a note ``read in memory, not block by block: <why>``
+says so for a single capture):
+
+- datasets of several captures, or of pose summaries: the samples of
+  several files are ordered and checked together (``ingest.dataset``);
+- a format without a block reader (MATLAB ``.mat``: scipy reads the file
+  whole), or a capture its block reader does not take (``ingest.stream.
+  NotBlockwise``: MCAP JSON messages or out-of-order chunks, CSV layouts
+  other than plain labelled columns);
+- repaired stamps that need a sort (``timebase.blocks``);
+- and what the later stages read whole (``why_not``): four-parameter fits
+  (the rate refitted against every sample), unlabelled samples or no
+  table angle (segments found in the signals), gaps in the time base
+  (classified by the segments on both sides).
+"""
 
 from __future__ import annotations
 
@@ -55,9 +67,9 @@ class StreamedDataset(Dataset):
 def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
     """The dataset, its samples streamed (``ingest.stream.open_stream``,
     repaired by ``timebase.blocks.repaired_stream``) when it is one capture
-    of more than ``[run] stream_above_samples`` samples whose format's block
-    reader takes it (``ingest.formats``: MCAP and CSV); read whole otherwise,
-    with a note saying why past the key."""
+    (of more than ``[run] stream_above_samples`` samples) whose format's
+    block reader takes it (``ingest.formats``: MCAP and CSV); read whole
+    otherwise, a single capture with a note saying why (the module's list)."""
     path = Path(path)
     if meta_path is None and path.is_dir() and (path / "dataset.toml").is_file():
         meta_path = path / "dataset.toml"
@@ -125,7 +137,7 @@ def streamed_segments(ds: StreamedDataset, config: RunConfig) -> tuple[StreamedS
 
 def streamed_fits(blocks: Blocks, ds: Dataset, config: RunConfig) -> list[SegmentFit]:
     """The segment fits of a capture's blocks (``corrected_blocks``'s: the fits under the refined model)."""
-    return stream_segments(blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples).fits
+    return stream_segments(blocks, ds.name, ds.meta.angle_source, config.fit, config.diagnosis.max_samples, pool_noise=False).fits
 
 
 def corrected_blocks(streamed: StreamedSegments, segments: pl.DataFrame, fits: pl.DataFrame, diagnosis: Diagnosis) -> Blocks:

@@ -152,7 +152,8 @@ def _extend(start: int, stop: int, low: int, high: int, z_of, kappa: float) -> t
     return start - left, stop + right
 
 
-def angular_rate(t_ns: np.ndarray, direction: np.ndarray, window: int, max_step_ns: float) -> tuple[np.ndarray, np.ndarray]:
+def angular_rate(t_ns: np.ndarray, direction: np.ndarray, window: int, max_step_ns: float,
+                 typical_dt_ns: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Angular rate (rad/s) and axis of ``direction`` (rows, roughly
     offset-free outputs) in the ``window`` sample pairs before and after
     every sample (rows: before, after; NaN where a window is empty). Pairs
@@ -162,7 +163,8 @@ def angular_rate(t_ns: np.ndarray, direction: np.ndarray, window: int, max_step_
     unit vectors; the rate sums the turns of consecutive directions
     projected on the plane normal to the local axis, so that an offset left
     along the axis (a rough calibration from one axis's data cannot see it)
-    does not bias it.
+    does not bias it. ``typical_dt_ns``: the capture's median sample
+    period, where ``t_ns`` is a block of it (else this block's).
     """
     unit = direction / np.linalg.norm(direction, axis=1)[:, None]
     dt = np.diff(t_ns).astype(float)
@@ -185,11 +187,54 @@ def angular_rate(t_ns: np.ndarray, direction: np.ndarray, window: int, max_step_
     vec = np.stack([csum[idx] - csum[lo], csum[hi] - csum[idx]])
     angle = np.abs(np.stack([asum[idx] - asum[lo], asum[hi] - asum[idx]]))
     span = np.stack([tsum[idx] - tsum[lo], tsum[hi] - tsum[idx]])
-    full = span > 0.5 * window * np.median(dt) / 1e9
+    full = span > 0.5 * window * (np.median(dt) if typical_dt_ns is None else typical_dt_ns) / 1e9
     rate = np.where(full, angle / np.where(span > 0, span, 1.0), np.nan)
     norm = np.linalg.norm(vec, axis=2)
     axis = vec / np.where(norm > 0, norm, 1.0)[..., None]
     return rate, axis
+
+
+# samples of a block of ``angular_rate``: its arrays (a dozen n x 3) stay a few tens of MB
+MOTION_BLOCK = 1 << 18
+
+
+class _Motion:
+    """``angular_rate`` where the samples are out of every dwell (the only
+    place a rotation is looked for), block by block: each block padded by
+    the rate's reach (two windows and a pair) so its samples get the
+    values the whole capture's would. ``pos`` the samples (out of the
+    dwells), ``rate`` (2, len(pos)) before and after, ``alignment`` the
+    cosine between the axes before and after; ``axis(i)`` recomputed where
+    asked (a few samples)."""
+
+    def __init__(self, t_ns: np.ndarray, y: np.ndarray, offset: np.ndarray, to_unit: np.ndarray, in_dwell: np.ndarray,
+                 window: int, dt_ns: float) -> None:
+        self._args = (t_ns, y, offset, to_unit, window, dt_ns)
+        self.pos = np.flatnonzero(~in_dwell)
+        self.rate, self.alignment = np.empty((2, self.pos.size)), np.empty(self.pos.size)
+        k = 0
+        for s, e in _runs(~in_dwell):
+            for a in range(s, e, MOTION_BLOCK):
+                b = min(a + MOTION_BLOCK, e)
+                rate, axis = self._block(a, b)
+                self.rate[:, k : k + b - a], self.alignment[k : k + b - a] = rate, np.einsum("ij,ij->i", axis[0], axis[1])
+                k += b - a
+
+    def _block(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        t_ns, y, offset, to_unit, window, dt_ns = self._args
+        reach = 2 * window + 4
+        lo, hi = max(0, a - reach), min(t_ns.size, b + reach)
+        rate, axis = angular_rate(t_ns[lo:hi], (y[lo:hi] - offset) @ to_unit.T, window, 1.5 * dt_ns, dt_ns)
+        return rate[:, a - lo : b - lo], axis[:, a - lo : b - lo]
+
+    def at(self, start: int, stop: int) -> slice:
+        """The compact positions of samples ``start:stop`` (all out of the dwells)."""
+        first = int(np.searchsorted(self.pos, start))
+        return slice(first, first + stop - start)
+
+    def axis(self, i: int) -> np.ndarray:
+        """(2, 3) the axes before and after sample ``i``."""
+        return self._block(i, i + 1)[1][:, 0]
 
 
 def _runs(mask: np.ndarray) -> np.ndarray:
@@ -198,7 +243,7 @@ def _runs(mask: np.ndarray) -> np.ndarray:
     return np.column_stack([np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)])
 
 
-def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.ndarray, max_hole: int,
+def _bridge(runs: np.ndarray, motion: _Motion, mid: np.ndarray, in_dwell: np.ndarray, max_hole: int,
             config: BlindConfig) -> np.ndarray:
     """Steady runs joined across short holes without a dwell when the rate
     and axis on both sides agree (one bad sample, or a burst of noise, does
@@ -209,10 +254,10 @@ def _bridge(runs: np.ndarray, rate: np.ndarray, axis: np.ndarray, in_dwell: np.n
     cos_tol = np.cos(np.deg2rad(config.axis_tolerance_deg))
     for s, e in runs[1:]:
         ps, pe = out[-1]
-        f_prev, f_next = np.nanmedian(rate[ps:pe]), np.nanmedian(rate[s:e])
+        f_prev, f_next = np.nanmedian(mid[motion.at(ps, pe)]), np.nanmedian(mid[motion.at(s, e)])
         same = (s - pe <= max_hole and not in_dwell[pe:s].any()
                 and abs(f_next - f_prev) <= config.rate_tolerance * max(f_prev, f_next)
-                and abs(axis[1, pe - 1] @ axis[0, s]) >= cos_tol)
+                and abs(motion.axis(pe - 1)[1] @ motion.axis(s)[0]) >= cos_tol)
         if same:
             out[-1][1] = e
         else:
@@ -314,25 +359,23 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     sample = y[:: max(1, n // 20000)]
     offset, to_unit = rough_calibration(means if len(means) >= 12 else sample)
     window = max(3, int(round(config.window_s * 1e9 / dt_ns)))
-    rate, axis = angular_rate(t_ns, (y - offset) @ to_unit.T, window, 1.5 * dt_ns)
     in_dwell = np.zeros(n, bool)
     for s, e in dwells:
         in_dwell[s:e] = True
+    motion = _Motion(t_ns, y, offset, to_unit, in_dwell, window, dt_ns)
     # the rate's noise: typical change between neighbouring windows where the DUT moves
     # (mostly steady rotation; ramps and hand moves are the minority that the median ignores)
-    change = np.abs(rate[1] - rate[0])[~in_dwell]
+    change = np.abs(motion.rate[1] - motion.rate[0])
     rate_noise = 1.4826 * float(np.nanmedian(change)) if np.any(np.isfinite(change)) else 0.0
-    mid = np.nanmean(rate, axis=0)
-    steady = (
-        ~in_dwell
-        & (np.abs(rate[1] - rate[0]) <= config.rate_tolerance * mid + config.noise_sigmas * rate_noise)
-        & (np.einsum("ij,ij->i", axis[0], axis[1]) >= np.cos(np.deg2rad(config.axis_tolerance_deg)))
-    )
+    mid = np.nanmean(motion.rate, axis=0) if motion.pos.size else np.zeros(0)
+    steady = np.zeros(n, bool)
+    steady[motion.pos] = ((change <= config.rate_tolerance * mid + config.noise_sigmas * rate_noise)
+                          & (motion.alignment >= np.cos(np.deg2rad(config.axis_tolerance_deg))))
     rotations = []
-    candidates = _bridge(_runs(steady), mid, axis, in_dwell, 2 * window, config)
+    candidates = _bridge(_runs(steady), motion, mid, in_dwell, 2 * window, config)
     for j, (s, e) in enumerate(candidates):
         duration = (t_ns[e - 1] - t_ns[s]) / 1e9 + 2 * window * dt_ns / 1e9
-        f_guess = float(np.nanmedian(mid[s:e])) / (2 * np.pi)
+        f_guess = float(np.nanmedian(mid[motion.at(s, e)])) / (2 * np.pi)
         if duration < config.min_rotation_s or f_guess * duration < config.min_turns:
             continue
         before = dwells[:, 1][dwells[:, 1] <= s]
@@ -370,12 +413,17 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
 def noise_sd_of(y: np.ndarray, dwells: np.ndarray) -> np.ndarray:
     """Noise standard deviation per channel: pooled within the dwells, or,
     without dwells, from second differences (6 sigma^2 for white noise)."""
+    columns = range(y.shape[1])  # a column at a time: a dwell of millions of samples makes no n x 3 temporaries
     if len(dwells):
-        dev = np.concatenate([y[s:e] - y[s:e].mean(axis=0) for s, e in dwells])
-        dof = max(dev.shape[0] - len(dwells), 1)
-        sd = np.sqrt((dev**2).sum(axis=0) / dof)
+        squares = np.zeros(y.shape[1])
+        for s, e in dwells:
+            for r in columns:
+                column = y[s:e, r] - y[s:e, r].mean()
+                squares[r] += column @ column
+        dof = max(int((dwells[:, 1] - dwells[:, 0]).sum()) - len(dwells), 1)
+        sd = np.sqrt(squares / dof)
     else:
         second = np.diff(y, 2, axis=0)
         sd = 1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0) / np.sqrt(6.0)
-    integer = np.all(y == np.round(y))
+    integer = all(np.all(y[:, r] == np.round(y[:, r])) for r in columns)
     return np.maximum(sd, np.sqrt(1.0 / 12.0) if integer else 1e-12)

@@ -41,14 +41,31 @@ class StillnessConfig:
     gap_factor: float = 5.0   # a time gap this many sample periods long ends an interval
 
 
+# samples a window variance is summed over at a time: a block's cumulative sums stay a few MB
+VARIANCE_BLOCK = 1 << 18
+
+
 def moving_variance(y: np.ndarray, window: int) -> np.ndarray:
-    """Variance of every full window of ``window`` samples, per column
-    (cumulative sums on median-centred data: O(n), no loop over samples)."""
-    centred = y - np.median(y, axis=0)
-    s1 = np.vstack([np.zeros(y.shape[1]), np.cumsum(centred, axis=0)])
-    s2 = np.vstack([np.zeros(y.shape[1]), np.cumsum(centred**2, axis=0)])
-    mean = (s1[window:] - s1[:-window]) / window
-    return np.maximum((s2[window:] - s2[:-window]) / window - mean**2, 0.0)
+    """Variance of every full window of ``window`` samples, per column."""
+    return np.column_stack([column_variance(y[:, r], window) for r in range(y.shape[1])])
+
+
+def column_variance(y: np.ndarray, window: int) -> np.ndarray:
+    """Variance of every full window of ``window`` samples of one column:
+    cumulative sums on median-centred data (O(n), no loop over samples),
+    block by block (each block's windows from its own sums, which also
+    keeps their rounding to a block's length)."""
+    count = max(y.size - window + 1, 0)
+    out = np.empty(count)
+    centre = float(np.median(y)) if y.size else 0.0
+    for a in range(0, count, VARIANCE_BLOCK):
+        b = min(a + VARIANCE_BLOCK, count)
+        centred = y[a : b + window - 1] - centre
+        s1 = np.r_[0.0, np.cumsum(centred)]
+        s2 = np.r_[0.0, np.cumsum(centred * centred)]
+        mean = (s1[window:] - s1[:-window]) / window
+        out[a:b] = np.maximum((s2[window:] - s2[:-window]) / window - mean * mean, 0.0)
+    return out
 
 
 def window_ratios(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
@@ -60,16 +77,22 @@ def window_ratios(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = Sti
     window = max(3, int(round(config.window_s / dt_s)))
     if n < window:
         return np.zeros(0), window
-    var = moving_variance(y, window)
-    integer = np.all(y == np.round(y))
-    second = np.diff(y, 2, axis=0)
-    white = (1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0)) ** 2 / 6.0
-    floor = np.maximum(np.minimum(np.percentile(var, config.floor_percentile, axis=0), white),
-                       1.0 / 12.0 if integer else 1e-12)
+    integer = all(np.all(y[:, r] == np.round(y[:, r])) for r in range(y.shape[1]))
+    ratio = np.zeros(n - window + 1)
+    for r in range(y.shape[1]):  # a column at a time: its temporaries, not the table's
+        second = np.diff(y[:, r], 2)
+        second -= np.median(second)
+        white = (1.4826 * np.median(np.abs(second))) ** 2 / 6.0
+        del second
+        var = column_variance(y[:, r], window)
+        floor = max(min(float(np.percentile(var, config.floor_percentile)), white), 1.0 / 12.0 if integer else 1e-12)
+        var /= floor
+        np.maximum(ratio, var, out=ratio)
     gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
     gap_before = np.concatenate([[0], np.cumsum(gap)])
     inside = gap_before[window - 1 :] != gap_before[: n - window + 1]  # a gap inside the window
-    return np.where(inside, np.inf, (var / floor).max(axis=1)), window
+    ratio[inside] = np.inf
+    return ratio, window
 
 
 def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:

@@ -93,7 +93,7 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
     returns each sample's segment key (-1 in transitions)."""
     # stamps too noisy for a fit: keep every steady rotation, to refuse it by name
     blind = segment_blind(t, y, replace(config, max_residual_ratio=np.inf) if reason else config)
-    segment = np.full(t.size, -1)
+    segment = np.full(t.size, -1, np.int32)
     for r in blind.rotations:
         found.rotations.append(_Rotation(found.key, capture, r.axis, "inferred", None, r.fit, reason,
                                          int(t[r.start]), int(t[r.stop - 1]), r.stop - r.start, r.axis_offset_deg,
@@ -106,7 +106,9 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
     if not len(blind.dwells):
         return segment
     # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
-    spread = np.array([y[s:e].std(axis=0, ddof=1) if e - s > 1 else np.full(y.shape[1], np.nan) for s, e in blind.dwells])
+    # (a column at a time: a dwell of millions of samples makes no n x 3 temporaries)
+    spread = np.array([[y[s:e, r].std(ddof=1) for r in range(y.shape[1])] if e - s > 1 else np.full(y.shape[1], np.nan)
+                       for s, e in blind.dwells])
     chi2 = (spread**2 / blind.noise_sd**2).mean(axis=1)
     group = np.full(len(blind.dwells), -1)
     for q in blind.sequences:
@@ -167,7 +169,7 @@ def _own_phase_fits(rotations: list[_Rotation], dataset: str, plan_rates: tuple[
     return rows, updates, fits, drift
 
 
-def _outputs(samples: pl.DataFrame, rows: np.ndarray) -> np.ndarray:
+def _outputs(samples: pl.DataFrame, rows: np.ndarray | slice) -> np.ndarray:
     """The outputs of some rows, (n, 3)."""
     return np.column_stack([samples[c].to_numpy()[rows] for c in CHANNELS])
 
@@ -198,9 +200,12 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
     captures = samples["capture"].filter(pl.Series(free)).unique(maintain_order=True).to_list()
     for capture in captures:
         idx = np.flatnonzero(free & (samples["capture"] == capture).to_numpy())
+        # one run of rows (a whole capture): views, not copies
+        part: np.ndarray | slice = slice(int(idx[0]), int(idx[-1]) + 1) if idx.size and idx[-1] - idx[0] + 1 == idx.size else idx
         if idx.size >= 10:
-            seg_col[idx] = _segment_capture(found, dataset, capture, t_all[idx], _outputs(samples, idx),
-                                            unrepairable.get(capture), config)
+            del idx
+            seg_col[part] = _segment_capture(found, dataset, capture, t_all[part], _outputs(samples, part),
+                                             unrepairable.get(capture), config)
     hand = (f", {found.counts[3]} chain(s) of dwells about one axis without a table's steps (directions off one great "
             "circle, or unequal steps: poses turned by hand)") if found.counts[3] else ""
     route = (f"{found.counts[0]} constant rotations, {found.counts[1]} static step sequences{hand}, {found.counts[2]} dwells "
