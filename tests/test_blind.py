@@ -153,14 +153,14 @@ def test_blocks_of_the_rate_and_the_window_variances_change_nothing(monkeypatch)
     block (padded by their reach) to bound memory: blocks of 500 and 64
     samples segment a continuous plan as one block does, every rotation's
     bounds and fitted rate, every dwell and the noise alike."""
-    import rotcal.segment.blind as blind_module
+    import rotcal.segment.motion as motion_module
     import rotcal.segment.stillness as stillness_module
 
     sim = simulate(SimulationSpec(plan=Plan(continuous=True)), 11)
     t, y = _arrays(sim)
     whole = segment_blind(t, y)
     for size in (500, 64):
-        monkeypatch.setattr(blind_module, "MOTION_BLOCK", size)
+        monkeypatch.setattr(motion_module, "MOTION_BLOCK", size)
         monkeypatch.setattr(stillness_module, "VARIANCE_BLOCK", size)
         blocks = segment_blind(t, y)
         assert [(r.start, r.stop, r.axis) for r in blocks.rotations] == [(r.start, r.stop, r.axis) for r in whole.rotations]

@@ -355,9 +355,13 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     res = _residuals(final, output_unit)
     recorded = replace(res, resid=final.residuals)   # the noise as recorded, which the fits' noise model describes
     a_u = config.unexplained_false_alarm
+    # residuals at the numerical floor over every sample used (noise-free data): nothing beyond it is a finding
+    rounding_rss = recorded.use.sum(axis=0) * final.obs.noise_floor**2
     for found in (tone_scan(recorded, a_u) + harmonic_scan(recorded, a_u) + segment_scan(recorded, a_u, SegmentNoise.from_fits(fits))
                   + static_step_scan(recorded, step_id, a_u, residual_autoregression(recorded))
                   + rate_dependence(final, a_u, output_unit, results)):
+        if np.all(found.rss_reduction <= rounding_rss):  # what it removes is float rounding, not physics
+            continue
         rows.append(scan_row(final, found, dataset))
     modelled = bool(final.active) or any(v is not None for v in clip)
     refined = refined_results(final, g_local, g_uncertainty) if modelled else ()

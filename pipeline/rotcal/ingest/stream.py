@@ -24,6 +24,7 @@ from rotcal.config import Limits
 from rotcal.ingest.dataset import read_capture
 from rotcal.ingest.formats import named_format
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
+from rotcal.ingest.summaries import MEANS
 from rotcal.tables import conform
 
 Blocks = Callable[[], Iterator[pl.DataFrame]]
@@ -75,6 +76,8 @@ def read_whole(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: 
     """The capture read whole (``ingest.dataset.read_capture``), as ``load_dataset``
     reads it, ``because`` the reason it is not read block by block."""
     frame, notes = read_capture(path, spec, meta, limits, workers)
+    if MEANS[0] in frame.columns:
+        raise NotBlockwise("it holds pose summaries, not samples")
     samples = conform(frame.with_columns(capture=pl.lit(capture)), "samples")
     source = next(iter(samples["label_source"].drop_nulls()), None)
 

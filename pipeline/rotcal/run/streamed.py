@@ -41,7 +41,7 @@ from rotcal.ingest.dataset import Dataset, load_dataset
 from rotcal.ingest.files import capture_files, dataset_name
 from rotcal.ingest.formats import named_format
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import BLOCK_SAMPLES, open_stream
+from rotcal.ingest.stream import BLOCK_SAMPLES, NotBlockwise, open_stream
 from rotcal.model.physics import CHANNELS
 from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
@@ -84,7 +84,10 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
         return whole()
     file, spec = files[0]
     capture = Path(os.path.relpath(file.resolve(), root.resolve())).as_posix()
-    raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    try:
+        raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
+    except NotBlockwise:  # pose summaries: no samples to stream (the module's list)
+        return whole()
     stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES)
     if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
         because = stream.whole_because
