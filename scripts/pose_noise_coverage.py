@@ -53,9 +53,7 @@ def session(shape: str, seed: int) -> dict[str, np.ndarray]:
     poses = pose_table(clean.t_ns, y, starts, stops)
     truth_means = np.array([clean.y[a:b].mean(axis=0) for a, b in zip(starts, stops)])
     means = poses.select("mean_u", "mean_v", "mean_w").to_numpy()
-    # each pose mean's own noise and the part every pose shares
-    shared = np.nan_to_num(np.array(poses["cov_shared"].to_list())) if "cov_shared" in poses.columns else 0.0
-    u = np.sqrt((np.array(poses["cov_mean"].to_list()) + shared)[:, [0, 4, 8]])
+    u = np.sqrt(np.array(poses["cov_mean"].to_list())[:, [0, 4, 8]])
     out = {"means": ((means - truth_means) / u).ravel()}
     free = choose_model(poses, G_LOCAL, 0.0).full
     if not isinstance(free, Failure):

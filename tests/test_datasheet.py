@@ -40,22 +40,18 @@ def test_the_corpus_mpu6050_with_its_datasheet(tmp_path):
 
 def test_what_the_poses_barely_determine_rests_on_the_prior(tmp_path):
     """Without the cross-axis bound the nine-parameter fit of the ten poses
-    (none between u and v) leaves s_u and s_v to about 1 % (u 17 and 15
-    count/(m/s^2) with the poses' noise model), s_w to 0.03 %: under a
-    sensitivity tolerance tighter than that (0.5 %, as of a factory-trimmed
-    part) s_u and s_v have at most the prior's uncertainty (u = 0.5 % /
-    sqrt(3) of the nominal) and are named as resting on it, and s_w, which
-    the poses determine, is not."""
-    config = _config(tmp_path, False)
-    config.write_text(config.read_text().replace("sensitivity_tolerance = 0.03", "sensitivity_tolerance = 0.005"))
-    outcome = run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path / "out", config)
+    (none between u and v) leaves s_u and s_v to within about 20 %: with
+    the sensitivity tolerance (3 %) their uncertainty is at most the
+    prior's (u = 3 % / sqrt(3) of the nominal), they are named as resting
+    on it, and s_w, which the poses determine, is not."""
+    outcome = run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path / "out", _config(tmp_path, False))
     baseline = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet").filter(pl.col("model") == "baseline")
     rows = {r["parameter"]: r for r in baseline.iter_rows(named=True)}
-    prior_u = 16384 / 9.80665 * 0.005 / np.sqrt(3)
+    prior_u = 16384 / 9.80665 * 0.03 / np.sqrt(3)
     for name in ("s_u", "s_v"):
         u = rows[name]["std_uncertainty"]
         assert u <= prior_u, (name, u, prior_u)
-    assert rows["s_w"]["std_uncertainty"] < 0.2 * prior_u
+    assert rows["s_w"]["expanded_uncertainty"] < 0.1 * prior_u
     assert any("s_u, s_v rest on the prior" in n for n in outcome.static.notes)
     assert abs(rows["s_w"]["value"] / suarez_parameters()[2] - 1) < 0.005
 

@@ -41,7 +41,6 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.lsq import excess_is_significant, nonlinear
-from rotcal.fit.posenoise import pose_wander, with_shared
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
@@ -267,11 +266,6 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         prior = misalignment_u * np.abs(np.diag(L))[TRIL[0][fixed]]
         sensitivity = gain @ full_jac[:, fixed] * prior
         parts.append((whole_fit_input("misalignment prior", float("inf")), sensitivity @ sensitivity.T))
-    # the noise every pose's mean shares moves the offsets: its model's part, and a wander the magnitudes show
-    # (along gravity only: its size there taken for each channel)
-    radial = pose_wander((mag - g_local)[:, None], noise_var[:, None], poses, jac, seen="magnitudes")
-    gain2 = float(np.mean(np.sum(grad**2, axis=1)))
-    parts = with_shared(poses, parts, None if radial is None else np.full(3, radial[0] / gain2))
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
     result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)

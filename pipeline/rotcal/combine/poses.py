@@ -30,8 +30,7 @@ import polars as pl
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
-from rotcal.fit.means import pose_statistics
-from rotcal.fit.posenoise import pose_wander, with_shared
+from rotcal.fit.means import group_statistics
 from rotcal.fit.segments import segment_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
@@ -47,7 +46,7 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
                 label: Sequence[str | None], reference: np.ndarray) -> pl.DataFrame:
     """One row per group of samples (``group`` = -1 outside every pose)."""
     t_ns = samples["t_ns"].to_numpy()
-    counts, means, cov, shared = pose_statistics(t_ns, samples.select(CHANNELS).to_numpy(), group, n_groups)
+    counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)
     inside = group >= 0
     temp = samples["temperature_c"].fill_null(np.nan).to_numpy()[inside]
     known = np.isfinite(temp)
@@ -59,9 +58,7 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
     np.minimum.at(first, g, t_ns[inside])
     np.maximum.at(last, g, t_ns[inside])
     temperature = np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0)
-    frame = _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
-    # the noise every pose's mean shares (``fit.posenoise``), carried into the static fits' offsets
-    return frame.with_columns(cov_shared=pl.Series([shared.ravel().tolist()] * n_groups, dtype=pl.List(pl.Float64)))
+    return _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
 
 
 def _statistics_frame(source: str, label: Sequence[str | None], reference: np.ndarray, counts: np.ndarray,
@@ -255,9 +252,8 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
     # the positions' noise alone where the fit is exact: its degrees of freedom are the pose means' own
     noise_dof = float(dof) if dof else float(max(int(poses["n_samples"].to_numpy().min()) - 1, 1))
     # the positions' noise and excess scatter together: the sandwich covariance of one fit
-    wander = pose_wander(m, np.einsum("kii->ki", cov), poses, design)
-    parts = with_shared(poses, [(whole_fit_input("positions", noise_dof), state_cov)], wander)
-    result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
+    result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
+                                        [(whole_fit_input("positions", noise_dof), state_cov)])
     return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
 
 

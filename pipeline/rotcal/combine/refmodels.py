@@ -46,7 +46,6 @@ from rotcal.combine.multiposition import VARIANCE_FLOOR, pose_arrays
 from rotcal.combine.posemodels import MIN_CONE_DEG, SELECTION_LEVEL, ModelChoice, f_test, gravity_cone
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference_fit, references
 from rotcal.fit.lsq import CONDITION_LIMIT, excess_is_significant, psd_part
-from rotcal.fit.posenoise import pose_wander, with_shared
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 
@@ -176,7 +175,6 @@ def orthogonal_reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty:
     parts = [(whole_fit_input("positions", float(full.dof if isinstance(full, ReferenceFit) and full.dof else dof)), state_cov)]
     if misalignment_u > 0:
         parts.append((whole_fit_input("misalignment prior", float("inf")), lift @ prior_cov @ lift.T))
-    parts = with_shared(poses, parts, pose_wander(m, np.einsum("kii->ki", cov), poses, design))
     result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
     result = _orthogonal_angles(result)
     return OrthogonalReferenceFit(result, rotation, e, dof, excess, root_w**2)

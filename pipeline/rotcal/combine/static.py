@@ -47,7 +47,6 @@ from rotcal.combine.poses import (
     without_scatter,
 )
 from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
-from rotcal.fit.posenoise import SHARED_NOT_MODELLED, shared_unidentified
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.placement import Placement
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
@@ -166,8 +165,6 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         reduction = _with_datasheet(reduction, placement)
     if unused is not None and unused.height and not isinstance(reduction, Failure):
         reduction = with_unused(reduction, unused, positions.height)
-    if not isinstance(reduction, Failure) and shared_unidentified(positions):
-        reduction = replace(reduction, notes=reduction.notes + (SHARED_NOT_MODELLED,))
     if isinstance(reduction, Failure) or not without_scatter(positions):
         return reduction
     return replace(reduction, notes=reduction.notes + (

@@ -10,31 +10,18 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.correlated import density_ratio, grouped_autocorrelation
-from rotcal.fit.posenoise import pose_noise_covariance
 from rotcal.fit.quantization import mean_rounding_variance, output_step
 from rotcal.model.physics import CHANNELS
 
 
 def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``pose_statistics`` without the times: the lag-1/lag-2 widening alone."""
-    counts, means, cov, _ = pose_statistics(None, y, group, n_groups)
-    return counts, means, cov
-
-
-def pose_statistics(t_ns: np.ndarray | None, y: np.ndarray, group: np.ndarray, n_groups: int
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per group: sample count, mean (G, 3) and covariance of the mean
-    (G, 3, 3) of the rows of ``y`` labelled ``group`` (0 .. G-1; -1 = none),
-    and the covariance (3, 3) every group's mean shares.
+    (G, 3, 3) of the rows of ``y`` labelled ``group`` (0 .. G-1; -1 = none).
 
     Where a group's samples are correlated from one to the next (lag-1
-    autocorrelation significant and positive), the covariance is that of
-    the recording's noise model identified from the groups' residuals
-    (``fit.posenoise``; sample times ``t_ns``), split into each group's own
-    part and the part all share; without times, or where the model cannot
-    be identified, it is widened by the noise density's ratio to white at
-    zero frequency (``fit.correlated``) and the shared part is zero (NaN
-    with times: not identified). A quantized output (its step found from the
+    autocorrelation significant and positive), the covariance is widened
+    by the noise density's ratio to white at zero frequency
+    (``fit.correlated``). A quantized output (its step found from the
     samples) adds the rounding's variance of a mean to the diagonal
     (``fit.quantization``): a pose of identical samples is uncertain by
     the step, not by the step over the square root of its count.
@@ -56,11 +43,7 @@ def pose_statistics(t_ns: np.ndarray | None, y: np.ndarray, group: np.ndarray, n
         cov = scatter / ((counts - 1.0) * counts)[:, None, None]
     # noise correlated from sample to sample: a mean's variance is the noise density at zero frequency
     widen = np.sqrt(density_ratio(*grouped_autocorrelation(centred, g, n_groups, g), counts[:, None], 0.0))
-    widened = cov * widen[:, :, None] * widen[:, None, :]
-    shared = np.zeros((3, 3))
-    if t_ns is not None and np.any(widen > 1.0):
-        widened, shared = pose_noise_covariance(t_ns[inside], yy, g, n_groups, means, cov, widened)
-    cov = widened
+    cov = cov * widen[:, :, None] * widen[:, None, :]
     if yy.size:
         # the output step's rounding, the same for every sample of a pose when the noise is below it
         # (each pose's own scatter: a pose dithering across a level boundary says nothing of the others)
@@ -68,20 +51,18 @@ def pose_statistics(t_ns: np.ndarray | None, y: np.ndarray, group: np.ndarray, n
             sample_var = np.einsum("kii->ki", scatter) / (counts - 1.0)[:, None]
         diag = np.einsum("kii->ki", cov)
         diag += mean_rounding_variance(output_step(yy)[None], sample_var)
-    return counts.astype(np.int64), means, cov, shared
+    return counts.astype(np.int64), means, cov
 
 
 def pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> pl.DataFrame:
-    """Mean and covariance of the mean of each pose (samples
-    ``starts[k]:stops[k]``), and the covariance all poses' means share
-    (``cov_shared``, the same in every row)."""
+    """Mean and covariance of the mean of each pose (samples ``starts[k]:stops[k]``)."""
     starts, stops = np.asarray(starts, np.int64), np.asarray(stops, np.int64)
     group = np.full(t_ns.size, -1, np.int64)
     for k, (a, b) in enumerate(zip(starts, stops)):  # poses do not overlap; a few hundred slices, no n-long temporaries
         group[a:b] = k
-    counts, means, cov, shared = pose_statistics(t_ns, y, group, starts.size)
+    counts, means, cov = group_statistics(y, group, starts.size)
     return pl.DataFrame({
         "pose": np.arange(starts.size, dtype=np.int64), "t_start_ns": t_ns[starts], "t_end_ns": t_ns[stops - 1],
         "n_samples": counts, **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
-        "cov_mean": cov.reshape(-1, 9).tolist(), "cov_shared": [shared.ravel().tolist()] * starts.size,
-    }, schema_overrides={"cov_mean": pl.List(pl.Float64), "cov_shared": pl.List(pl.Float64)})
+        "cov_mean": cov.reshape(-1, 9).tolist(),
+    }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
