@@ -1,4 +1,4 @@
-"""Issue 16 item 1: a capture read chunk by chunk (``ingest.stream``) against
+"""Issue 16 item 1: a capture read chunk by chunk (``ingest.formats.blocks``) against
 the in-memory reader on the same MCAP capture, each in its own process:
 
 - in memory: ``load_dataset`` + ``repair_timebase`` (the samples table whole);
@@ -30,9 +30,9 @@ from pathlib import Path
 import polars as pl
 from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import COLUMNS, open_stream
+from rotcal.ingest.formats.blocks import COLUMNS, open_stream
 from rotcal.timebase import repair_timebase
-from rotcal.timebase.blocks import repaired_stream
+from rotcal.blockwise.repaired import repaired_stream
 
 def peak_kb():
     return int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1])
@@ -88,7 +88,7 @@ def main() -> None:
         from dataclasses import replace
 
         from rotcal.simulate import SimulationSpec
-        from rotcal.simulate.streamed import write_streamed
+        from rotcal.simulate.blocks import write_streamed
 
         spec = SimulationSpec()
         write_streamed(replace(spec, plan=replace(spec.plan, rotation_samples=args.rotation_samples)), 5, args.dir, "dut")

@@ -1,11 +1,11 @@
 """Issue 16 item 1: a long capture simulated in bounded memory. The default
 plan with long rotations (``[plan] rotation_samples``) written as an MCAP
-CDR capture block by block (``simulate.streamed``, what ``rotcal simulate``
+CDR capture block by block (``simulate.blocks``, what ``rotcal simulate``
 does) against the in-memory simulator (``simulate`` + ``write_dataset``) on
 the same spec and seed, each in its own process: time per sample, peak
 resident memory (the process's ``ru_maxrss``), and whether the files are
 the same bytes. Then, on that capture read in memory, the segments and
-segment fits streamed (``run.streaming.stream_segments`` over blocks of
+segment fits streamed (``blockwise.segments.stream_segments`` over blocks of
 ``--block`` samples, two passes) against the in-memory stage
 (``segment_by_labels`` + ``fit_segments``, one thread): time per sample,
 the largest difference between their fits tables, and the peak of memory
@@ -41,7 +41,7 @@ import json, resource, sys
 from dataclasses import replace
 from pathlib import Path
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
-from rotcal.simulate.streamed import write_streamed
+from rotcal.simulate.blocks import write_streamed
 spec = SimulationSpec()
 spec = replace(spec, plan=replace(spec.plan, rotation_samples={rotation}))
 out = Path({out!r})
@@ -151,10 +151,10 @@ def fits(dataset: Path, block: int, repeats: int = 3) -> None:
     from common import best_of
     from threadpoolctl import threadpool_limits
 
+    from rotcal.blockwise.segments import stream_segments
     from rotcal.config import FitConfig
     from rotcal.fit.segments import fit_segments, fits_frame
     from rotcal.ingest.dataset import load_dataset
-    from rotcal.run.streaming import stream_segments
     from rotcal.segment import segment_by_labels
 
     ds = load_dataset(dataset)

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+from rotcal.blockwise.load import load
 from rotcal.config import RunConfig
 from rotcal.noise import NoiseModel, identify_noise
 from rotcal.noise.model import identify_channel
 from rotcal.run.stages import segment_and_fit
-from rotcal.run.streamed import load
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 from rotcal.simulate.noise import draw_channels, noise_terms
 from rotcal.simulate.noise_request import parse_noise, resolve_noise

@@ -11,7 +11,7 @@ from pathlib import Path
 
 PIPELINE = Path(__file__).resolve().parents[1] / "pipeline" / "rotcal"
 STAGES = {"ingest", "timebase", "segment", "fit", "combine", "metrology", "diagnose", "report", "batch", "simulate", "model",
-          "noise"}
+          "noise", "blockwise"}
 
 
 def _module_name(path: Path) -> str:
@@ -106,10 +106,10 @@ def test_the_cycle_finder_finds_a_cycle():
 # bottom holds what every stage reads (the version, errors, JSON text, cores, the configuration,
 # the table contracts, the model); then the stages in the order a run calls them (ingest,
 # time base, the noise model of the residuals, the segment fits' least-squares core, segmentation, the reductions, the diagnosis,
-# metrology, the report), the run, and the commands built on it.
+# metrology, the report), the block path (a single capture through those stages a block at a time), the run, and the commands built on it.
 LAYERS = ("rotcal", "errors", "jsontext", "parallel", "config", "tables", "model",
           "ingest", "timebase", "noise", "fit", "segment", "combine", "diagnose", "metrology", "report",
-          "run", "batch", "simulate", "apply", "cli", "api", "__main__")
+          "blockwise", "run", "batch", "simulate", "apply", "cli", "api", "__main__")
 
 
 def _layer(module: str) -> str:
@@ -170,7 +170,7 @@ def run_sequence(source: str, function: str = "_run") -> list[str]:
 
 
 def drawn_sequence(text: str) -> list[str]:
-    """The numbered calls of the drawing in docs/architecture.md: ``(1) run.streamed.load``, ..."""
+    """The numbered calls of the drawing in docs/architecture.md: ``(1) blockwise.load.load``, ..."""
     import re
 
     steps = [(int(n), name) for n, name in re.findall(r"\((\d+)\) ([a-z_]+(?:\.[a-z_]+)+)", text)]
@@ -180,7 +180,7 @@ def drawn_sequence(text: str) -> list[str]:
 
 def test_the_drawing_lists_the_runs_stage_calls_in_order():
     sequence = run_sequence(RUN.read_text())
-    assert sequence[:4] == ["run.streamed.load", "run.stages.segment_and_fit", "run.stages.reduce", "run.stages.determined"]
+    assert sequence[:4] == ["blockwise.load.load", "run.stages.segment_and_fit", "run.stages.reduce", "run.stages.determined"]
     assert drawn_sequence(DRAWING.read_text()) == sequence
 
 

@@ -213,10 +213,10 @@ def _read_all_ways(path: Path) -> dict[str, int | str]:
     one (fast path, declining to the per-message one), the block reader
     of the streamed run (declining to the in-memory one), and the
     per-message reader alone."""
+    from rotcal.ingest.formats.blocks import NotBlockwise
+    from rotcal.ingest.formats.mcap import blocks as mcap_stream
     from rotcal.ingest.formats.mcap import reader as mcap_source
-    from rotcal.ingest.formats.mcap import stream as mcap_stream
     from rotcal.ingest.meta import load_meta
-    from rotcal.ingest.stream import NotBlockwise
 
     meta, out = load_meta(None), {}
 

@@ -1,4 +1,4 @@
-"""A CSV capture read a block of lines at a time (``ingest.formats.csv.stream``):
+"""A CSV capture read a block of lines at a time (``ingest.formats.csv.blocks``):
 the blocks after the time base are the samples ``load_dataset`` and
 ``repair_timebase`` give in memory, bit for bit; what the block reader
 does not take is read whole with the same values and messages; and a run
@@ -17,17 +17,17 @@ import pytest
 from polars.testing import assert_frame_equal
 
 import rotcal.run.stages as stages
+from rotcal.blockwise.repaired import repaired_stream
 from rotcal.config import Limits, RunConfig, with_options
 from rotcal.errors import InputError
 from rotcal.ingest.dataset import load_dataset
-from rotcal.ingest.formats.csv import stream as csv_stream
+from rotcal.ingest.formats.blocks import COLUMNS, NotBlockwise, open_stream
+from rotcal.ingest.formats.csv import blocks as csv_stream
 from rotcal.ingest.formats.csv.reader import read_csv_capture
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import COLUMNS, NotBlockwise, open_stream
 from rotcal.run import run_dataset
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 from rotcal.timebase import repair_timebase
-from rotcal.timebase.blocks import repaired_stream
 
 SPEC = SimulationSpec()
 SPEC = replace(SPEC, plan=replace(SPEC.plan, rotation_samples=2500, rates_hz=(0.05, 0.5)))  # 18,600 samples

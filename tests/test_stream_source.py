@@ -1,5 +1,5 @@
-"""A capture read chunk by chunk (``ingest.stream``, ``ingest.formats.mcap.stream``)
-and repaired block by block (``timebase.blocks``).
+"""A capture read chunk by chunk (``ingest.formats.blocks``, ``ingest.formats.mcap.blocks``)
+and repaired block by block (``blockwise.repaired``).
 
 The blocks, joined, must be the very samples ``load_dataset`` and
 ``repair_timebase`` give in memory (bit for bit, whatever the block and
@@ -21,20 +21,22 @@ import pytest
 from polars.testing import assert_frame_equal
 from test_hostile_mcap import ACCELERATION, IMU, SMALL, TABLE, VELOCITY, _long_message, _set_float, rewrite
 
+from rotcal.blockwise import grid as stream_grid
+from rotcal.blockwise import ranks as stream_ranks
+from rotcal.blockwise import repaired as timebase_blocks
+from rotcal.blockwise.repaired import repaired_stream
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest.dataset import load_dataset
+from rotcal.ingest.formats.blocks import COLUMNS, open_stream
+from rotcal.ingest.formats.mcap import blocks as stream
 from rotcal.ingest.formats.mcap import fast as mcap_fast
 from rotcal.ingest.formats.mcap import reader as mcap_source
-from rotcal.ingest.formats.mcap import stream
 from rotcal.ingest.meta import load_meta
 from rotcal.ingest.spill import Spill, replayed
-from rotcal.ingest.stream import COLUMNS, open_stream
 from rotcal.simulate import SimulationSpec, simulate, write_dataset, write_mcap
-from rotcal.simulate.streamed import write_streamed
-from rotcal.timebase import blocks as timebase_blocks
-from rotcal.timebase import repair_timebase, stream_grid, stream_ranks
-from rotcal.timebase.blocks import repaired_stream
+from rotcal.simulate.blocks import write_streamed
+from rotcal.timebase import repair_timebase
 from rotcal.timebase.check import check_capture
 
 SPEC = SimulationSpec()
@@ -273,11 +275,12 @@ import sys
 from pathlib import Path
 from rotcal.ingest.dataset import load_dataset
 from rotcal.ingest.formats.mcap import fast as mcap_fast
-from rotcal.ingest.formats.mcap import stream
+from rotcal.ingest.formats.mcap import blocks as stream
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import open_stream
-from rotcal.timebase import repair_timebase, stream_ranks
-from rotcal.timebase.blocks import repaired_stream
+from rotcal.ingest.formats.blocks import open_stream
+from rotcal.blockwise import ranks as stream_ranks
+from rotcal.timebase import repair_timebase
+from rotcal.blockwise.repaired import repaired_stream
 
 def status(key):
     return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1])

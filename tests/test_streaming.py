@@ -14,18 +14,18 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
+import rotcal.blockwise.load as streamed
 import rotcal.run.stages as stages
-import rotcal.run.streamed as streamed
+from rotcal.blockwise.segments import stream_segments
 from rotcal.config import FitConfig, RunConfig, with_options
 from rotcal.fit.normal import NormalSums, ResidualSums, coefficient_covariance
 from rotcal.fit.segments import fit_segments, fits_frame
 from rotcal.fit.sines import sincos_deg, sine3_fit
 from rotcal.ingest.dataset import load_dataset
 from rotcal.run import run_dataset
-from rotcal.run.streaming import stream_segments
 from rotcal.segment import segment_by_labels
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
-from rotcal.simulate.streamed import streamable, write_streamed
+from rotcal.simulate.blocks import streamable, write_streamed
 from rotcal.timebase import repair_timebase
 
 
@@ -244,8 +244,8 @@ def test_the_sample_interval_counted_block_by_block_is_the_median_step(long_capt
     stamps, stamps jittered by up to 3 us (thousands of distinct steps),
     and steps of two values half and half (an even count: the mean of
     the two middle ones, half a nanosecond off either)."""
+    from rotcal.blockwise.segments import label_runs
     from rotcal.noise.residuals import sample_interval_s
-    from rotcal.run.streaming import label_runs
 
     rng = np.random.default_rng(4)
     samples = long_capture.samples

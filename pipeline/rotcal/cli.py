@@ -226,7 +226,7 @@ def simulate_cmd(
         spec = spec.with_noise(noise)
     from rotcal.report.publish import publish_directory
     from rotcal.simulate import simulate, write_dataset
-    from rotcal.simulate.streamed import streamable, write_streamed
+    from rotcal.simulate.blocks import streamable, write_streamed
 
     if streamable(spec, fmt):  # the same bytes, generated and written a block at a time: any length
         def write(staging: Path) -> list[Path]:

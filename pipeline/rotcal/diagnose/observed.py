@@ -28,7 +28,7 @@ def thinned_rows(first: np.ndarray, count: np.ndarray, max_samples: int) -> np.n
     """The sample numbers the diagnosis models of the segments starting at
     sample ``first`` with ``count`` samples: each thinned evenly to its share
     (``kept_per_segment``), ``first + floor(i n / k)``. A capture read block
-    by block gathers these rows for the diagnosis (``run.streaming``)."""
+    by block gathers these rows for the diagnosis (``blockwise.segments``)."""
     kept = kept_per_segment(count, max_samples)
     return np.concatenate([a + np.floor(np.arange(k) * (n / k)).astype(np.int64) for a, n, k in zip(first, count, kept)]
                           or [np.zeros(0, np.int64)])

@@ -47,7 +47,7 @@ def identify_noise(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataF
     # the poses' pieces, after the fitted segments' (and the dwells where those give none), as held whole
     rest = residual_pieces(samples, segments, fits.clear(), dwells if not fitted.pooled.sizes else dwells.clear(), dt)
     for piece in rest:
-        fitted.pooled.add(piece)  # the caller's copy (``run.streaming.StreamedSegments.noise_pooled``)
+        fitted.pooled.add(piece)  # the caller's copy (``blockwise.segments.StreamedSegments.noise_pooled``)
     sizes = fitted.pooled.sizes
     allan = fitted.pooled.result(1 / dt) if sizes else [None] * len(CHANNELS)
     return NoiseModel(tuple(identify_channel(c, [], 1 / dt, output_unit, allan[r], sizes) if sizes else

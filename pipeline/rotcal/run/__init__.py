@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 from threadpoolctl import threadpool_limits
 
+from rotcal.blockwise.load import load
 from rotcal.combine import StaticReduction
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
@@ -45,7 +46,6 @@ from rotcal.run.recommended import (
     recommended_fits,
 )
 from rotcal.run.stages import Reductions, Segmented, determined, reduce, segment_and_fit
-from rotcal.run.streamed import load
 
 if TYPE_CHECKING:
     from rotcal.diagnose import Diagnosis

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING
 
 import polars as pl
 
+from rotcal.blockwise.load import corrected_blocks, streamed_fits
+from rotcal.blockwise.segments import StreamedSegments
 from rotcal.combine import StaticReduction, intrinsic_frame, table_step_poses
 from rotcal.combine.labelled import rate_segments
 from rotcal.combine.unreferenced import segment_phases
@@ -40,8 +42,6 @@ from rotcal.model.calibration import BASELINE, REFINED, Recommended, recommend
 from rotcal.model.results import IntrinsicResult, Reduction, Table
 from rotcal.run.outputs import Figure
 from rotcal.run.stages import Reductions, Segmented
-from rotcal.run.streamed import corrected_blocks, streamed_fits
-from rotcal.run.streaming import StreamedSegments
 
 if TYPE_CHECKING:
     from rotcal.combine.heldout import HeldOut

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import polars as pl
 
+from rotcal.blockwise.load import StreamedDataset, streamed_segments
+from rotcal.blockwise.segments import StreamedSegments
 from rotcal.combine import (
     StaticReduction,
     reduce_dwells,
@@ -29,8 +31,6 @@ from rotcal.fit.normal import SineSums
 from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
-from rotcal.run.streamed import StreamedDataset, streamed_segments
-from rotcal.run.streaming import StreamedSegments
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.segment.angles import check_angle_rates, partial_angles
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
@@ -100,7 +100,7 @@ def _rate_order(rate_hz: float) -> tuple[float, float]:
 
 def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     """Time base, segments (labelled, then inferred from the signals) and
-    the segment fits of a dataset; of a streamed one (``run.streamed``) block
+    the segment fits of a dataset; of a streamed one (``blockwise.load``) block
     by block, or in memory with a note where the streamed path cannot take it."""
     if isinstance(ds, StreamedDataset):
         streamed, notes = streamed_segments(ds, config)

@@ -14,7 +14,7 @@ with the uniform signatures below, plus one line of ``REGISTRY``:
 - writer: ``write_samples(samples, path) -> path``, a sample table
   (``t_ns``, ``u``, ``v``, ``w`` and the labels it has) as a capture;
 - block reader: a module with ``open_capture(path, meta, spec, limits,
-  workers, block, capture, messages) -> ingest.stream.RawStream``, the
+  workers, block, capture, messages) -> ingest.formats.blocks.RawStream``, the
   capture's samples in time order a block at a time, in memory bounded by
   the block, and ``message_counts(path, limits) -> list[int]``, each
   channel's messages counted without reading them (empty where they cannot
@@ -76,8 +76,8 @@ class CaptureFormat:
 
 
 REGISTRY: tuple[CaptureFormat, ...] = (
-    CaptureFormat("csv", ".csv", "csv", streams="stream"),
-    CaptureFormat("mcap", ".mcap", "mcap", streams="stream"),
+    CaptureFormat("csv", ".csv", "csv", streams="blocks"),
+    CaptureFormat("mcap", ".mcap", "mcap", streams="blocks"),
     CaptureFormat("mat", ".mat", "mat", writes=None),
 )
 # a capture named in dataset.toml [[capture]] with a suffix of no format (a logger's .txt or .log) is read as CSV

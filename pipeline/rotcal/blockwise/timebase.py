@@ -3,7 +3,7 @@
 are read in blocks, and the repair applied to its sample blocks in order.
 
 ``StreamedTimebase`` is the outcome, with no sample-length array where the
-time base is streamed (``timebase.stream_grid``); ``held`` wraps the
+time base is streamed (``blockwise.grid``); ``held`` wraps the
 in-memory ``CaptureTimebase`` (its keep mask and stamps) for captures the
 streamed check does not take.
 """

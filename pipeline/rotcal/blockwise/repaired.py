@@ -1,5 +1,5 @@
 """A capture's sample blocks after its time base: ``repaired_stream`` takes
-ingest's ``RawStream`` (``ingest.stream.open_stream``) and gives a
+ingest's ``RawStream`` (``ingest.formats.blocks.open_stream``) and gives a
 ``StreamedCapture`` whose blocks are repaired as ``repair_timebase``
 repairs the whole sample table: the time base checked on the stamps alone
 where it can be (``stream_grid``), else with the stamps in memory
@@ -14,12 +14,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import polars as pl
 
+from rotcal.blockwise.grid import stream_grid
+from rotcal.blockwise.timebase import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome
+from rotcal.ingest.formats.blocks import BLOCK_SAMPLES, COLUMNS, Blocks, RawStream
 from rotcal.ingest.labels import time_ordered
-from rotcal.ingest.stream import BLOCK_SAMPLES, COLUMNS, Blocks, RawStream
 from rotcal.model.physics import CHANNELS
 from rotcal.timebase.check import TimebaseConfig, check_capture
-from rotcal.timebase.stream_grid import stream_grid
-from rotcal.timebase.streamed import AtTies, NotSorted, StreamedTimebase, held, loaded, outcome
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,7 +75,7 @@ def _whole(raw: RawStream, config: TimebaseConfig, block: int) -> StreamedCaptur
 
 def repaired_stream(raw: RawStream, config: TimebaseConfig = TimebaseConfig(),
                     block_samples: int = BLOCK_SAMPLES) -> StreamedCapture:
-    """A capture's samples (``ingest.stream.open_stream``) after its time
+    """A capture's samples (``ingest.formats.blocks.open_stream``) after its time
     base: checked on the stamps, and each block of a pass repaired in order;
     a capture read whole, or whose repaired stamps need a sort, is checked
     and repaired whole and cut into blocks of ``block_samples``."""

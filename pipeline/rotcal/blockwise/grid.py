@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rotcal.blockwise.ranks import HELD, Collected, median
+from rotcal.blockwise.timebase import Repairer, Stamps, StreamedTimebase, replaced
 from rotcal.timebase.check import Gaps, GridStats, TimebaseConfig, grid_findings
 from rotcal.timebase.grid import intervals
-from rotcal.timebase.stream_ranks import HELD, Collected, median
-from rotcal.timebase.streamed import Repairer, Stamps, StreamedTimebase, replaced
 
 Runs = np.ndarray | int  # each sample's run, or the one run of a whole block
 

@@ -1,6 +1,6 @@
 """An MCAP capture read chunk by chunk, in memory bounded by a block of
 samples: the MCAP format's block reader (``ingest.formats``), ``open_capture``
-gives a ``ingest.stream.RawStream`` whose ``blocks()`` yields the capture's
+gives a ``ingest.formats.blocks.RawStream`` whose ``blocks()`` yields the capture's
 canonical sample columns in time order, a block at a time, with exactly the
 values the in-memory reader gives.
 
@@ -40,6 +40,7 @@ import polars as pl
 
 from rotcal.config import Limits
 from rotcal.errors import InputError
+from rotcal.ingest.formats.blocks import COLUMNS, NotBlockwise, RawStream, read_whole
 from rotcal.ingest.formats.mcap import fast as mcap_fast
 from rotcal.ingest.formats.mcap.columns import DecodedTopic
 from rotcal.ingest.formats.mcap.messages import require
@@ -50,7 +51,6 @@ from rotcal.ingest.formats.mcap.table import TableTrack, fast_table_track, table
 from rotcal.ingest.labels import MAX_ABS_VALUE, label_columns
 from rotcal.ingest.meta import CaptureSpec, DatasetMeta
 from rotcal.ingest.spill import Spill, replayed, room_for
-from rotcal.ingest.stream import COLUMNS, NotBlockwise, RawStream, read_whole
 from rotcal.tables import conform, schema
 
 _STAMP_BLOCK = 1 << 16  # stamps read back a block at a time (the time base's temporaries: about 80 bytes a stamp)
@@ -258,7 +258,7 @@ def _canonical(frame: pl.DataFrame, spec: CaptureSpec | None, path: Path, source
 
 def open_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int, block: int,
                  capture: str, messages: int | None) -> RawStream:
-    """The registry's block reader (``ingest.formats``; ``ingest.stream.open_stream``
+    """The registry's block reader (``ingest.formats``; ``ingest.formats.blocks.open_stream``
     calls it): the capture's samples ``block`` rows at a time, the stamps,
     where they repeat, and the spills; ``NotBlockwise`` for what it does not
     take (the module's docstring)."""

@@ -1,6 +1,6 @@
 """Exact medians of values read a block at a time, in memory bounded by
 ``HELD`` values, not by their number: the time base of
-a capture read block by block (``timebase.stream_grid``) takes the median
+a capture read block by block (``blockwise.grid``) takes the median
 interval and the robust scatter of the stamps (1.4826 times the median
 absolute deviation, ``grid._robust_sd``) as ``np.median`` gives them.
 

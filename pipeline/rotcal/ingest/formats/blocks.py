@@ -8,7 +8,7 @@ reads it in memory bounded by a block; it gives up on what it does not take
 (``NotBlockwise``), and any other capture is read whole by its format's
 reader (``read_whole``: the same values, and the same one-line message for
 bad input, by construction) and cut into blocks. The time base is the next
-stage's (``timebase.blocks.repaired_stream``).
+stage's (``blockwise.repaired.repaired_stream``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A CSV capture read a block of lines at a time, in memory bounded by the
 block: the CSV format's block reader (``ingest.formats``), ``open_capture``
-gives a ``ingest.stream.RawStream`` whose blocks are exactly the samples
+gives a ``ingest.formats.blocks.RawStream`` whose blocks are exactly the samples
 the in-memory reader (``reader.read_csv_capture``) gives.
 
 It takes a plain file: comma-separated with one header of the names of
@@ -26,13 +26,13 @@ import polars as pl
 from rotcal.config import Limits
 from rotcal.errors import InputError
 from rotcal.ingest import files
+from rotcal.ingest.formats.blocks import COLUMNS, NotBlockwise, RawStream, read_whole
 from rotcal.ingest.formats.csv.joined import JOINED_TYPES, PLAIN
 from rotcal.ingest.formats.csv.layout import layout
 from rotcal.ingest.formats.csv.reader import lines_within
 from rotcal.ingest.labels import label_columns
 from rotcal.ingest.meta import CaptureSpec, CsvFormat, DatasetMeta
 from rotcal.ingest.spill import FrameSpill, room_for
-from rotcal.ingest.stream import COLUMNS, NotBlockwise, RawStream, read_whole
 from rotcal.tables import conform, schema
 
 READ_BYTES = 1 << 24  # the file read this many bytes at a time
@@ -110,7 +110,7 @@ def _labelled(text: bytes, header: bytes, spec: CaptureSpec | None, path: Path, 
 
 def open_capture(path: Path, meta: DatasetMeta, spec: CaptureSpec | None, limits: Limits, workers: int, block: int,
                  capture: str, messages: int | None) -> RawStream:
-    """The registry's block reader (``ingest.formats``; ``ingest.stream.open_stream``
+    """The registry's block reader (``ingest.formats``; ``ingest.formats.blocks.open_stream``
     calls it): the capture's samples ``block`` rows at a time, the stamps
     and where they repeat; ``NotBlockwise`` for what it does not take (the
     module's docstring)."""

@@ -1,5 +1,5 @@
 """The run's load and segment stages, block by block: a capture's samples
-are not held; the segment stage reads them in passes (``run.streaming``)
+are not held; the segment stage reads them in passes (``blockwise.segments``)
 and keeps only what the later stages read: the static segments' samples,
 the diagnosis's thinned rows, each fitted segment's sums and the noise
 model's pooled residual statistics. The tables are those of the same
@@ -13,10 +13,10 @@ says so for a single capture):
 - datasets of several captures, or of pose summaries: the samples of
   several files are ordered and checked together (``ingest.dataset``);
 - a format without a block reader (MATLAB ``.mat``: scipy reads the file
-  whole), or a capture its block reader does not take (``ingest.stream.
+  whole), or a capture its block reader does not take (``ingest.formats.blocks.
   NotBlockwise``: MCAP JSON messages or out-of-order chunks, CSV layouts
   other than plain labelled columns);
-- repaired stamps that need a sort (``timebase.blocks``);
+- repaired stamps that need a sort (``blockwise.repaired``);
 - and what the later stages read whole (``why_not``): four-parameter fits
   (the rate refitted against every sample), unlabelled samples or no
   table angle (segments found in the signals), gaps in the time base
@@ -35,17 +35,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 import polars as pl
 
+from rotcal.blockwise.repaired import repaired_stream
+from rotcal.blockwise.segments import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.config import RunConfig
 from rotcal.fit.segments import SegmentFit
 from rotcal.ingest.dataset import Dataset, load_dataset
 from rotcal.ingest.files import capture_files, dataset_name
 from rotcal.ingest.formats import named_format
+from rotcal.ingest.formats.blocks import BLOCK_SAMPLES, NotBlockwise, open_stream
 from rotcal.ingest.meta import load_meta
-from rotcal.ingest.stream import BLOCK_SAMPLES, NotBlockwise, open_stream
 from rotcal.model.physics import CHANNELS
-from rotcal.run.streaming import Blocks, StreamedSegments, stream_segments, with_segments
 from rotcal.tables import schema
-from rotcal.timebase.blocks import repaired_stream
 from rotcal.timebase.repair import TimebaseResult
 
 if TYPE_CHECKING:
@@ -65,8 +65,8 @@ class StreamedDataset(Dataset):
 
 
 def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
-    """The dataset, its samples streamed (``ingest.stream.open_stream``,
-    repaired by ``timebase.blocks.repaired_stream``) when it is one capture
+    """The dataset, its samples streamed (``ingest.formats.blocks.open_stream``,
+    repaired by ``blockwise.repaired.repaired_stream``) when it is one capture
     (of more than ``[run] stream_above_samples`` samples) whose format's
     block reader takes it (``ingest.formats``: MCAP and CSV); read whole
     otherwise, a single capture with a note saying why (the module's list)."""
