@@ -1,4 +1,4 @@
-"""Issue 16 item 1: a long capture simulated in bounded memory. The default
+"""A long capture simulated in bounded memory. The default
 plan with long rotations (``[plan] rotation_samples``) written as an MCAP
 CDR capture block by block (``simulate.blocks``, what ``rotcal simulate``
 does) against the in-memory simulator (``simulate`` + ``write_dataset``) on
