@@ -88,9 +88,11 @@ def load(path: Path, meta_path: Path | None, config: RunConfig) -> Dataset:
         raw = open_stream(file, meta, spec, config.limits, config.run.workers, BLOCK_SAMPLES, capture, messages=sum(counts))
     except NotBlockwise:  # pose summaries: no samples to stream (the module's list)
         return whole()
-    stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES)
-    if not stream.bounded:  # read in memory by the stream's reader: the dataset's reader keeps every column
-        because = stream.whole_because
+    # read in memory by the stream's reader (or, repaired, sorted whole): the dataset's reader keeps every column;
+    # a capture read whole gets its time base there, not here as well
+    stream = repaired_stream(raw, block_samples=BLOCK_SAMPLES) if raw.bounded else None
+    if stream is None or not stream.bounded:
+        because = raw.whole_because if stream is None else stream.whole_because
         del raw, stream  # not held while the dataset is read again
         read = whole()
         return replace(read, notes=(*read.notes, f"read in memory, not block by block: {because} (docs/streaming.md)"))

@@ -32,6 +32,7 @@ from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import ols
 from rotcal.fit.means import group_statistics
 from rotcal.fit.segments import segment_rows
+from rotcal.model.columns import Outputs, sample_step, selected_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
 from rotcal.segment.stillness import StillnessConfig, still_and_short, unused_rows
@@ -46,18 +47,20 @@ def _pose_frame(samples: pl.DataFrame, group: np.ndarray, n_groups: int, source:
                 label: Sequence[str | None], reference: np.ndarray) -> pl.DataFrame:
     """One row per group of samples (``group`` = -1 outside every pose)."""
     t_ns = samples["t_ns"].to_numpy()
-    counts, means, cov = group_statistics(samples.select(CHANNELS).to_numpy(), group, n_groups)
-    inside = group >= 0
-    temp = samples["temperature_c"].fill_null(np.nan).to_numpy()[inside]
-    known = np.isfinite(temp)
-    g = group[inside]
-    t_sum = np.bincount(g[known], weights=temp[known], minlength=n_groups)
-    t_n = np.bincount(g[known], minlength=n_groups)
+    # the outputs' columns, as samples.select(CHANNELS).to_numpy() orders them (no copy of the table's)
+    counts, means, cov = group_statistics(Outputs.of_frame(samples, fortran=True), group, n_groups)
+    at = selected_rows(group >= 0)
+    g = group[at]
+    temperature = np.full(n_groups, np.nan)
+    if samples["temperature_c"].null_count() < samples.height:  # (none recorded: NaN, without a column of NaN)
+        temp = samples["temperature_c"].fill_null(np.nan).to_numpy()[at]
+        known = np.isfinite(temp)
+        t_n = np.bincount(g[known], minlength=n_groups)
+        np.divide(np.bincount(g[known], weights=temp[known], minlength=n_groups), t_n, out=temperature, where=t_n > 0)
     first = np.full(n_groups, np.iinfo(np.int64).max)
     last = np.full(n_groups, np.iinfo(np.int64).min)
-    np.minimum.at(first, g, t_ns[inside])
-    np.maximum.at(last, g, t_ns[inside])
-    temperature = np.divide(t_sum, t_n, out=np.full(n_groups, np.nan), where=t_n > 0)
+    np.minimum.at(first, g, t_ns[at])
+    np.maximum.at(last, g, t_ns[at])
     return _statistics_frame(source, label, reference, counts, means, cov, temperature, first, last)
 
 
@@ -169,15 +172,15 @@ def still_poses(samples: pl.DataFrame, config: StillnessConfig = StillnessConfig
     unknown orientation, and the detector's rejections (a rest too short,
     or too noisy) as rows of ``still_unused``."""
     t_ns = samples["t_ns"].to_numpy()
-    intervals, short = still_and_short(t_ns, samples.select(CHANNELS).to_numpy(), config)
-    marks = np.zeros(samples.height + 1, np.int64)
-    np.add.at(marks, intervals["start"].to_numpy(), np.arange(1, intervals.height + 1))
-    np.add.at(marks, intervals["stop"].to_numpy(), -np.arange(1, intervals.height + 1))
-    group = np.cumsum(marks[:-1]) - 1
+    # the outputs' columns, as samples.select(CHANNELS).to_numpy() orders them (no copy of the table's)
+    intervals, short = still_and_short(t_ns, Outputs.of_frame(samples, fortran=True), config)
+    group = np.full(samples.height, -1, np.int64)
+    for k, (a, b) in enumerate(intervals.select("start", "stop").iter_rows()):  # intervals do not overlap
+        group[a:b] = k
     poses = _pose_frame(samples, group, intervals.height, "stillness", [None] * intervals.height,
                         np.full((intervals.height, 3), np.nan))
     capture = samples["capture"].gather(short["start"]) if "capture" in samples.columns else ""
-    interval_s = float(np.median(np.diff(t_ns))) / 1e9 if t_ns.size > 1 else 0.0
+    interval_s = sample_step(t_ns) / 1e9 if t_ns.size > 1 else 0.0
     return poses, unused_rows(dataset, capture, short, interval_s)
 
 

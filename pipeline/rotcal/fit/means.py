@@ -9,14 +9,17 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
-from rotcal.fit.correlated import density_ratio, grouped_autocorrelation
+from rotcal.fit.correlated import density_ratio
 from rotcal.fit.quantization import mean_rounding_variance, output_step
+from rotcal.model.columns import Outputs, columns_of, selected_rows
 from rotcal.model.physics import CHANNELS
 
 
-def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def group_statistics(y: np.ndarray | Outputs, group: np.ndarray, n_groups: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per group: sample count, mean (G, 3) and covariance of the mean
-    (G, 3, 3) of the rows of ``y`` labelled ``group`` (0 .. G-1; -1 = none).
+    (G, 3, 3) of the rows of ``y`` (n, 3), or of its columns, labelled
+    ``group`` (0 .. G-1; -1 = none).
 
     Where a group's samples are correlated from one to the next (lag-1
     autocorrelation significant and positive), the covariance is widened
@@ -26,35 +29,70 @@ def group_statistics(y: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[n
     (``fit.quantization``): a pose of identical samples is uncertain by
     the step, not by the step over the square root of its count.
     """
-    inside = group >= 0
-    first, last = (int(np.argmax(inside)), inside.size - int(np.argmax(inside[::-1]))) if inside.any() else (0, 0)
-    if inside.any() and inside[first:last].all():  # the groups one run of rows (a single pose): views, no copy
-        g, yy = group[first:last], y[first:last]
-    else:
-        g, yy = group[inside], y[inside]
+    at = selected_rows(group >= 0)
+    g, columns = group[at], [c[at] for c in columns_of(y)]
     counts = np.bincount(g, minlength=n_groups).astype(float)
-    means = np.column_stack([np.bincount(g, weights=yy[:, r], minlength=n_groups) for r in range(3)]) / counts[:, None]
-    centred = np.empty(yy.shape)
-    for r in range(3):  # a column at a time: no (n, 3) temporary of the means
-        np.subtract(yy[:, r], means[g, r], out=centred[:, r])
-    scatter = np.stack([np.bincount(g, weights=centred[:, i] * centred[:, j], minlength=n_groups)
-                        for i in range(3) for j in range(3)], axis=1).reshape(n_groups, 3, 3)
+    means = np.column_stack([np.bincount(g, weights=c, minlength=n_groups) for c in columns]) / counts[:, None]
+    scatter, square, lag1, lag2 = _centred_sums(columns, g, means)
     with np.errstate(divide="ignore", invalid="ignore"):  # a one-sample group: NaN, refused by reduce_static
         cov = scatter / ((counts - 1.0) * counts)[:, None, None]
+        rho = lag1 / square, lag2 / square  # as fit.correlated.grouped_autocorrelation (run: the group)
     # noise correlated from sample to sample: a mean's variance is the noise density at zero frequency
-    widen = np.sqrt(density_ratio(*grouped_autocorrelation(centred, g, n_groups, g), counts[:, None], 0.0))
+    widen = np.sqrt(density_ratio(*rho, counts[:, None], 0.0))
     cov = cov * widen[:, :, None] * widen[:, None, :]
-    if yy.size:
+    if g.size:
         # the output step's rounding, the same for every sample of a pose when the noise is below it
         # (each pose's own scatter: a pose dithering across a level boundary says nothing of the others)
         with np.errstate(divide="ignore", invalid="ignore"):
             sample_var = np.einsum("kii->ki", scatter) / (counts - 1.0)[:, None]
         diag = np.einsum("kii->ki", cov)
-        diag += mean_rounding_variance(output_step(yy)[None], sample_var)
+        diag += mean_rounding_variance(output_step(columns)[None], sample_var)
     return counts.astype(np.int64), means, cov
 
 
-def pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> pl.DataFrame:
+# samples a block of the centred sums: a block's products stay a few MB
+SUM_BLOCK = 1 << 18
+
+
+def _centred_sums(columns: list[np.ndarray], g: np.ndarray, means: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per group, of the samples less their group's mean: the sums of
+    products of every two channels (G, 3, 3), of squares, and of products
+    one and two samples apart in one group (G, 3 each). A block of samples
+    at a time, each block's sums carried on from the last block's in the
+    order one ``np.bincount`` over every sample adds them (its sums, bit
+    for bit); a block reaches two samples back for the lagged products."""
+    n_groups, width = means.shape
+    pairs = [(i, j) for i in range(width) for j in range(width)]
+    sums = np.zeros((len(pairs) + 3 * width, n_groups))
+    carry = np.arange(n_groups)
+    # many groups (a file of pose means, one sample each): one block, not the carried sums of every group per block
+    block = SUM_BLOCK if n_groups <= SUM_BLOCK // 8 else max(g.size, 1)
+
+    def add(k: int, where: np.ndarray, weights: np.ndarray) -> None:
+        # each group's sum so far goes first (0 + s is s), then the block's weights in order
+        sums[k] = np.bincount(np.concatenate([carry, where]), np.concatenate([sums[k], weights]), n_groups)
+
+    for a in range(0, g.size, block):
+        b = min(a + block, g.size)
+        lo = max(a - 2, 0)
+        gb = g[lo:b]
+        centred = [np.subtract(c[lo:b], means[gb, r]) for r, c in enumerate(columns)]
+        own = slice(a - lo, None)
+        for k, (i, j) in enumerate(pairs):
+            add(k, gb[own], centred[i][own] * centred[j][own])
+        for r, c in enumerate(centred):
+            add(len(pairs) + r, gb[own], c[own] ** 2)
+            for lag in (1, 2):  # samples i - lag and i, from i = lag on, where both are in one group
+                at = max(a, lag) - lo
+                same = gb[at:] == gb[at - lag : gb.size - lag]
+                add(len(pairs) + lag * width + r, gb[at:], np.where(same, c[at:] * c[at - lag : c.size - lag], 0.0))
+    scatter = sums[: len(pairs)].T.reshape(n_groups, width, width)
+    square, lag1, lag2 = (sums[len(pairs) + m * width : len(pairs) + (m + 1) * width].T for m in range(3))
+    return scatter, square, lag1, lag2
+
+
+def pose_table(t_ns: np.ndarray, y: np.ndarray | Outputs, starts: np.ndarray, stops: np.ndarray) -> pl.DataFrame:
     """Mean and covariance of the mean of each pose (samples ``starts[k]:stops[k]``)."""
     starts, stops = np.asarray(starts, np.int64), np.asarray(stops, np.int64)
     group = np.full(t_ns.size, -1, np.int64)

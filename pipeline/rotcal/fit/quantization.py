@@ -14,11 +14,13 @@ rounding error falls as exp(-2 pi^2 sigma^2 / Delta^2)).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
 import polars as pl
 
+from rotcal.model.columns import columns_of
 from rotcal.model.physics import CHANNELS
 
 # a channel's levels are taken from at most this many samples (evenly spread): enough to see every level
@@ -30,18 +32,18 @@ MAX_DIVISOR = 10
 _WHOLE = 1e-3
 
 
-def output_step(y: np.ndarray) -> np.ndarray:
+def output_step(y: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
     """Each column's output step: the greatest step of which every gap
     between the distinct values seen is a whole multiple (integer outputs:
     the gaps' greatest common divisor, 1 with one level; other values: the
     smallest gap divided by 1 to ``MAX_DIVISOR``, the first that divides
     every gap); 0 where the values show no step (continuous outputs, or
     one level that is not an integer)."""
-    y = y.reshape(len(y), -1)
-    steps = np.zeros(y.shape[1])
-    stride = max(1, len(y) // MAX_LEVEL_SAMPLES)
-    for r in range(y.shape[1]):
-        column = y[::stride, r]
+    columns = columns_of(y)  # (n, k), (n,) or k columns
+    steps = np.zeros(len(columns))
+    stride = max(1, len(columns[0]) // MAX_LEVEL_SAMPLES)
+    for r, whole in enumerate(columns):
+        column = whole[::stride]
         levels = np.unique(column[np.isfinite(column)])
         gaps = np.diff(levels)
         if levels.size and np.all(levels == np.round(levels)) and np.abs(levels).max() < 2.0**53:

@@ -74,6 +74,7 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
             summaries[name] = frame
         else:
             frames.append(conform(frame.with_columns(capture=pl.lit(name)), "samples"))  # categorical before concat
+        del frame  # not held past its capture: its columns' chunks go when they are made one below
     if summaries and frames:
         raise InputError(f"{next(iter(summaries))!r} holds pose summaries and {frames[0]['capture'][0]!r} samples: "
                          "a dataset is one or the other", path=path)
@@ -82,5 +83,10 @@ def load_dataset(path: Path, meta_path: Path | None = None, limits: Limits = Lim
                        notes=tuple(notes), copies=copies, inputs=inputs, summaries=pl.concat(summaries.values()))
     joined = frames[0] if len(frames) == 1 else pl.concat(frames)  # concat would materialise constant columns
     samples = conform(time_ordered(joined), "samples")
+    del frames, plain, joined
+    # each column in one chunk, a column at a time: every stage's numpy arrays of it are then views, not copies
+    for name in samples.columns:
+        if samples[name].n_chunks() > 1:
+            samples = samples.with_columns(samples[name].rechunk())
     return Dataset(name=dataset_name(path), root=root, meta=meta, samples=samples, notes=tuple(notes), copies=copies,
                    inputs=inputs)

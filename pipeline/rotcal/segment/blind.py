@@ -41,6 +41,7 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.sinefit import SineFit, fit_sine
+from rotcal.model.columns import Outputs, sample_step, steps_over
 from rotcal.model.physics import AXES
 from rotcal.segment.motion import Motion, runs_of
 from rotcal.segment.stillness import StillnessConfig, still_and_short
@@ -175,7 +176,7 @@ def _bridge(runs: np.ndarray, motion: Motion, mid: np.ndarray, in_dwell: np.ndar
     return np.array(out)
 
 
-def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
+def _sequences(y: Outputs, dwells: np.ndarray, means: np.ndarray, offset: np.ndarray, move: np.ndarray,
                recorded: np.ndarray, config: BlindConfig) -> tuple[tuple[StepSequence, ...], int]:
     """Step sequences: chains of dwells linked by in-plane moves about one
     axis (``move`` marks the samples that may belong to a move: not those of
@@ -192,7 +193,7 @@ def _sequences(y: np.ndarray, dwells: np.ndarray, means: np.ndarray, offset: np.
     linked = size > sin_tol * np.linalg.norm(a[:-1], axis=1) * np.linalg.norm(a[1:], axis=1)
     for j in np.flatnonzero(linked):
         between = slice(dwells[j, 1], dwells[j + 1, 0])
-        path = y[between] - offset
+        path = y.rows(between) - offset
         if not recorded[j] or not path.size or not move[between].all():
             # no sample between two dwells with no time gap: a move faster than a sample
             linked[j] = recorded[j] and not path.size
@@ -240,11 +241,13 @@ def table_steps(outputs: np.ndarray, normal: np.ndarray, config: BlindConfig) ->
     return steps.size >= 3 and bool(np.abs(steps - np.median(steps)).max() <= config.step_tolerance_deg)
 
 
-def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindConfig()) -> BlindSegmentation:
-    """Segment one capture's samples (time order) by their signals alone."""
+def segment_blind(t_ns: np.ndarray, y: np.ndarray | Outputs, config: BlindConfig = BlindConfig()) -> BlindSegmentation:
+    """Segment one capture's samples (time order) by their signals alone
+    (``y``: (n, 3), or its columns)."""
     n = t_ns.size
-    dt_ns = float(np.median(np.diff(t_ns))) if n > 1 else 1e9
-    still, short = still_and_short(t_ns, y, config.stillness)
+    y = Outputs.of(y)
+    dt_ns = sample_step(t_ns) if n > 1 else 1e9
+    still, short = still_and_short(t_ns, y, config.stillness, dt_ns)
     raw = still.select("start", "stop").to_numpy().reshape(-1, 2)
     # a still interval reaches up to a window into the moves on either side: its core does not
     w_still = max(3, int(round(config.stillness.window_s * 1e9 / dt_ns)))
@@ -258,15 +261,15 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     # between two still intervals when the DUT barely moved)
     found: list[tuple[int, int]] = []
     for j, (s, e) in enumerate(cores):
-        mean = y[s:e].mean(axis=0)
+        mean = y.mean(s, e)
         low = max(raw[j - 1, 1] if j else 0, found[-1][1] if found else 0, raw[j, 0] - w_still)
         high = min(raw[j + 1, 0] if j + 1 < len(raw) else n, raw[j, 1] + w_still)
-        found.append(_extend(s, e, low, high, lambda i, m=mean: ((y[i] - m) ** 2 / var).mean(axis=1),
+        found.append(_extend(s, e, low, high, lambda i, m=mean: ((y.rows(i) - m) ** 2 / var).mean(axis=1),
                               config.cusum_kappa))
     dwells = np.array(found, dtype=np.int64).reshape(-1, 2)
-    means = np.array([y[s:e].mean(axis=0) for s, e in dwells]).reshape(-1, 3)
+    means = np.array([y.mean(s, e) for s, e in dwells]).reshape(-1, 3)
 
-    sample = y[:: max(1, n // 20000)]
+    sample = y.rows(slice(None, None, max(1, n // 20000)))
     offset, to_unit = rough_calibration(means if len(means) >= 12 else sample)
     window = max(3, int(round(config.window_s * 1e9 / dt_ns)))
     in_dwell = np.zeros(n, bool)
@@ -299,12 +302,12 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
         core_start, core_stop = s + quarter, e - quarter
         start, stop, search = core_start, core_stop, True
         for _ in range(2):
-            fit = fit_sine(t_ns[start:stop], y[start:stop], f_guess, search)
+            fit = fit_sine(t_ns[start:stop], y.rows(slice(start, stop)), f_guess, search)
             f_guess, search = fit.rate_hz, False
             start, stop = _extend(core_start, core_stop, low, high,
-                                  lambda i, f=fit: ((y[i] - f.model(t_ns[i])) ** 2 / f.sigma**2).mean(axis=1),
+                                  lambda i, f=fit: ((y.rows(i) - f.model(t_ns[i])) ** 2 / f.sigma**2).mean(axis=1),
                                   config.cusum_kappa)
-        fit = fit_sine(t_ns[start:stop], y[start:stop], f_guess, False)
+        fit = fit_sine(t_ns[start:stop], y.rows(slice(start, stop)), f_guess, False)
         chi2 = float(np.mean(fit.sigma**2 / var))
         if chi2 > config.max_residual_ratio**2:
             continue
@@ -314,26 +317,25 @@ def segment_blind(t_ns: np.ndarray, y: np.ndarray, config: BlindConfig = BlindCo
     for r in rotations:
         moving[r.start : r.stop] = False
     # a time gap (as the stillness detector has it) between one dwell's last sample and the next one's first
-    gaps_before = np.r_[0, np.cumsum(np.diff(t_ns) > config.stillness.gap_factor * dt_ns)]
-    recorded = gaps_before[dwells[1:, 0]] == gaps_before[dwells[:-1, 1] - 1]
+    gap = steps_over(t_ns, config.stillness.gap_factor * dt_ns)
+    recorded = np.array([not gap[e - 1 : s].any() for e, s in zip(dwells[:-1, 1], dwells[1:, 0])], bool)
     sequences, hand = _sequences(y, dwells, means, offset, moving, recorded, config)
     return BlindSegmentation(tuple(rotations), dwells, sequences, noise_sd, offset, hand, short)
 
 
-def noise_sd_of(y: np.ndarray, dwells: np.ndarray) -> np.ndarray:
+def noise_sd_of(y: np.ndarray | Outputs, dwells: np.ndarray) -> np.ndarray:
     """Noise standard deviation per channel: pooled within the dwells, or,
     without dwells, from second differences (6 sigma^2 for white noise)."""
-    columns = range(y.shape[1])  # a column at a time: a dwell of millions of samples makes no n x 3 temporaries
+    y = Outputs.of(y)
     if len(dwells):
-        squares = np.zeros(y.shape[1])
+        squares = np.zeros(y.width)
         for s, e in dwells:
-            for r in columns:
-                column = y[s:e, r] - y[s:e, r].mean()
+            for r, whole in enumerate(y.columns):  # a column at a time: a dwell of millions of samples makes no n x 3 temporaries
+                column = whole[s:e] - whole[s:e].mean()
                 squares[r] += column @ column
         dof = max(int((dwells[:, 1] - dwells[:, 0]).sum()) - len(dwells), 1)
         sd = np.sqrt(squares / dof)
     else:
-        second = np.diff(y, 2, axis=0)
+        second = np.diff(y.rows(slice(None)), 2, axis=0)
         sd = 1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0) / np.sqrt(6.0)
-    integer = all(np.all(y[:, r] == np.round(y[:, r])) for r in columns)
-    return np.maximum(sd, np.sqrt(1.0 / 12.0) if integer else 1e-12)
+    return np.maximum(sd, np.sqrt(1.0 / 12.0) if y.integer() else 1e-12)

@@ -38,8 +38,9 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
     labelled = samples["axis"].is_not_null().to_numpy() & samples["rate_hz"].is_not_null().to_numpy()
     posed = ~labelled & (samples["pose"].is_not_null().to_numpy() | samples["gx"].is_not_null().to_numpy())
     # 0 static, 1 rotation, 2 pose, -1 outside segments; one byte a sample
-    kind = np.where(labelled, (labelled & (samples["rate_hz"].fill_null(0.0).to_numpy() != 0)).astype(np.int8),
-                    np.where(posed, np.int8(2), np.int8(-1))).astype(np.int8)
+    kind = np.where(posed, np.int8(2), np.int8(-1))
+    if labelled.any():
+        kind[labelled] = samples["rate_hz"].to_numpy()[labelled] != 0
     # Runs by comparing each key column with itself shifted, one column at a
     # time (large captures: one column's temporaries at a time). Absent
     # labels and a single capture's name start no run.
@@ -52,24 +53,37 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
             continuing &= _same_as_previous(samples[c])
         start[1:] = ~continuing
     inside = kind >= 0
-    segment = np.cumsum(inside & start, dtype=np.int64) - 1
-    first = np.flatnonzero(inside & start)
+    start &= inside
+    # int32: the segment column's type (four bytes a sample, not eight)
+    segment = np.cumsum(start, dtype=np.int32)
+    segment -= 1
+    first = np.flatnonzero(start)
+    del start
     # a segment ends where the next starts or its rows end (labels absent)
-    boundary = np.flatnonzero(np.diff(np.where(inside, segment, -1)) != 0)
-    last = boundary[np.where(inside, segment, -1)[boundary] >= 0]
+    segment[~inside] = -1
+    boundary = np.flatnonzero(segment[1:] != segment[:-1])
+    last = boundary[segment[boundary] >= 0]
     last = np.append(last, n - 1) if n and inside[-1] else last
-    column = pl.Series("segment", segment.astype(np.int32))
-    if not inside.all():
-        column = column.scatter(np.flatnonzero(~inside), None)
+    if inside.all():
+        column = pl.Series("segment", segment)
+    elif inside.any():
+        column = pl.Series("segment", segment).scatter(np.flatnonzero(~inside), None)
+    else:  # no labels: no segment (a null column, no list of every row)
+        column = pl.repeat(None, n, dtype=pl.Int32, eager=True).alias("segment")
+    del segment
     frame = samples.with_columns(column)
-    angle_missing = samples["angle_deg"].is_null().to_numpy()
-    missing_before = np.cumsum(angle_missing)
-    step = np.zeros(n, np.int64)  # the angle's runs (rle_id)
-    if n:
+    # the samples without an angle and the angle's runs (rle_id), counted between each segment's first and last
+    n_missing, n_steps = np.zeros(first.size, np.int64), np.zeros(first.size, np.int64)
+    if first.size:
+        angle_missing = samples["angle_deg"].is_null().to_numpy()
+        missing_before = np.cumsum(angle_missing)
+        n_missing = missing_before[last] - missing_before[first] + angle_missing[first]
+        del angle_missing, missing_before
+        step = np.zeros(n, np.int64)
         np.cumsum(~_same_as_previous(samples["angle_deg"]), out=step[1:])
+        n_steps = step[last] - step[first]
     at_first = samples.select("capture", "axis", "rate_hz", "t_ns", "label_source")[first]
     t_ns = samples["t_ns"].to_numpy()
-    n_missing = missing_before[last] - missing_before[first] + angle_missing[first]
     return frame, segments_frame({
         "segment": pl.Series(np.arange(first.size, dtype=np.int32)),
         "capture": at_first["capture"],
@@ -79,7 +93,7 @@ def segment_by_labels(samples: pl.DataFrame, dataset: str, angle_source: str = "
         "t_start_ns": at_first["t_ns"],
         "t_end_ns": t_ns[last],
         "n_samples": (last - first + 1).astype(np.int64),
-        "n_steps": pl.Series(step[last] - step[first] + 1),
+        "n_steps": pl.Series(n_steps + 1),
         "label_source": at_first["label_source"].fill_null("file"),
         "has_angle": n_missing == 0,
     }, dataset, angle_source)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rotcal.model.columns import Outputs
+
 
 def angular_rate(t_ns: np.ndarray, direction: np.ndarray, window: int, max_step_ns: float,
                  typical_dt_ns: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -63,7 +65,7 @@ class Motion:
     cosine between the axes before and after; ``axis(i)`` recomputed where
     asked (a few samples)."""
 
-    def __init__(self, t_ns: np.ndarray, y: np.ndarray, offset: np.ndarray, to_unit: np.ndarray, in_dwell: np.ndarray,
+    def __init__(self, t_ns: np.ndarray, y: Outputs, offset: np.ndarray, to_unit: np.ndarray, in_dwell: np.ndarray,
                  window: int, dt_ns: float) -> None:
         self._args = (t_ns, y, offset, to_unit, window, dt_ns)
         self.pos = np.flatnonzero(~in_dwell)
@@ -80,7 +82,7 @@ class Motion:
         t_ns, y, offset, to_unit, window, dt_ns = self._args
         reach = 2 * window + 4
         lo, hi = max(0, a - reach), min(t_ns.size, b + reach)
-        rate, axis = angular_rate(t_ns[lo:hi], (y[lo:hi] - offset) @ to_unit.T, window, 1.5 * dt_ns, dt_ns)
+        rate, axis = angular_rate(t_ns[lo:hi], (y.rows(slice(lo, hi)) - offset) @ to_unit.T, window, 1.5 * dt_ns, dt_ns)
         return rate[:, a - lo : b - lo], axis[:, a - lo : b - lo]
 
     def at(self, start: int, stop: int) -> slice:

@@ -21,11 +21,13 @@ interval too.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
 
+from rotcal.model.columns import Outputs, sample_step, steps_over
 from rotcal.model.physics import CHANNELS
 
 NOISY_FACTOR = 10.0  # a noisy rest: windows up to this many times the threshold's variance (about 3.2 x its std)
@@ -50,96 +52,140 @@ def moving_variance(y: np.ndarray, window: int) -> np.ndarray:
     return np.column_stack([column_variance(y[:, r], window) for r in range(y.shape[1])])
 
 
-def column_variance(y: np.ndarray, window: int) -> np.ndarray:
+def column_variance(y: np.ndarray, window: int, centre: float | None = None) -> np.ndarray:
     """Variance of every full window of ``window`` samples of one column:
     cumulative sums on median-centred data (O(n), no loop over samples),
     block by block (each block's windows from its own sums, which also
-    keeps their rounding to a block's length)."""
+    keeps their rounding to a block's length). ``centre``: the column's
+    median, where the caller has it."""
+    out = np.empty(max(y.size - window + 1, 0))
+    for a, block in _variance_blocks(y, window, _median(y) if centre is None else centre):
+        out[a : a + block.size] = block
+    return out
+
+
+def _median(y: np.ndarray) -> float:
+    return float(np.median(y)) if y.size else 0.0
+
+
+def _variance_blocks(y: np.ndarray, window: int, centre: float) -> Iterator[tuple[int, np.ndarray]]:
+    """``column_variance``'s blocks: (first window, the block's window variances)."""
     count = max(y.size - window + 1, 0)
-    out = np.empty(count)
-    centre = float(np.median(y)) if y.size else 0.0
     for a in range(0, count, VARIANCE_BLOCK):
         b = min(a + VARIANCE_BLOCK, count)
         centred = y[a : b + window - 1] - centre
         s1 = np.r_[0.0, np.cumsum(centred)]
         s2 = np.r_[0.0, np.cumsum(centred * centred)]
         mean = (s1[window:] - s1[:-window]) / window
-        out[a:b] = np.maximum((s2[window:] - s2[:-window]) / window - mean * mean, 0.0)
-    return out
+        yield a, np.maximum((s2[window:] - s2[:-window]) / window - mean * mean, 0.0)
 
 
-def window_ratios(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
+def window_ratios(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessConfig = StillnessConfig(),
+                  dt_ns: float | None = None) -> tuple[np.ndarray, int]:
     """Every window's (by first sample, ``n - window + 1`` of them) largest
     variance ratio to its channel's noise floor (inf across a time gap),
-    and the window length."""
+    and the window length. ``dt_ns``: the median sample period, where the
+    caller has it."""
     n = t_ns.size
-    dt_s = float(np.median(np.diff(t_ns))) / 1e9 if n > 1 else 1.0
+    dt_s = (sample_step(t_ns) if dt_ns is None else dt_ns) / 1e9 if n > 1 else 1.0
     window = max(3, int(round(config.window_s / dt_s)))
     if n < window:
         return np.zeros(0), window
-    integer = all(np.all(y[:, r] == np.round(y[:, r])) for r in range(y.shape[1]))
-    ratio = np.zeros(n - window + 1)
-    for r in range(y.shape[1]):  # a column at a time: its temporaries, not the table's
-        second = np.diff(y[:, r], 2)
-        second -= np.median(second)
-        white = (1.4826 * np.median(np.abs(second))) ** 2 / 6.0
+    outputs = Outputs.of(y)
+    integer = outputs.integer()
+    # each channel's floor first, then the ratios block by block: at most one column-long array at a time
+    floors, centres = [], []
+    for column in outputs.columns:
+        second = np.diff(column, 2)
+        second -= np.median(second, overwrite_input=True)  # (the median of the values, whatever their order)
+        white = (1.4826 * np.median(np.abs(second, out=second), overwrite_input=True)) ** 2 / 6.0
         del second
-        var = column_variance(y[:, r], window)
-        floor = max(min(float(np.percentile(var, config.floor_percentile)), white), 1.0 / 12.0 if integer else 1e-12)
-        var /= floor
-        np.maximum(ratio, var, out=ratio)
-    gap = np.diff(t_ns) > config.gap_factor * dt_s * 1e9
-    gap_before = np.concatenate([[0], np.cumsum(gap)])
-    inside = gap_before[window - 1 :] != gap_before[: n - window + 1]  # a gap inside the window
-    ratio[inside] = np.inf
+        centres.append(_median(column))
+        var = column_variance(column, window, centres[-1])
+        floors.append(max(min(float(np.percentile(var, config.floor_percentile, overwrite_input=True)), white),
+                          1.0 / 12.0 if integer else 1e-12))
+        del var
+    ratio = np.zeros(n - window + 1)
+    for column, centre, floor in zip(outputs.columns, centres, floors):
+        for a, var in _variance_blocks(column, window, centre):
+            var /= floor
+            np.maximum(ratio[a : a + var.size], var, out=ratio[a : a + var.size])
+    gap = steps_over(t_ns, config.gap_factor * dt_s * 1e9)
+    if gap.any():  # a gap inside the window
+        gap_before = np.zeros(n, np.int64)
+        np.cumsum(gap, dtype=np.int64, out=gap_before[1:])
+        ratio[gap_before[window - 1 :] != gap_before[: n - window + 1]] = np.inf
     return ratio, window
 
 
-def quiet_windows(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> tuple[np.ndarray, int]:
+def quiet_windows(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessConfig = StillnessConfig()
+                  ) -> tuple[np.ndarray, int]:
     """Which windows (by first sample, ``n - window + 1`` of them) are quiet, and the window length."""
     ratio, window = window_ratios(t_ns, y, config)
     return ratio < config.threshold, window
 
 
 def _covered(quiet: np.ndarray, window: int, n: int) -> np.ndarray:
-    """True for every sample inside a quiet window."""
-    cover = np.zeros(n + 1, int)
-    starts = np.flatnonzero(quiet)
-    np.add.at(cover, starts, 1)
-    np.add.at(cover, starts + window, -1)
-    return np.cumsum(cover[:-1]) > 0
+    """True for every sample inside a quiet window: each run of quiet
+    windows covers its first window's first sample to its last one's last
+    (those spans merged where they meet, so that the marks do not add up)."""
+    edges = np.flatnonzero(np.diff(quiet, prepend=False, append=False))
+    first, end = edges[0::2], np.minimum(edges[1::2] + window - 1, n)
+    if not first.size:
+        return np.zeros(n, bool)
+    apart = first[1:] > end[:-1]
+    cover = np.zeros(n + 1, np.int8)
+    cover[first[np.r_[True, apart]]] = 1
+    cover[end[np.r_[apart, True]]] = -1
+    return np.cumsum(cover[:-1], dtype=np.int8) > 0
 
 
-def still_intervals(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
+def _jumps(quiet: np.ndarray, window: int, n: int) -> np.ndarray:
+    """Where no quiet window (first sample in ``i - window + 1 .. i - 1``)
+    holds both samples ``i - 1`` and ``i``: the count of quiet windows
+    starting before ``i`` less that before ``i - window + 1``, a block of
+    samples at a time."""
+    starts_before = np.zeros(quiet.size + 1, np.int64 if quiet.size >= 2**31 else np.int32)
+    np.cumsum(quiet, dtype=starts_before.dtype, out=starts_before[1:])
+    none = np.empty(n, bool)
+    for a in range(0, n, VARIANCE_BLOCK):
+        i = np.arange(a, min(a + VARIANCE_BLOCK, n))
+        none[a : a + i.size] = (starts_before[np.clip(i, 0, quiet.size)]
+                                == starts_before[np.clip(i - window + 1, 0, quiet.size)])
+    return none
+
+
+def still_intervals(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessConfig = StillnessConfig()) -> pl.DataFrame:
     """Still intervals at least ``min_dwell_s`` long: sample range, times,
     per-channel mean and standard deviation."""
     return still_and_short(t_ns, y, config)[0]
 
 
-def still_and_short(t_ns: np.ndarray, y: np.ndarray, config: StillnessConfig = StillnessConfig()
-                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+def still_and_short(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessConfig = StillnessConfig(),
+                    dt_ns: float | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The still intervals (``still_intervals``) and the detector's
     rejections, each with its ``reason``: runs of still samples shorter
     than ``min_dwell_s`` (cut by a time gap or a jump), and *noisy rests*,
     at least ``min_dwell_s`` of windows whose variance exceeds the
     threshold but stays within ``NOISY_FACTOR`` times it with no trend in
     the mean (a DUT held by hand, or shaken: no move between two poses, yet
-    noisier than the recording's rests)."""
-    ratio, window = window_ratios(t_ns, y, config)
+    noisier than the recording's rests). ``dt_ns``: the median sample
+    period, where the caller has it."""
+    outputs = Outputs.of(y)
+    if dt_ns is None:
+        dt_ns = sample_step(t_ns) if t_ns.size > 1 else 1e9
+    ratio, window = window_ratios(t_ns, outputs, config, dt_ns)
     quiet = ratio < config.threshold
     mask = _covered(quiet, window, t_ns.size)
-    dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
-    gap = np.r_[False, np.diff(t_ns) > config.gap_factor * dt_ns]  # gap[i]: between samples i-1 and i
-    # a jump between samples i-1 and i: no quiet window (first sample in i-window+1 .. i-1) holds both
-    starts_before = np.r_[0, np.cumsum(quiet)]
-    i = np.arange(t_ns.size)
-    spanning = (starts_before[np.clip(i, 0, quiet.size)] - starts_before[np.clip(i - window + 1, 0, quiet.size)])
-    gap |= np.r_[False, mask[:-1] & mask[1:]] & (spanning == 0)
+    gap = np.r_[False, steps_over(t_ns, config.gap_factor * dt_ns)]  # gap[i]: between samples i-1 and i
+    # a jump between samples i-1 and i: no quiet window holds both
+    gap[1:] |= mask[:-1] & mask[1:] & _jumps(quiet, window, t_ns.size)[1:]
+    del quiet
     starts, ends = _runs(mask, gap)
     long = (t_ns[ends - 1] - t_ns[starts]) / 1e9 + dt_ns / 1e9 >= config.min_dwell_s
-    short = _interval_frame(t_ns, y, starts[~long], ends[~long]).with_columns(reason=pl.lit(short_reason(config)))
-    return _interval_frame(t_ns, y, starts[long], ends[long]), pl.concat([short, _noisy_rests(
-        t_ns, y, ratio, window, mask, gap, config)]).sort("t_start_ns")
+    short = _interval_frame(t_ns, outputs, starts[~long], ends[~long]).with_columns(reason=pl.lit(short_reason(config)))
+    return _interval_frame(t_ns, outputs, starts[long], ends[long]), pl.concat([short, _noisy_rests(
+        t_ns, outputs, ratio, window, mask, gap, config, dt_ns)]).sort("t_start_ns")
 
 
 def _runs(mask: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,14 +195,13 @@ def _runs(mask: np.ndarray, gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, ends
 
 
-def _noisy_rests(t_ns: np.ndarray, y: np.ndarray, ratio: np.ndarray, window: int, still: np.ndarray,
-                 gap: np.ndarray, config: StillnessConfig) -> pl.DataFrame:
+def _noisy_rests(t_ns: np.ndarray, y: Outputs, ratio: np.ndarray, window: int, still: np.ndarray,
+                 gap: np.ndarray, config: StillnessConfig, dt_ns: float) -> pl.DataFrame:
     """The noisy rests (``still_and_short``) outside the still samples
     ``still``, with their reason: the scatter, relative to the noise floor,
     of their quietest half of windows."""
     loose = _covered(ratio < config.threshold * NOISY_FACTOR, window, t_ns.size) & ~still
     starts, ends = _runs(loose, gap)
-    dt_ns = float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1e9
     kept: list[tuple[int, int]] = []
     scatter: list[float] = []
     for a, b in zip(starts.tolist(), ends.tolist()):
@@ -165,7 +210,7 @@ def _noisy_rests(t_ns: np.ndarray, y: np.ndarray, ratio: np.ndarray, window: int
         if (t_ns[b - 1] - t_ns[a] + dt_ns) / 1e9 < max(config.min_dwell_s, 2 * config.window_s) or third < 2:
             continue
         # a move (a hand turning the DUT slowly) has a trend in its mean; a noisy rest does not
-        first, last = y[a : a + third], y[b - third : b]
+        first, last = y.rows(slice(a, a + third)), y.rows(slice(b - third, b))
         se = np.sqrt((first.var(axis=0, ddof=1) + last.var(axis=0, ddof=1)) / third)
         if np.all(np.abs(last.mean(axis=0) - first.mean(axis=0)) <= TREND_SIGMAS * np.maximum(se, 1e-300)):
             kept.append((a, b))
@@ -178,12 +223,12 @@ def _noisy_rests(t_ns: np.ndarray, y: np.ndarray, ratio: np.ndarray, window: int
         for x in scatter], dtype=pl.String))
 
 
-def _interval_frame(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> pl.DataFrame:
+def _interval_frame(t_ns: np.ndarray, y: Outputs, starts: np.ndarray, ends: np.ndarray) -> pl.DataFrame:
     rows = {"start": starts, "stop": ends, "t_start_ns": t_ns[starts], "t_end_ns": t_ns[ends - 1],
             "n_samples": ends - starts}
-    for r, c in enumerate(CHANNELS):
-        rows[f"mean_{c}"] = np.array([y[a:b, r].mean() for a, b in zip(starts, ends)], dtype=float)
-        rows[f"std_{c}"] = np.array([y[a:b, r].std(ddof=1) if b - a > 1 else np.nan for a, b in zip(starts, ends)],
+    for c, column in zip(CHANNELS, y.columns):
+        rows[f"mean_{c}"] = np.array([column[a:b].mean() for a, b in zip(starts, ends)], dtype=float)
+        rows[f"std_{c}"] = np.array([column[a:b].std(ddof=1) if b - a > 1 else np.nan for a, b in zip(starts, ends)],
                                     dtype=float)
     return pl.DataFrame(rows)
 

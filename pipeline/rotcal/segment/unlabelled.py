@@ -22,6 +22,7 @@ from rotcal.fit.means import pose_table
 from rotcal.fit.segments import SegmentFit
 from rotcal.fit.sinefit import SineFit, fit_sine
 from rotcal.ingest.labels import canonical_rate
+from rotcal.model.columns import Outputs, sample_step
 from rotcal.model.physics import CHANNELS
 from rotcal.segment.blind import BlindConfig, segment_blind
 from rotcal.segment.stillness import unused_rows
@@ -87,7 +88,7 @@ def _segment_row(dataset: str, key: int, capture: str, kind: str, axis: str | No
             "chi2_reduced": None, "t_phase_ns": None, **extra}
 
 
-def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y: np.ndarray, reason: str | None,
+def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y: Outputs, reason: str | None,
                      config: BlindConfig) -> np.ndarray:
     """Blind segmentation of one capture's free samples into ``found``;
     returns each sample's segment key (-1 in transitions)."""
@@ -102,12 +103,12 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
         found.key += 1
     found.counts += [len(blind.rotations), len(blind.sequences), len(blind.dwells), blind.hand_chains]
     if blind.short is not None and blind.short.height:
-        found.unused.append(unused_rows(dataset, capture, blind.short, float(np.median(np.diff(t))) / 1e9))
+        found.unused.append(unused_rows(dataset, capture, blind.short, sample_step(t) / 1e9))
     if not len(blind.dwells):
         return segment
     # a one-sample dwell (a file of pose means) has no spread: NaN, as numpy gives it, without its warning
     # (a column at a time: a dwell of millions of samples makes no n x 3 temporaries)
-    spread = np.array([[y[s:e, r].std(ddof=1) for r in range(y.shape[1])] if e - s > 1 else np.full(y.shape[1], np.nan)
+    spread = np.array([[c[s:e].std(ddof=1) for c in y.columns] if e - s > 1 else np.full(y.width, np.nan)
                        for s, e in blind.dwells])
     chi2 = (spread**2 / blind.noise_sd**2).mean(axis=1)
     group = np.full(len(blind.dwells), -1)
@@ -126,7 +127,7 @@ def _segment_capture(found: _Found, dataset: str, capture: str, t: np.ndarray, y
         found.key += 1
     for k, (s, e) in enumerate(blind.dwells):
         segment[s:e] = group[k]
-    interval_s = float(np.median(np.diff(t))) / 1e9
+    interval_s = sample_step(t) / 1e9
     found.dwells.append(pose_table(t, y, blind.dwells[:, 0], blind.dwells[:, 1]).with_columns(
         segment=pl.Series(group, dtype=pl.Int32), capture=pl.lit(capture),
         dwell_s=(pl.col("t_end_ns") - pl.col("t_start_ns")).cast(pl.Float64) / 1e9 + interval_s,
@@ -204,7 +205,8 @@ def infer_segments(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, 
         part: np.ndarray | slice = slice(int(idx[0]), int(idx[-1]) + 1) if idx.size and idx[-1] - idx[0] + 1 == idx.size else idx
         if idx.size >= 10:
             del idx
-            seg_col[part] = _segment_capture(found, dataset, capture, t_all[part], _outputs(samples, part),
+            # the outputs as columns (views of a whole capture's): as np.column_stack would give them, without the copy
+            seg_col[part] = _segment_capture(found, dataset, capture, t_all[part], Outputs.of_frame(samples, part),
                                              unrepairable.get(capture), config)
     hand = (f", {found.counts[3]} chain(s) of dwells about one axis without a table's steps (directions off one great "
             "circle, or unequal steps: poses turned by hand)") if found.counts[3] else ""
