@@ -289,12 +289,14 @@ def _modelled(obs: Observations, layout: Layout, results: list[IntrinsicResult],
 def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
              results: tuple[IntrinsicResult, ...], dataset: str, output_unit: str,
              g_uncertainty: float, angles_measured: bool, config: DiagnosisConfig,
-             phases: pl.DataFrame | None = None) -> Diagnosis | None:
+             phases: pl.DataFrame | None = None, *, random_walk: tuple[float, ...] = ()) -> Diagnosis | None:
     """Diagnose one dataset from its samples, segments, fits and baseline
     results; None when it has no fitted table segments. ``phases``: the
     rotation segments without a table angle, whose angles are reconstructed
     from their solved phases (``reconstructed``); the effects those angles
-    absorb are then not tested."""
+    absorb are then not tested. ``random_walk``: the noise model's random
+    walk coefficient K per channel (``rotcal.noise``), part of the offsets'
+    noise the offset effects are tested against (``wander``)."""
     from rotcal.diagnose.findings import catalogue_rows, limit_rows, scan_row, step_row
 
     results = tuple(sorted(results, key=lambda r: (abs(r.rate_hz), r.rate_hz)))
@@ -324,7 +326,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())
     # offset effects against the offsets' measured wander (``wander``)
-    final, wander = against_wander(final, OffsetNoise.from_fits(fits), alpha, output_unit)
+    final, wander = against_wander(final, OffsetNoise.from_fits(fits, random_walk), alpha, output_unit)
     # every extension against the noise's density at its signature's frequencies (``spectral``)
     final, spectral = against_spectrum(final, alpha)
     for name, text in spectral.items():

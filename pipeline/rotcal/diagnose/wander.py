@@ -4,7 +4,8 @@ wander.
 Some effects move each segment's offset as a whole (``offset_drift``,
 ``centripetal``, ``axis_tilt``: a trend in time, a shift growing with the
 rate squared, a shift per axis; the effects' ``moves_segment_offsets``),
-and so does an offset step in every channel (the ``unexplained`` step). So does a slow wander of the sensor's bias (a Gauss-Markov term,
+and so does an offset step in every channel (the ``unexplained`` step).
+So does a slow wander of the sensor's bias (a Gauss-Markov term,
 flicker, a random walk), which the sample-level tests, taking the noise as
 white within segments, read as a deterministic misfit. Where the fits
 measured such a wander (``fit.wander``: the offsets scatter beyond their
@@ -15,12 +16,20 @@ white), each selected extension of these effects whose removal changes
 the residuals mostly by segment (``SEGMENT_CONSTANT`` of the change's sum
 of squares in its segment means) is tested again where the two compete:
 the segment means of the residuals without it, c, against its segment
-means d, by generalised least squares with the segment means' covariance
-under the noise model (``_segment_test``: each fit's u(C)^2, which holds
-the density near zero frequency and the wander's floor q, and the floor's
-correlation between segments):
+means d, by generalised least squares with the rates' offsets and the
+other selected offset effects free (X: their patterns in the segment
+means, ``_offset_slopes``), under the segment means' covariance V under
+the noise model (``_gls_statistic``): each fit's own variance, the
+wander's floor q between segments with its correlation, and the noise
+model's random walk (IEEE Std 952 K, ``rotcal.noise``), whose variance
+grows with time, so that segments recorded far apart may differ by K
+times the root of the time between them:
 
-    chi^2 = (d^T V^-1 c)^2 / (d^T V^-1 d),  on the extension's parameter count.
+    chi^2 = (d^T P c)^2 / (d^T P d),  P = V^-1 - V^-1 X (X^T V^-1 X)^-1 X^T V^-1,
+
+on the extension's parameter count. An offset step, whose pattern the
+floor does not leave out, by the likelihood ratio with the wander fitted
+under both hypotheses instead (``_likelihood_ratio``).
 
 Where that is not significant at the diagnosis's false-alarm rate the
 wander explains the pattern: the extension is dropped from the model and
@@ -36,11 +45,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import polars as pl
 
-from rotcal.diagnose.candidates import STEP
+from rotcal.diagnose.candidates import STEP, Candidate
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
+from rotcal.diagnose.model import predict
 from rotcal.diagnose.scans import p_is
 from rotcal.model.effects import catalogue
 from rotcal.model.physics import CHANNELS
+from rotcal.noise.means import NoiseProcess, window_mean_covariance
 
 # these effects are constant within a segment (a drift nearly so), but dropping one refits the rest, whose
 # readjustment varies within segments: a third of the difference constant marks a segment-level pattern
@@ -58,9 +69,12 @@ class OffsetNoise:
     u: dict[int, np.ndarray]
     floor: dict[int, np.ndarray]
     ratio_zero: dict[int, np.ndarray] = field(default_factory=dict)
+    random_walk: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @classmethod
-    def from_fits(cls, fits: pl.DataFrame) -> OffsetNoise:
+    def from_fits(cls, fits: pl.DataFrame, random_walk: tuple[float, ...] = ()) -> OffsetNoise:
+        """From the ``fits`` table, with the noise model's random walk K per
+        channel (``rotcal.noise``; none where not given)."""
         u: dict[int, np.ndarray] = {}
         floor: dict[int, np.ndarray] = {}
         ratio: dict[int, np.ndarray] = {}
@@ -70,7 +84,7 @@ class OffsetNoise:
             u.setdefault(seg, np.full(3, np.nan))[rank[ch]] = u_c
             floor.setdefault(seg, np.zeros(3))[rank[ch]] = f if f is not None and np.isfinite(f) else 0.0
             ratio.setdefault(seg, np.ones(3))[rank[ch]] = f0 if f0 is not None and np.isfinite(f0) else 1.0
-        return cls(u, floor, ratio)
+        return cls(u, floor, ratio, np.array(random_walk, float) if len(random_walk) == 3 else np.zeros(3))
 
     @property
     def wanders(self) -> bool:
@@ -80,14 +94,18 @@ class OffsetNoise:
         return (any(np.any(f > 0) for f in self.floor.values())
                 or any(np.any(f > 1) for f in self.ratio_zero.values()))
 
-    def size(self) -> str:
+    def size(self, unit: str) -> str:
         """The wander's size per channel: the largest floor of its segments,
-        and the largest density ratio near zero frequency where above 1."""
+        the largest density ratio near zero frequency where above 1 and the
+        noise model's random walk where it has one."""
         top = np.max(np.array(list(self.floor.values())), axis=0)
-        text = "largest floor " + ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, top))
+        text = "largest floor " + ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, top)) + f" {unit}"
         ratio = np.max(np.array(list(self.ratio_zero.values())), axis=0) if self.ratio_zero else np.ones(3)
         if np.any(ratio > 1):
             text += "; density near zero frequency " + ", ".join(f"{c} {v:.3g}" for c, v in zip(CHANNELS, ratio)) + " times white"
+        if np.any(self.random_walk > 0):
+            text += ("; the noise model's random walk K " + ", ".join(f"{c} {k:.2g}" for c, k in zip(CHANNELS, self.random_walk))
+                     + f" {unit}/sqrt(s)")
         return text
 
 
@@ -99,137 +117,242 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
         return final, texts
     rivals = {e.name for e in catalogue() if e.moves_segment_offsets}
     # an offset step in every channel moves the offsets of the segments after it alike
+    slopes = _offset_slopes(final, rivals)
     for cand in [c for c in final.active if c.effect in rivals or c == STEP]:
         reduced = without(final, (cand,))
-        stat, constant = _segment_test(final, reduced, noise, cand == STEP)
-        if stat is None or constant < SEGMENT_CONSTANT:
+        test = _segment_test(final, reduced, cand, noise, slopes)
+        if test is None or test.constant < SEGMENT_CONSTANT:
             continue
         k = len(cand.names)
         # the step's time was chosen where it fits best: Bonferroni over the segment boundaries it could take
         scanned = max(1, len(np.unique(final.obs.segment)) - 1) if cand == STEP else 1
-        p = min(1.0, chi2_sf(stat, k) * scanned)
-        size = f"the offsets wander ({noise.size()}; floors in {output_unit})"
+        p = min(1.0, chi2_sf(test.stat, k) * scanned)
+        size = f"the offsets wander ({noise.size(output_unit)}"
+        fitted = ", ".join(f"{c} {w.text(output_unit)}" for c, w in zip(CHANNELS, test.wander) if w is not None)
+        size += f"; fitted without it: {fitted})" if fitted else ")"
         if p >= alpha:
             final = reduced
+            slopes = _offset_slopes(final, rivals)
             text = (f"{cand.key} set aside: {size}, and that wander explains its pattern in the segments' offsets "
-                    f"(chi-square {stat:.1f} on {k} against the wander, {p_is(p)})")
+                    f"(chi-square {test.stat:.1f} on {k} against the wander, {p_is(p)})")
         else:
             text = (f"for {cand.key} the evidence favours the effect over the wander ({size}; against the wander "
-                    f"chi-square {stat:.1f} on {k}, {p_is(p)})")
+                    f"chi-square {test.stat:.1f} on {k}, {p_is(p)})")
         texts[cand.effect] = f"{texts[cand.effect]}; {text}" if cand.effect in texts else text
     return final, texts
 
 
-def _segment_test(final: ModelFit, reduced: ModelFit, noise: OffsetNoise,
-                  refloor: bool = False) -> tuple[float | None, float]:
-    """(chi^2 of the extension's segment means against the noise model,
-    the share of its fitted part that is constant within segments). The
-    segment means' covariance is V = diag(u(C)^2) + q_i q_j (rho_ij - delta_ij),
-    q the wander's floor and rho_ij = exp(-|t_i - t_j| / T) the correlation
-    of a wander of correlation time T (a Gauss-Markov term; T = 0:
-    independent offsets). The fits measure q, not T: the statistic is the
-    least over ``WANDER_TIMES`` of the recording's duration, the correlation
-    time that explains the pattern best (a slow wander moves neighbouring
-    segments alike, as a drift or a step would). ``refloor``: the fits'
-    floor leaves out the catalogue effects' patterns, not an offset step's,
-    so a step would be tested against the wander it makes itself: the
-    likelihood ratio of the step with q and T fitted under both hypotheses
-    instead (``_likelihood_ratio``)."""
-    seg = final.obs.segment
-    ids, idx = np.unique(seg, return_inverse=True)
-    if not all(int(s) in noise.u for s in ids):
-        return None, 0.0
+@dataclass(frozen=True)
+class WanderFit:
+    """A channel's wander of the segment offsets as fitted under the null:
+    sd ``q`` (output units) and correlation time ``tau_s`` (0: independent
+    offsets; inf: a random walk, q its sd over the record)."""
+
+    q: float
+    tau_s: float
+    duration_s: float
+
+    def text(self, unit: str) -> str:
+        if self.q == 0:
+            return "none"
+        if np.isinf(self.tau_s):   # IEEE Std 952 random walk: Var = K^2 t
+            return f"a random walk of K = {self.q / np.sqrt(self.duration_s):.2g} {unit}/sqrt(s)"
+        if self.tau_s == 0:
+            return f"{self.q:.2g} {unit} independent per segment"
+        return f"{self.q:.2g} {unit} over {self.tau_s:.3g} s"
+
+
+@dataclass(frozen=True)
+class WanderTest:
+    """The test of one extension's segment pattern against the offsets'
+    wander: its chi-square (2 ln LR for the step), the share of its fitted
+    part constant within segments, and for the step the wander fitted
+    without it, per channel (``WanderFit``)."""
+
+    stat: float
+    constant: float
+    wander: tuple[WanderFit | None, ...]
+
+
+def _segment_means(final: ModelFit, reduced: ModelFit, ids: np.ndarray, idx: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(c, d, samples per segment and channel, the share of d's sum of
+    squares in its segment means): c the segment means of the residuals
+    without the extension, d those of its fitted part."""
     use = final.use & reduced.use
     before = np.where(use, reduced.residuals, 0.0)
     part = np.where(use, reduced.residuals - final.residuals, 0.0)
     count = np.stack([np.bincount(idx, use[:, r], ids.size) for r in range(3)], axis=1)
-    on = count > 0
-    safe = np.where(on, count, 1)
+    safe = np.where(count > 0, count, 1)
     c = np.stack([np.bincount(idx, before[:, r], ids.size) for r in range(3)], axis=1) / safe
     d = np.stack([np.bincount(idx, part[:, r], ids.size) for r in range(3)], axis=1) / safe
     total = float(np.sum(part**2))
-    if total <= 0:
-        return None, 0.0
-    constant = float(np.sum(count * d**2)) / total
+    return c, d, count, (float(np.sum(count * d**2)) / total if total > 0 else 0.0)
+
+
+def _offset_slopes(final: ModelFit, rivals: set[str]) -> dict[str, np.ndarray]:
+    """Per selected offset effect (and the step), the segment means
+    (segments, parameters, channels) of the model's change along each of
+    its parameters (one standard uncertainty's step): the patterns it gives
+    the offsets, which the other extensions' tests leave free."""
+    ids, idx = np.unique(final.obs.segment, return_inverse=True)
+    count = np.stack([np.bincount(idx, final.use[:, r], ids.size) for r in range(3)], axis=1)
+    safe = np.where(count > 0, count, 1)
+    cov = np.diag(final.covariance())
+    base = predict(final.obs, final.beta, final.layout, final.active, final.clip, final.structure)
+    out = {}
+    for cand in [c for c in final.active if c.effect in rivals or c == STEP]:
+        cols = []
+        for j in final.layout.params(cand):
+            h = float(np.sqrt(max(cov[np.searchsorted(final.idx, j)], 0.0)))
+            if h <= 0:
+                continue
+            beta = final.beta.copy()
+            beta[j] += h
+            change = predict(final.obs, beta, final.layout, final.active, final.clip, final.structure) - base
+            change = np.where(final.use, change, 0.0)
+            cols.append(np.stack([np.bincount(idx, change[:, r], ids.size) for r in range(3)], axis=1) / safe)
+        out[cand.key] = np.stack(cols, axis=1) if cols else np.zeros((ids.size, 0, 3))
+    return out
+
+
+def _segment_test(final: ModelFit, reduced: ModelFit, cand: Candidate, noise: OffsetNoise,
+                  slopes: dict[str, np.ndarray]) -> WanderTest | None:
+    """The extension's pattern in the segment means against the offsets'
+    noise (module docstring), the rates' offsets and the other selected
+    offset effects (``slopes``, ``_offset_slopes``) left free. A catalogue effect by
+    generalised least squares under the noise model (``_gls_statistic``);
+    the step, whose pattern the fits' floor does not leave out, by the
+    likelihood ratio with the wander fitted under both hypotheses
+    (``_likelihood_ratio``)."""
+    seg = final.obs.segment
+    ids, idx = np.unique(seg, return_inverse=True)
+    if not all(int(s) in noise.u for s in ids):
+        return None
+    c, d, count, constant = _segment_means(final, reduced, ids, idx)
+    if constant <= 0:
+        return None
     var = np.array([noise.u[int(s)] for s in ids]) ** 2
     floor = np.array([noise.floor[int(s)] for s in ids])
+    ok = (count > 0) & np.isfinite(var) & (var > 0)
     t = final.obs.motion.t_s
-    centre = np.bincount(idx, t, ids.size) / np.bincount(idx, minlength=ids.size)
-    lag = np.abs(centre[:, None] - centre[None, :])
-    duration = float(t.max() - t.min()) if t.size else 0.0
-    if refloor:
-        within = np.maximum(var - floor**2, 1e-300)
-        ok = on & np.isfinite(within)
-        rate = np.zeros(ids.size, int)
-        rate[idx] = final.obs.rate_idx
-        return _likelihood_ratio(c, d, within, ok, lag, centre - centre.min(), duration, rate), constant
+    start, stop = np.full(ids.size, np.inf), np.full(ids.size, -np.inf)
+    np.minimum.at(start, idx, t)
+    np.maximum.at(stop, idx, t)
+    rate = np.zeros(ids.size, int)
+    rate[idx] = final.obs.rate_idx
+    indicators = (rate[:, None] == np.unique(rate)[None, :]).astype(float)
+    fixed = np.concatenate([np.repeat(indicators[:, :, None], 3, axis=2)]
+                           + [v for key, v in slopes.items() if key != cand.key], axis=1)
+    within = np.maximum(var - floor**2, 1e-300)   # the fit's own variance, without the floor between segments
+    if cand == STEP:
+        stat, wander = _likelihood_ratio(c, d, within, ok, fixed, start, stop)
+        return WanderTest(stat, constant, wander)
+    return WanderTest(_gls_statistic(c, d, within, floor, ok, fixed, start, stop, noise.random_walk), constant, ())
+
+
+def _gls_statistic(c: np.ndarray, d: np.ndarray, within: np.ndarray, floor: np.ndarray, ok: np.ndarray,
+                   fixed: np.ndarray, start: np.ndarray, stop: np.ndarray, walk_k: np.ndarray) -> float:
+    """chi^2 = (sum_r d_r^T P_r c_r)^2 / sum_r d_r^T P_r d_r, P_r = V^-1 - V^-1 X (X^T V^-1 X)^-1 X^T V^-1
+    (generalised least squares of d's size with ``fixed``'s patterns X free) under the segment means'
+    covariance V = diag(``within``) + q_i q_j rho_ij + K^2 W: q the fits' floor with the correlation
+    rho_ij = exp(-|t_i - t_j| / T) of a wander of correlation time T (T = 0: independent offsets), and
+    the noise model's random walk of coefficient K (``walk_k``; IEEE Std 952: Var = K^2 t from the
+    record's start), W its covariance of the segments' window means per unit K^2 (``noise.means``),
+    which grows with time and so correlates segments hours apart. The fits measure q, not T: the
+    least over ``WANDER_TIMES`` of the recording's duration."""
+    shapes, _, walk = _wander_shapes(start, stop)
     stats = []
-    for share in (0.0,) + WANDER_TIMES:
-        rho = np.eye(ids.size) if share == 0.0 or duration <= 0 else np.exp(-lag / (share * duration))
-        num, info = 0.0, 0.0
+    for rho in shapes:
+        num, info, raw = 0.0, 0.0, 0.0
         for r in range(3):
-            ok = on[:, r] & np.isfinite(var[:, r]) & (var[:, r] > 0)
-            if not ok.any():
+            on = ok[:, r]
+            if not on.any():
                 continue
-            q = floor[ok, r]
-            v = np.diag(var[ok, r]) + np.outer(q, q) * (rho[np.ix_(ok, ok)] - np.eye(int(ok.sum())))
-            w = np.linalg.solve(v, d[ok, r])
-            num += float(w @ c[ok, r])
-            info += float(w @ d[ok, r])
-        if info > 0:
-            stats.append(num**2 / info)
-    if not stats:
-        return None, constant
-    return min(stats), constant
+            q = floor[on, r]
+            v = np.diag(within[on, r]) + np.outer(q, q) * rho[np.ix_(on, on)] + walk_k[r] ** 2 * walk[np.ix_(on, on)]
+            chol = np.linalg.cholesky(v)
+            x, m, y = (np.linalg.solve(chol, a) for a in (fixed[on][:, :, r], c[on, r], d[on, r]))
+            basis = _column_space(x)
+            raw += float(y @ y)
+            m, y = m - basis @ (basis.T @ m), y - basis @ (basis.T @ y)
+            num += float(y @ m)
+            info += float(y @ y)
+        # a pattern the free ones already give has no evidence of its own
+        stats.append(num**2 / info if info > 1e-10 * raw else 0.0)
+    return min(stats) if stats else 0.0
 
 
-def _log_likelihood(m: np.ndarray, x: np.ndarray | None, v: np.ndarray) -> float:
-    """Gaussian log-likelihood (without constants) of ``m`` ~ N(x beta, v), beta at its GLS value."""
-    chol = np.linalg.cholesky(v)
-    white = np.linalg.solve(chol, m)
-    rss = float(white @ white)
-    if x is not None:
-        wx = np.linalg.solve(chol, x)
-        info = float(wx @ wx)
-        if info > 0:
-            rss -= float(wx @ white) ** 2 / info
-    return -0.5 * (2 * float(np.sum(np.log(np.diag(chol)))) + rss)
+def _column_space(x: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of ``x``'s columns (rank by the largest singular value)."""
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    return u[:, : int(np.sum(sv > sv[0] * 1e-9))] if sv.size and sv[0] > 0 else u[:, :0]
 
 
-def _likelihood_ratio(c: np.ndarray, d: np.ndarray, within: np.ndarray, ok: np.ndarray, lag: np.ndarray,
-                      start: np.ndarray, duration: float, rate: np.ndarray) -> float:
-    """2 ln LR of the pattern ``d`` (one free size per channel) in the
-    segment means ``c``, each hypothesis with its own wander: V = diag(
-    ``within``) + q^2 exp(-lag / T), q on a grid to three times the means'
-    spread and T over ``WANDER_TIMES`` of ``duration`` (and independent),
-    or a random walk, q^2 min(t_i, t_j) / duration (``start``: the segments'
-    times from the first), both fitted by maximum likelihood, summed over
-    channels. The means are residuals of a model with an offset per rate
-    (``rate``: each segment's), so the likelihoods are those of the
-    contrasts free of them (restricted maximum likelihood, Patterson &
-    Thompson 1971): everything projected on the complement of the rates'
-    indicators."""
-    total = 0.0
-    shapes = [np.eye(lag.shape[0])] + ([np.exp(-lag / (share * duration)) for share in WANDER_TIMES] if duration > 0 else [])
-    if duration > 0:   # a random walk from the first segment: Cov = q^2 min(t_i, t_j) / duration
-        shapes.append(np.minimum(start[:, None], start[None, :]) / duration)
+def _wander_shapes(start: np.ndarray, stop: np.ndarray) -> tuple[list[np.ndarray], list[float], np.ndarray]:
+    """The wander's correlation between segment means per unit variance,
+    with its correlation times: independent offsets (0) and first-order
+    Gauss-Markov terms exp(-|t_i - t_j| / T) at the segments' mid-times for
+    T over ``WANDER_TIMES`` of the recording's duration; and a random walk's
+    covariance per unit K^2 (IEEE Std 952: Var = K^2 t from the record's
+    start), min(s, t) averaged over both segments' windows (``noise.means``)."""
+    duration = float(stop.max() - start.min())
+    centre = (start + stop) / 2
+    lag = np.abs(centre[:, None] - centre[None, :])
+    times = [share * duration for share in WANDER_TIMES] if duration > 0 else []
+    shapes = [np.eye(start.size)] + [np.exp(-lag / tau) for tau in times]
+    walk = window_mean_covariance(NoiseProcess(random_walk_k=1.0), start, stop, 1e-9, (float(start.min()), float(stop.max())))
+    return shapes, [0.0, *times], walk
+
+
+def _likelihood_ratio(c: np.ndarray, d: np.ndarray, within: np.ndarray, ok: np.ndarray, fixed: np.ndarray,
+                      start: np.ndarray, stop: np.ndarray) -> tuple[float, tuple[WanderFit | None, ...]]:
+    """(2 ln LR of the pattern ``d`` in the segment means ``c``, the wander
+    fitted under the null per channel). Each hypothesis has its own wander,
+    V = diag(``within``) + q^2 S, S one of ``_wander_shapes`` and q on a
+    grid to ten times the means' spread, fitted by maximum likelihood per
+    channel. The means are residuals of a model whose rates' offsets and
+    other offset effects (``fixed``: segments, columns, channels) were
+    fitted too, so the likelihoods are those of the contrasts free of them
+    (restricted maximum likelihood, Patterson & Thompson 1971, Biometrika
+    58, 545); d's size is free per channel."""
+    shapes, taus, walk = _wander_shapes(start, stop)
+    duration = float(stop.max() - start.min())
+    if duration > 0:   # the walk per unit variance at the record's end
+        shapes, taus = [*shapes, walk / duration], [*taus, np.inf]
+    # per channel: (log det + m'V^-1 m, m'V^-1 x, x'V^-1 x) over the grid
+    curves: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    wander: list[WanderFit | None] = []
     for r in range(3):
         on = ok[:, r]
-        if on.sum() < 3:
+        design = fixed[on][:, :, r]
+        u, sv, _ = np.linalg.svd(design, full_matrices=True)
+        rank = int(np.sum(sv > sv[0] * 1e-9)) if sv.size and sv[0] > 0 else 0
+        basis = u[:, rank:]   # the contrasts free of the fixed patterns
+        if basis.shape[1] < 2:
+            wander.append(None)
             continue
-        rates = np.unique(rate[on])
-        if on.sum() <= rates.size + 1:
-            continue
-        indicators = (rate[on][:, None] == rates[None, :]).astype(float)
-        basis = np.linalg.svd(indicators, full_matrices=True)[0][:, rates.size:]   # the contrasts
-        m, x, w = basis.T @ c[on, r], basis.T @ d[on, r], np.diag(within[on, r])
+        m, x = basis.T @ c[on, r], basis.T @ d[on, r]
         spread = float(np.sqrt(np.mean(m**2)))
-        best = [-np.inf, -np.inf]
-        for q in np.r_[0.0, spread * np.geomspace(0.03, 3.0, 12)]:
-            for rho in shapes:
-                v = basis.T @ (w + q**2 * rho[np.ix_(on, on)]) @ basis
-                for h, design in enumerate((None, x)):
-                    best[h] = max(best[h], _log_likelihood(m, design, v))
-        total += max(0.0, 2 * (best[1] - best[0]))
-    return total
-
+        q = np.r_[0.0, spread * np.geomspace(0.03, 10.0, 16)]
+        local = np.stack([basis.T @ s[np.ix_(on, on)] @ basis for s in shapes])   # (shapes, k, k)
+        v = basis.T @ np.diag(within[on, r]) @ basis + q[:, None, None, None] ** 2 * local[None]
+        chol = np.linalg.cholesky(v)
+        wm = np.linalg.solve(chol, np.broadcast_to(m[:, None], v.shape[:-1] + (1,)))[..., 0]
+        wx = np.linalg.solve(chol, np.broadcast_to(x[:, None], v.shape[:-1] + (1,)))[..., 0]
+        logdet = 2 * np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
+        a, b, cc = (logdet + np.sum(wm**2, -1)).ravel(), np.sum(wm * wx, -1).ravel(), np.sum(wx**2, -1).ravel()
+        curves.append((a, b, cc))
+        best = int(np.argmin(a))
+        wander.append(WanderFit(float(q[best // len(shapes)]), taus[best % len(shapes)], duration))
+    if not curves:
+        return 0.0, tuple(wander)
+    # -2 ln L(beta) per grid point is a + beta^2 cc - 2 beta b: the null at beta = 0, the alternative at the best
+    # beta, which lies between the grid points' own optima b / cc (the profile is the envelope of parabolas)
+    null = sum(float(a.min()) for a, _, _ in curves)
+    alt = 0.0
+    for a, b, cc in curves:
+        opt = b[cc > 0] / cc[cc > 0]
+        beta = np.r_[0.0, np.linspace(opt.min(), opt.max(), 801)] if opt.size else np.zeros(1)
+        alt += float(np.min(a[:, None] + beta[None, :] ** 2 * cc[:, None] - 2 * beta[None, :] * b[:, None]))
+    return max(0.0, null - alt), tuple(wander)

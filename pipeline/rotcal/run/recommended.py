@@ -10,6 +10,7 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import polars as pl
 
 from rotcal.blockwise.load import corrected_blocks, streamed_fits
@@ -80,7 +81,8 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         return None, (coarse,)
     diagnose_with = partial(diagnose, samples, seg.segments, seg.fits,
                             diagnosed, ds.name, ds.meta.output_unit,
-                            ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis)
+                            ds.meta.g_local_uncertainty, ds.meta.angle_source == "measured", config.diagnosis,
+                            random_walk=_random_walk(seg, ds.meta.output_unit))
     if phases is None:
         diagnosis = diagnose_with(None)
     else:
@@ -97,6 +99,20 @@ def diagnose_stage(seg: Segmented, reductions: Reductions, results: tuple[Intrin
         notes.append(f"diagnosis modelled {diagnosis.final.obs.n:,} of the {diagnosis.samples_available:,} "
                      f"samples (long segments thinned evenly; [diagnosis] max_samples)")
     return diagnosis, tuple(notes)
+
+
+def _random_walk(seg: Segmented, output_unit: str) -> tuple[float, ...]:
+    """The noise model's random walk coefficient K per channel (``rotcal.noise``:
+    the residuals' Allan variance), 0 where a channel has none; none where
+    the model cannot be identified (the offsets' floor is then their noise)."""
+    from rotcal.noise import identify_noise
+
+    try:
+        model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, output_unit,
+                               None if seg.streamed is None else seg.streamed.noise_pooled())
+    except np.linalg.LinAlgError:
+        return ()
+    return tuple(next((t.value for t in ch.terms if t.term == "random_walk"), 0.0) for ch in model.channels)
 
 
 def _diagnosed(fits: pl.DataFrame, results: tuple[IntrinsicResult, ...]) -> frozenset[int]:
