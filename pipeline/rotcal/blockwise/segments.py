@@ -31,16 +31,8 @@ import polars as pl
 
 from rotcal.config import FitConfig
 from rotcal.fit.pooled import across_segments, record_noise_pooled
-from rotcal.fit.segments import (
-    SegmentFit,
-    arc_bounds,
-    arc_from,
-    design,
-    fitted_angle,
-    refusal_from,
-    segment_fit,
-    stuck_from,
-)
+from rotcal.fit.refusals import arc_bounds, arc_from, refusal_from, stuck_from
+from rotcal.fit.segments import SegmentFit, design, fitted_angle, segment_fit
 from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.noise import FittedNoise
