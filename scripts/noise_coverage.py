@@ -1,11 +1,13 @@
 """Uncertainties and false findings under coloured noise: for each noise
-shape, seeded default-plan table datasets (labelled segment files) through
-rotcal's stages, and per parameter class (s, phi, O) and rate the sd of
+shape, seeded default-plan table datasets (labelled segment files, or
+``--recording unlabelled``: t, u, v, w only in one file, no ``[plan]``
+rates) through rotcal's stages, and per parameter class (s, phi, O) and rate the sd of
 the normalised errors z = (estimate - truth) / u and the fraction |z| <= 2
 (baseline results; the simultaneous solution's too), and the clean
 datasets' finding rates (any catalogue finding; any finding at all).
 
     python scripts/noise_coverage.py [--datasets 50] [--diagnosed 50] [--workers 2] [--shapes white,ar09,...] [--out FILE.jsonl]
+        [--recording labelled|unlabelled]
     python scripts/noise_coverage.py --summarise FILE.jsonl
 
 The shapes are drawn by the simulator's noise model (``rotcal simulate
@@ -13,7 +15,10 @@ The shapes are drawn by the simulator's noise model (``rotcal simulate
 noise; the Gauss-Markov shape draws its sd (0.1 to 0.5 of the white sd)
 and time constant (10 to 1000 s, log-uniform) per dataset. The true g of
 each dataset is drawn from N(g_local, u(g)^2), as in
-``rotcal.metrology.coverage``. Prints a Markdown table; ``--out`` also
+``rotcal.metrology.coverage``. An unlabelled recording's rates are those
+rotcal measured (the phase-free and dwell reductions, ``combine.unreferenced``;
+no simultaneous solution: it needs the table angle), each named by the
+nearest nominal rate of the plan. Prints a Markdown table; ``--out`` also
 writes the per-dataset figures as JSON. About 1.5 s a dataset without the
 diagnosis and 6 s with it on one core.
 """
@@ -42,6 +47,7 @@ from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 WHITE_SD = 8.0  # the default DUT's white noise (counts)
 CLASSES = {"s": (0, 1, 2), "phi": (3, 4, 5), "O": (6, 7, 8)}
+RECORDINGS = ("labelled", "unlabelled")
 
 
 def noise_request(shape: str, seed: int) -> str:
@@ -64,13 +70,21 @@ def noise_request(shape: str, seed: int) -> str:
 SHAPES = ("white", "ar09", "lowpass01", "lowpass04", "gauss_markov", "flicker", "random_walk", "mix")
 
 
-def z_of(results: list[IntrinsicResult], truth: np.ndarray) -> dict[str, list[float]]:
-    return {f"{r.rate_hz:g}": ((r.value - truth) / r.std_uncertainty).tolist() for r in results}
+def z_of(results: list[IntrinsicResult], truth: np.ndarray, nominal: tuple[float, ...] = ()) -> dict[str, list[float]]:
+    """Each result's normalised errors by its rate's name: the rate itself,
+    or (``nominal`` given) the nearest of those rates."""
+    def name(rate: float) -> str:
+        return f"{min(nominal, key=lambda q: abs(q - abs(rate))) if nominal else rate:g}"
+
+    named = {name(r.rate_hz): ((r.value - truth) / r.std_uncertainty).tolist() for r in results}
+    if len(named) < len(results):
+        raise ValueError(f"two measured rates nearest one nominal rate: {[r.rate_hz for r in results]}")
+    return named
 
 
-def case(args: tuple[str, int, bool]) -> dict:
+def case(args: tuple[str, int, bool, str]) -> dict:
     """One dataset: baseline and simultaneous z per rate, and (``diagnosed``) its findings."""
-    shape, seed, diagnosed = args
+    shape, seed, diagnosed, recording = args
     request = noise_request(shape, seed)
     spec = SimulationSpec().with_noise(request) if request else SimulationSpec()
     rng = np.random.default_rng([seed, 0x67])
@@ -79,15 +93,20 @@ def case(args: tuple[str, int, bool]) -> dict:
     truth = np.array([sim.truth["intrinsic"][p] for p in INTRINSIC])
     config = RunConfig(run=RunSection(workers=1))
     with tempfile.TemporaryDirectory(prefix="rotcal-noise-") as tmp:
-        path = write_dataset(sim, spec, Path(tmp) / f"{shape}{seed}")
+        labelled = recording == "labelled"
+        path = write_dataset(sim, spec, Path(tmp) / f"{shape}{seed}", "csv" if labelled else "csv-unlabelled")
+        if not labelled:  # no nominal rates: rotcal finds the segments and rates from the signals alone
+            toml = path / "dataset.toml"
+            toml.write_text(toml.read_text().split("\n[plan]")[0])
         ds = load_dataset(path)
         seg = segment_and_fit(ds, config)
         reductions = reduce(seg, ds)
         results, _, _ = determined(reductions, seg, path)
-        simult = [r for r in simultaneous(seg.samples, seg.fits, ds.meta.g_local, ds.meta.g_local_uncertainty,
+        simult = [r for r in simultaneous(seg.samples, seg.labelled_fits, ds.meta.g_local, ds.meta.g_local_uncertainty,
                                           sums=seg.sums) if isinstance(r, IntrinsicResult)]
-        out = {"shape": shape, "seed": seed, "noise": request, "baseline": z_of(list(results), truth),
-               "simultaneous": z_of(simult, truth)}
+        nominal = () if labelled else (0.0, *spec.plan.rates_hz)
+        out = {"shape": shape, "seed": seed, "noise": request, "baseline": z_of(list(results), truth, nominal),
+               "simultaneous": z_of(simult, truth, nominal)} | ({} if labelled else {"recording": recording})
         if diagnosed:
             diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
             found = [] if diagnosis is None else diagnosis.findings.filter(diagnosis.findings["detected"])["effect"].to_list()
@@ -119,6 +138,8 @@ def markdown(rows: list[dict], source: str) -> str:
 def compact_markdown(rows: list[dict], source: str) -> str:
     """One row per shape: each class's sd of z at every rate (rates ascending) and its fraction within 2 u."""
     table = summary(rows, source)
+    if not table:
+        return "(none)"
     rates = sorted({t[2] for t in table}, key=float)
     lines = [f"| shape | datasets | s: sd of z at {', '.join(rates)} Hz | phi | O |", "|---|---|---|---|---|"]
     for shape in dict.fromkeys(t[0] for t in table):
@@ -155,6 +176,8 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--shapes", default=",".join(SHAPES))
+    parser.add_argument("--recording", choices=RECORDINGS, default="labelled",
+                        help="labelled segment files, or t, u, v, w only in one file without [plan] rates")
     parser.add_argument("--out", type=Path, help="the per-dataset figures, one JSON line each, written as they come")
     parser.add_argument("--summarise", type=Path, help="print the tables of such a file (of a run still going, too)")
     args = parser.parse_args()
@@ -163,7 +186,7 @@ def main() -> None:
         return
     shapes = args.shapes.split(",")
     # seed by seed across the shapes: a run stopped early still covers every shape alike
-    jobs = [(shape, args.first_seed + k, k < args.diagnosed) for k in range(args.datasets) for shape in shapes]
+    jobs = [(shape, args.first_seed + k, k < args.diagnosed, args.recording) for k in range(args.datasets) for shape in shapes]
     start = time.perf_counter()
     out = args.out.open("w") if args.out else None
     rows = []

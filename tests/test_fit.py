@@ -6,7 +6,8 @@ import polars as pl
 import pytest
 
 from rotcal.config import FitConfig, RunConfig, RunSection
-from rotcal.fit.segments import arc_deg, design, fit_segment, linear_fit, refusal
+from rotcal.fit.refusals import arc_deg, refusal
+from rotcal.fit.segments import design, fit_segment, linear_fit
 from rotcal.run import run_dataset
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 

@@ -31,16 +31,8 @@ import polars as pl
 
 from rotcal.config import FitConfig
 from rotcal.fit.pooled import across_segments, record_noise_pooled
-from rotcal.fit.segments import (
-    SegmentFit,
-    arc_bounds,
-    arc_from,
-    design,
-    fitted_angle,
-    refusal_from,
-    segment_fit,
-    stuck_from,
-)
+from rotcal.fit.refusals import arc_bounds, arc_from, refusal_from, stuck_from
+from rotcal.fit.segments import SegmentFit, design, fitted_angle, segment_fit
 from rotcal.metrology.simultaneous import SegmentSums
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.noise import FittedNoise
@@ -307,7 +299,7 @@ def stream_segments(blocks: Blocks, dataset: str, angle_source: str, config: Fit
     fits = across_segments(fits, t_first, t_last, [(r.kind, r.rate_hz) for r in angled],
                            [AXES[r.axis] if r.axis >= 0 else None for r in angled],
                            lambda _: None if record is None else record_noise_pooled(record.pooled, dt_record, ends),
-                           modelled=dt_record > 0)
+                           modelled=dt_record > 0, record_start_s=ends[0] if n_samples else None)
     axis = {r.segment: AXES[r.axis] for r in angled}
     sums = {f.segment: SegmentSums.of_fit(f.segment, axis[f.segment], f.n_samples, f.sums) for f in fits if f.sums is not None}
     sizes = {r.segment: (r.first, r.n) for r in runs}

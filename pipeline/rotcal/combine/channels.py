@@ -6,7 +6,7 @@ do not determine it, while every other pose scatters): saturated at the
 converter's limit. Either makes a fit claim a
 sensitivity or an offset the channel never showed; the reduction is
 refused with the reason. (The table path refuses the same fault per
-segment: ``fit.segments.stuck_from``.)"""
+segment: ``fit.refusals.stuck_from``.)"""
 
 from __future__ import annotations
 

@@ -24,18 +24,20 @@ SegmentFit = Any  # ``fit.segments.SegmentFit`` (not imported: that module impor
 
 def across_segments(fits: list[SegmentFit], t_first_s: np.ndarray, t_last_s: np.ndarray, kinds: list[tuple[str, float]],
                     axes: list[str | None], noise_of: Callable[[list[SegmentFit]], RecordNoise | None],
-                    modelled: bool) -> list[SegmentFit]:
+                    modelled: bool, record_start_s: float | None = None) -> list[SegmentFit]:
     """The fits (each segment's own, ``segment_fit``) widened by what only
     all segments together measure: the noise's spectrum pooled over them
     (``fit.spectrum``) and the offsets' wander between them (``fit.wander``),
     the segments' spans in seconds ``t_first_s`` to ``t_last_s``;
     ``noise_of(fits)``, the recording's noise model, is asked for only where
-    some offset's noise is coloured (white noise: its cost spared)."""
+    some offset's noise is coloured (white noise: its cost spared);
+    ``record_start_s``: where a random walk starts (``fit.wander``)."""
     fits = spectrum_widened(fits)
     coloured = any(f.noise_ratio is not None and np.any(f.noise_ratio[0] > 1.0) for f in fits)
     axis_of: list[object] = list(axes)
     return offset_floor(fits, (t_first_s + t_last_s) / 2, t_last_s - t_first_s, kinds, axis_of,
-                        noise_of(fits) if coloured else None, modelled=modelled)
+                        noise_of(fits) if coloured else None, modelled=modelled,
+                        record_start_s=record_start_s)
 
 
 def record_noise_pooled(pooled: PooledAllan, dt_s: float, record_s: tuple[float, float]) -> RecordNoise | None:

@@ -16,6 +16,7 @@ Cov = Sigma (x) (X^T X)^-1 with Sigma the residual covariance matrix.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -27,6 +28,7 @@ from rotcal.fit.correlated import noise_scales
 from rotcal.fit.normal import SineSums, coefficient_covariance
 from rotcal.fit.pooled import across_segments, record_noise
 from rotcal.fit.quantization import rounding_repeats
+from rotcal.fit.refusals import refusal, stuck_from
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
 from rotcal.fit.spectrum import Periodogram, periodogram
@@ -100,72 +102,6 @@ def residual_stats(resid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     ss = np.einsum("ij,ij->j", resid, resid)
     lag1, lag2 = (np.einsum("ij,ij->j", resid[k:], resid[:-k]) / np.where(ss > 0, ss, 1.0) for k in (1, 2))
     return np.sqrt(ss / resid.shape[0]), np.abs(resid).max(axis=0), lag1, lag2
-
-
-def refusal(kind: str, angle_source: str, theta_deg: np.ndarray, config: FitConfig) -> str | None:
-    """Why a segment cannot be fitted against the table angle, or None."""
-    n = theta_deg.size
-    if angle_source == "none" or n < config.min_samples:
-        return refusal_from(kind, angle_source, n, 0, 0.0, config)
-    steps = np.unique(theta_deg).size if kind == "static" else 0  # a sort: only where the step count matters
-    return refusal_from(kind, angle_source, n, steps, arc_deg(theta_deg), config)
-
-
-def refusal_from(kind: str, angle_source: str, n: int, steps: int, span: float, config: FitConfig) -> str | None:
-    """``refusal`` from a segment's sample count, distinct static angles and arc (``arc_deg``)."""
-    if angle_source == "none":
-        if kind == "rotation":
-            return ("no angle reference: a rotation segment without angle_deg or a table channel "
-                    "cannot be fitted against the table angle (reduce it as an unlabelled recording)")
-        return "static steps without angle_deg"
-    if n < config.min_samples:
-        return f"too short: {n} samples (at least {config.min_samples} needed)"
-    if kind == "static" and steps < 3:
-        return f"only {steps} static angle{'s' if steps != 1 else ''} (at least 3 needed)"
-    if span < config.min_span_deg:
-        return f"angle range {span:.1f} deg is below the {config.min_span_deg:g} deg needed to separate offset and sine terms"
-    return None
-
-
-def arc_deg(theta_deg: np.ndarray) -> float:
-    """The arc the angles cover on the circle, not their unwrapped range: a
-    rotation sampled at a multiple of its rate (aliased) repeats one angle,
-    however many turns it makes. The smaller of the ranges of theta mod 360
-    and of (theta + 180) mod 360, so an arc across 0 deg is measured whole."""
-    low, high = arc_bounds(theta_deg)
-    return arc_from(low, high)
-
-
-def arc_from(low: np.ndarray, high: np.ndarray) -> float:
-    """The arc from the bounds of ``arc_bounds`` (of one block, or the
-    smallest lows and largest highs of several)."""
-    return float(min(high[0] - low[0], high[1] - low[1]))
-
-
-def arc_bounds(theta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The smallest and largest of theta mod 360 and of (theta + 180) mod
-    360, computed in place (one scratch array; ``np.mod`` takes eight times
-    as long on the long rotations); bounds are additive across blocks."""
-    r = theta_deg / 360.0
-    np.floor(r, out=r)
-    r *= -360.0
-    r += theta_deg  # theta mod 360 (the division is exact at whole turns)
-    first = (float(r.min()), float(r.max()))
-    r -= 180.0
-    r[r < 0.0] += 360.0  # (theta + 180) mod 360
-    return np.array([first[0], float(r.min())]), np.array([first[1], float(r.max())])
-
-
-def stuck_from(low: np.ndarray, high: np.ndarray) -> str | None:
-    """Why a segment's samples cannot be fitted, from each channel's
-    smallest and largest value: a channel that holds one value throughout
-    (pinned at full scale, or dead) has no residual scatter, so its fit
-    would claim zero uncertainty and outweigh every other segment in the
-    combination."""
-    for channel, lo, hi in zip(CHANNELS, low, high):
-        if lo == hi:
-            return f"channel {channel} holds {lo:g} in every sample (stuck or saturated): nothing to fit"
-    return None
 
 
 def fit_segment(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
@@ -254,20 +190,33 @@ def segment_rows(samples: pl.DataFrame) -> dict[int, tuple[int, int]]:
     return {int(seg): (int(a), int(k)) for seg, a, k in zip(runs["value"], starts, runs["len"]) if seg is not None}
 
 
-def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfig, workers: int = 0) -> list[SegmentFit]:
+def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfig, workers: int = 0,
+                 own_phase: Mapping[int, SegmentFit] | None = None, clock_factor: float = 1.0) -> list[SegmentFit]:
     """Fit every static and rotation segment, in parallel across segments
     (threads, where there are enough samples to pay for them) on
     ``parallel.cores(workers)`` cores.
 
+    ``own_phase``: the fits, by segment, of rotation segments of
+    ``segments`` already fitted against their own phase (``fit.sinefit``;
+    the rate they were fitted at is their ``rate_fit_hz`` over
+    ``clock_factor``, their phase from the segments' ``t_phase_ns``). They
+    are not fitted again, but join what only all segments together measure
+    (the noise's spectrum, the offsets' wander: ``fit.pooled``) in place of
+    their own lag widening.
+
     Each segment's columns are zero-copy slices of ``samples``, so the stage
-    holds no copy of the sample table. Results come back in segment order
-    whatever the number of workers.
+    holds no copy of the sample table. Results come back in the order of
+    ``segments`` whatever the number of workers.
     """
     todo = segments.filter(pl.col("kind").is_in(["static", "rotation"]))
     rows = segment_rows(samples)
+    own_phase = own_phase or {}
 
     def job(row: dict) -> SegmentFit:
         part = samples.slice(*rows[row["segment"]])
+        if row["segment"] in own_phase:
+            fit = own_phase[row["segment"]]
+            return spectrum_of_own_phase(fit, part, fit.rate_fit_hz / clock_factor, row["t_phase_ns"])
         angle = part["angle_deg"]
         theta = (angle.fill_null(np.nan) if angle.null_count() else angle).to_numpy()
         channels = tuple(part[c].to_numpy() for c in CHANNELS)  # Float64 by the samples schema
@@ -276,9 +225,12 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
 
     def residuals(fit: SegmentFit, row: dict) -> list[np.ndarray]:  # the noise model's pieces (``record_noise``)
         part = samples.slice(*rows[row["segment"]])
-        theta = part["angle_deg"].fill_null(np.nan).to_numpy()
         y = np.column_stack([part[c].to_numpy() for c in CHANNELS])
-        return split_at_pauses(part["t_ns"].to_numpy(), y - design(fitted_angle(fit, theta, row["rate_hz"])) @ fit.coef.T, dt)
+        if row["segment"] in own_phase:
+            theta = own_phase_angle(part["t_ns"].to_numpy(), fit.rate_fit_hz / clock_factor, row["t_phase_ns"])
+        else:
+            theta = fitted_angle(fit, part["angle_deg"].fill_null(np.nan).to_numpy(), row["rate_hz"])
+        return split_at_pauses(part["t_ns"].to_numpy(), y - design(theta) @ fit.coef.T, dt)
 
     todo_rows = list(todo.iter_rows(named=True))
     n_workers = min(cores(workers), max(len(todo_rows), 1))
@@ -296,7 +248,7 @@ def fit_segments(samples: pl.DataFrame, segments: pl.DataFrame, config: FitConfi
     def noise_of(widened: list[SegmentFit]) -> RecordNoise | None:
         return record_noise([residuals(f, r) for f, r in zip(widened, todo_rows) if f.status == "ok"], dt, record) if dt > 0 else None
     return across_segments(fits, t_first, t_last, [(r["kind"], r["rate_hz"]) for r in todo_rows], [r["axis"] for r in todo_rows],
-                           noise_of, modelled=dt > 0)
+                           noise_of, modelled=dt > 0, record_start_s=record[0] if len(t_ns) else None)
 
 
 def segment_fit(segment: int, kind: str, rate_hz: float, angle_source: str, theta_deg: np.ndarray,
@@ -309,6 +261,28 @@ def segment_fit(segment: int, kind: str, rate_hz: float, angle_source: str, thet
     fit = rounding_repeats(fit, theta_deg, channels)
     dt_s = (t_last_ns - t_first_ns) / 1e9 / max(theta_deg.size - 1, 1)
     return with_spectrum(fit, theta_deg, channels, rate_hz if kind == "rotation" else None, dt_s)
+
+
+def own_phase_angle(t_ns: np.ndarray, rate_hz: float, t_phase_ns: int) -> np.ndarray:
+    """The phase an own-phase fit's sine terms stand at (``fit.sinefit``), degrees."""
+    return 360.0 * rate_hz * (t_ns - t_phase_ns) / 1e9
+
+
+def spectrum_of_own_phase(fit: SegmentFit, part: pl.DataFrame, rate_hz: float, t_phase_ns: int) -> SegmentFit:
+    """An own-phase fit (``fit.sinefit``: at ``rate_hz``, its phase from
+    ``t_phase_ns``) of a segment's samples ``part`` with its residuals'
+    periodogram, and without the widening for correlated noise it was given
+    (``widened``), which the periodogram's density ratios replace
+    (``fit.spectrum``), as for the segments fitted against the table angle."""
+    if fit.status != "ok" or part.height < 2:
+        return fit
+    t_ns = part["t_ns"].to_numpy()
+    scales = noise_scales(fit.lag1, fit.lag2, fit.n_samples, angle_step(rate_hz, int(t_ns[0]), int(t_ns[-1]), fit.n_samples))
+    if scales is not None:
+        fit = replace(fit, cov=fit.cov / np.outer(scales[0], scales[0]), u_rate_fit_hz=fit.u_rate_fit_hz / scales[1])
+    dt_s = (t_ns[-1] - t_ns[0]) / 1e9 / max(t_ns.size - 1, 1)
+    return with_spectrum(fit, own_phase_angle(t_ns, rate_hz, t_phase_ns), tuple(part[c].to_numpy() for c in CHANNELS),
+                         fit.rate_fit_hz, dt_s)
 
 
 def fitted_angle(fit: SegmentFit, theta_deg: np.ndarray, rate_hz: float) -> np.ndarray:

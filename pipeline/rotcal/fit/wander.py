@@ -200,7 +200,8 @@ def group_widening(cov: np.ndarray) -> float:
 
 
 def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.ndarray, groups: list[tuple[str, float]],
-                 axis: list[object], noise: RecordNoise | None = None, modelled: bool = False) -> list[SegmentFit]:
+                 axis: list[object], noise: RecordNoise | None = None, modelled: bool = False,
+                 record_start_s: float | None = None) -> list[SegmentFit]:
     """``fits`` with each channel's offset covariance between segments
     folded into their C variances (module docstring): ``t_mid_s``,
     ``duration_s`` each fit's mid-time and length, ``groups`` the key
@@ -208,7 +209,8 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     table axis, ``noise`` the recording's noise model (None: the scatter
     alone), ``modelled`` whether the caller tried to identify one (where it
     failed on coloured noise, the scatter's wander is taken at its upper
-    bound and the fits say so)."""
+    bound and the fits say so), ``record_start_s`` where a random walk
+    starts (``scatter_wander``)."""
     ok = [k for k, f in enumerate(fits) if f.status == "ok"]
     if not ok:
         return fits
@@ -226,7 +228,8 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     if len(ok) < MIN_FLOOR_SEGMENTS:
         flag = UNIDENTIFIED.format(k=MIN_FLOOR_SEGMENTS)
     else:
-        wander = scatter_wander(c, base, t, duration_s[ok], [groups[k] for k in ok], [axis[k] for k in ok], unmodelled)
+        wander = scatter_wander(c, base, t, duration_s[ok], [groups[k] for k in ok], [axis[k] for k in ok], unmodelled,
+                                record_start_s)
         if wander is not None:
             s2, corr, slower = wander
             total = [b + s * corr for b, s in zip(base, s2)]
@@ -254,12 +257,15 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
 
 
 def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duration_s: np.ndarray,
-                   key: list[tuple[str, float]], axis: list[object], conservative: bool = False
-                   ) -> tuple[np.ndarray, np.ndarray, bool] | None:
+                   key: list[tuple[str, float]], axis: list[object], conservative: bool = False,
+                   record_start_s: float | None = None) -> tuple[np.ndarray, np.ndarray, bool] | None:
     """The wander the offsets' scatter shows beyond ``base`` (part 2 of the
     module docstring): (s^2 per channel, the correlation between segments,
     whether tau is longer than the record), or None where the scatter is
-    explained; ``conservative``: s^2 at its upper bound whatever tau."""
+    explained; ``conservative``: s^2 at its upper bound whatever tau. A
+    random walk starts at ``record_start_s`` (None: the first segment's
+    start; a recording whose first segment comes late, after the dwells of
+    an unlabelled one, has walked meanwhile)."""
     pattern = offset_pattern(t, np.array([g[1] if g[0] == "rotation" else 0.0 for g in key], float), axis)
     x = column_basis(pattern)
     dof = len(t) - x.shape[1]
@@ -272,7 +278,8 @@ def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duratio
         return None
     span = float(t.max() - t.min())
     tau_top = 10.0 * max(span, 1e-9)
-    since = t - float(np.min(t - duration_s / 2))
+    first = float(np.min(t - duration_s / 2))
+    since = t - (first if record_start_s is None else min(record_start_s, first))
     s2, upper, tau = wander_fit(c, base, t, (max(float(np.min(duration_s)) / 2, 1e-9), tau_top), pattern[:, :1], since)
     # the record shows no wander's decorrelation: its size is a lower bound, the bound taken (a random walk's
     # growth measures its size)

@@ -119,9 +119,14 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
     table = not inferred.segments.filter(pl.col("kind").is_in(["static", "rotation"])).is_empty()
     if table:
         samples, segments = inferred.samples, inferred.segments
-    referenced = segments.filter(pl.col("angle_source") != "none")
-    fitted = fit_segments(samples, referenced, config.fit, config.run.workers)
-    fits = fits_frame(fitted + (list(inferred.fits) if table else []), segments, ds.name)
+    # the segments fitted against the table angle, and those fitted against their own phase (``infer_segments``)
+    # joining them in the noise's spectrum and the offsets' wander, which all segments together measure
+    own = {f.segment: f for f in inferred.fits if f.status == "ok"} if table else {}
+    fitted = fit_segments(samples, segments.filter((pl.col("angle_source") != "none") | pl.col("segment").is_in(list(own))),
+                          config.fit, config.run.workers, own, inferred.clock_factor)
+    own_fitted = {f.segment: f for f in fitted if f.segment in own}
+    fits = fits_frame([f for f in fitted if f.segment not in own]
+                      + ([own_fitted.get(f.segment, f) for f in inferred.fits] if table else []), segments, ds.name)
     findings = pl.concat([findings_frame(duplicate_findings(ds.name, ds.copies)), timebase.findings,
                           findings_frame(list(inferred.findings) if table else [])])
     return Segmented(samples, segments, fits, inferred.own_phase if table else frozenset(), inferred.dwells, table,
