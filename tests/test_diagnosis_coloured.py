@@ -4,15 +4,11 @@ beyond the noise model is still found."""
 
 import numpy as np
 import pytest
+from coloured_runs import diagnosis_under
 from scipy.signal import lfilter
 
-from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segment_scan, static_step_scan
 from rotcal.diagnose.scans import Residuals, tone_scan
-from rotcal.ingest.dataset import load_dataset
-from rotcal.run.recommended import diagnose_stage
-from rotcal.run.stages import determined, reduce, segment_and_fit
-from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 DT = 0.06
 
@@ -109,14 +105,7 @@ def test_clean_datasets_under_coloured_noise_have_no_finding(tmp_path, request_,
     finding at all. Before the scans tested against the noise model, each
     had 4 to 10 (tones, Geist's lag-1 test, an offset step, segment
     misfits, rate dependence)."""
-    spec = SimulationSpec().with_noise(request_)
-    path = write_dataset(simulate(spec, seed), spec, tmp_path / "d")
-    ds = load_dataset(path)
-    config = RunConfig(run=RunSection(workers=1))
-    seg = segment_and_fit(ds, config)
-    reductions = reduce(seg, ds)
-    results, _, _ = determined(reductions, seg, path)
-    diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
+    diagnosis = diagnosis_under(request_, seed, tmp_path)
     found = diagnosis.findings.filter(diagnosis.findings["detected"])
     assert found.height == 0, found.select("effect", "where", "evidence").rows()
 
@@ -129,14 +118,7 @@ def test_an_extension_the_noise_spectrum_explains_is_set_aside(tmp_path):
     tested again against the noise's density at its signature's
     frequencies it is set aside, and the row says so with that density.
     No finding remains."""
-    spec = SimulationSpec().with_noise("white_sd=8,gauss_markov=80.3:1.82")
-    path = write_dataset(simulate(spec, 9), spec, tmp_path / "d")
-    ds = load_dataset(path)
-    config = RunConfig(run=RunSection(workers=1))
-    seg = segment_and_fit(ds, config)
-    reductions = reduce(seg, ds)
-    results, _, _ = determined(reductions, seg, path)
-    diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
+    diagnosis = diagnosis_under("white_sd=8,gauss_markov=80.3:1.82", 9, tmp_path)
     rows = diagnosis.findings
     assert rows.filter(rows["detected"]).height == 0
     ripple = rows.filter(rows["effect"] == "rate_ripple")["evidence"].item()

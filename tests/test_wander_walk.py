@@ -4,13 +4,9 @@ apart is part of the null, so a walk is noise, and a drift beyond it is
 still found."""
 
 import numpy as np
+from coloured_runs import diagnosis_under
 
-from rotcal.config import RunConfig, RunSection
 from rotcal.diagnose.wander import _gls_statistic
-from rotcal.ingest.dataset import load_dataset
-from rotcal.run.recommended import diagnose_stage
-from rotcal.run.stages import determined, reduce, segment_and_fit
-from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 CHI2_1E4 = 15.14  # chi-square on 1 degree of freedom at the diagnosis's false-alarm rate 1e-4
 
@@ -69,14 +65,7 @@ def test_a_random_walk_of_the_offsets_is_not_named_a_drift(tmp_path):
     aside, the row giving the walk's size. Before, the drift in v stood
     against a Gauss-Markov wander of the fits' floor (chi-square 35.8 on
     1) and was named."""
-    spec = SimulationSpec().with_noise("white_sd=8,random_walk_k=0.05")
-    path = write_dataset(simulate(spec, 2), spec, tmp_path / "d")
-    ds = load_dataset(path)
-    config = RunConfig(run=RunSection(workers=1))
-    seg = segment_and_fit(ds, config)
-    reductions = reduce(seg, ds)
-    results, _, _ = determined(reductions, seg, path)
-    diagnosis, _ = diagnose_stage(seg, reductions, results, ds, config)
+    diagnosis = diagnosis_under("white_sd=8,random_walk_k=0.05", 2, tmp_path)
     rows = diagnosis.findings
     assert rows.filter(rows["detected"]).height == 0, rows.filter(rows["detected"]).select("effect", "evidence").rows()
     drift = rows.filter(rows["effect"] == "offset_drift")["evidence"].item()

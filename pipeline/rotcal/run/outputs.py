@@ -99,10 +99,9 @@ def noise_outputs(seg: Segmented, ds: Dataset, config: RunConfig,
     """The ``noise`` table, the Allan-deviation figure (``noise_allan.png``,
     with figures) and ``calibration`` with the noise model (of a capture
     read block by block, from the residual pieces its fit pass pooled)."""
-    from rotcal.noise import calibration_noise, identify_noise, noise_frame
+    from rotcal.noise import calibration_noise, noise_frame
 
-    model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, ds.meta.output_unit,
-                           None if seg.streamed is None else seg.streamed.noise_pooled())
+    model = seg.noise_model(ds.meta.output_unit)
     outputs: list[Table | Figure] = [Table("noise", noise_frame(model, ds.name))]
     if config.report.figures:
         def draw(out: Path) -> Path | None:

@@ -105,11 +105,8 @@ def _random_walk(seg: Segmented, output_unit: str) -> tuple[float, ...]:
     """The noise model's random walk coefficient K per channel (``rotcal.noise``:
     the residuals' Allan variance), 0 where a channel has none; none where
     the model cannot be identified (the offsets' floor is then their noise)."""
-    from rotcal.noise import identify_noise
-
     try:
-        model = identify_noise(seg.samples, seg.segments, seg.fits, seg.dwells, output_unit,
-                               None if seg.streamed is None else seg.streamed.noise_pooled())
+        model = seg.noise_model(output_unit)
     except np.linalg.LinAlgError:
         return ()
     return tuple(next((t.value for t in ch.terms if t.term == "random_walk"), 0.0) for ch in model.channels)

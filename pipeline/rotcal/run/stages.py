@@ -31,6 +31,7 @@ from rotcal.fit.normal import SineSums
 from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
+from rotcal.noise import NoiseModel
 from rotcal.segment import infer_segments, segment_by_labels
 from rotcal.segment.angles import check_angle_rates, partial_angles
 from rotcal.timebase import classify_gaps, findings_frame, repair_timebase
@@ -66,6 +67,20 @@ class Segmented:
     def labelled_rates(self) -> RateSegments:
         """``combine.rate_segments`` of ``labelled_fits``, for the reduction and the metrology that read them."""
         return rate_segments(self.labelled_fits)
+
+    def noise_model(self, output_unit: str) -> NoiseModel:
+        """Each channel's noise model from the residuals of the fitted model
+        (``noise.identify_noise``; of a capture read block by block, from the
+        pieces its fit pass pooled), identified once for the diagnosis and
+        the noise outputs that both read it."""
+        key = f"_noise_model_{output_unit}"
+        if key not in self.__dict__:  # frozen: cached as cached_property caches, in the instance's dict
+            from rotcal.noise import identify_noise
+
+            self.__dict__[key] = identify_noise(self.samples, self.segments, self.fits, self.dwells, output_unit,
+                                                None if self.streamed is None else self.streamed.noise_pooled())
+        model: NoiseModel = self.__dict__[key]
+        return model
 
 
 @dataclass(frozen=True, eq=False)
