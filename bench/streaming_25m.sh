@@ -10,6 +10,7 @@ set -euo pipefail
 dir=${1:?usage: bench/streaming_25m.sh DIR [ROTCAL]}
 rotcal=${2:-rotcal}
 here=$(cd "$(dirname "$0")" && pwd)
+python=$(dirname "$(command -v "$rotcal")")/python  # the interpreter rotcal runs on (polars)
 mkdir -p "$dir" && cd "$dir"
 rm -rf mcap csvparts csv out_*
 "$rotcal" simulate mcap --format mcap-cdr --plan rotation_samples=2083258 --seed 1 >/dev/null
@@ -32,5 +33,5 @@ for f in *.time; do
 done
 for fmt in mcap csv; do
     echo "== $fmt: block by block against read whole"
-    python3 "$here/compare_outputs.py" "out_${fmt}_block" "out_${fmt}_whole"
+    "$python" "$here/compare_outputs.py" "out_${fmt}_block" "out_${fmt}_whole"
 done
