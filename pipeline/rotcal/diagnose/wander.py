@@ -124,8 +124,10 @@ def against_wander(final: ModelFit, noise: OffsetNoise, alpha: float, output_uni
         if test is None or test.constant < SEGMENT_CONSTANT:
             continue
         k = len(cand.names)
-        # the step's time was chosen where it fits best: Bonferroni over the segment boundaries it could take
-        scanned = max(1, len(np.unique(final.obs.segment)) - 1) if cand == STEP else 1
+        # the step's time was chosen where it fits best: Bonferroni over the segment boundaries it could take;
+        # an effect was chosen among every offset pattern the selection scored
+        patterns = sum(c.effect in rivals for c in final.layout.candidates)
+        scanned = max(1, len(np.unique(final.obs.segment)) - 1) if cand == STEP else max(1, patterns)
         p = min(1.0, chi2_sf(test.stat, k) * scanned)
         size = f"the offsets wander ({noise.size(output_unit)}"
         fitted = ", ".join(f"{c} {w.text(output_unit)}" for c, w in zip(CHANNELS, test.wander) if w is not None)
@@ -245,10 +247,11 @@ def _segment_test(final: ModelFit, reduced: ModelFit, cand: Candidate, noise: Of
     fixed = np.concatenate([np.repeat(indicators[:, :, None], 3, axis=2)]
                            + [v for key, v in slopes.items() if key != cand.key], axis=1)
     within = np.maximum(var - floor**2, 1e-300)   # the fit's own variance, without the floor between segments
-    if cand == STEP:
-        stat, wander = _likelihood_ratio(c, d, within, ok, fixed, start, stop)
-        return WanderTest(stat, constant, wander)
-    return WanderTest(_gls_statistic(c, d, within, floor, ok, fixed, start, stop, noise.random_walk), constant, ())
+    # the fits size their floor about one common offset, so it holds the pattern of whatever moves segments'
+    # offsets (an axis tilt made a floor of 90 counts, which then explained the tilt): every pattern is tested
+    # with the wander refitted under both hypotheses, the noise model's walk kept as known
+    stat, wander = _likelihood_ratio(c, d, within, ok, fixed, start, stop, noise.random_walk)
+    return WanderTest(stat, constant, wander)
 
 
 def _gls_statistic(c: np.ndarray, d: np.ndarray, within: np.ndarray, floor: np.ndarray, ok: np.ndarray,
@@ -306,7 +309,8 @@ def _wander_shapes(start: np.ndarray, stop: np.ndarray) -> tuple[list[np.ndarray
 
 
 def _likelihood_ratio(c: np.ndarray, d: np.ndarray, within: np.ndarray, ok: np.ndarray, fixed: np.ndarray,
-                      start: np.ndarray, stop: np.ndarray) -> tuple[float, tuple[WanderFit | None, ...]]:
+                      start: np.ndarray, stop: np.ndarray, walk_k: np.ndarray
+                      ) -> tuple[float, tuple[WanderFit | None, ...]]:
     """(2 ln LR of the pattern ``d`` in the segment means ``c``, the wander
     fitted under the null per channel). Each hypothesis has its own wander,
     V = diag(``within``) + q^2 S, S one of ``_wander_shapes`` and q on a
@@ -336,7 +340,8 @@ def _likelihood_ratio(c: np.ndarray, d: np.ndarray, within: np.ndarray, ok: np.n
         spread = float(np.sqrt(np.mean(m**2)))
         q = np.r_[0.0, spread * np.geomspace(0.03, 10.0, 16)]
         local = np.stack([basis.T @ s[np.ix_(on, on)] @ basis for s in shapes])   # (shapes, k, k)
-        v = basis.T @ np.diag(within[on, r]) @ basis + q[:, None, None, None] ** 2 * local[None]
+        known = np.diag(within[on, r]) + walk_k[r] ** 2 * walk[np.ix_(on, on)]
+        v = basis.T @ known @ basis + q[:, None, None, None] ** 2 * local[None]
         chol = np.linalg.cholesky(v)
         wm = np.linalg.solve(chol, np.broadcast_to(m[:, None], v.shape[:-1] + (1,)))[..., 0]
         wx = np.linalg.solve(chol, np.broadcast_to(x[:, None], v.shape[:-1] + (1,)))[..., 0]
