@@ -15,9 +15,8 @@ So, where the fits measured a wander (``wander.OffsetNoise.wanders``), the
 wander is measured on the final model's residuals: per channel, the
 whitened residuals summed over each segment's whitened indicator, whose
 covariance under a wander of covariance q^2 rho between segments (rho
-independent, exp(-|t_i - t_j| / T) for T over ``wander.WANDER_TIMES`` of
-the recording, or a random walk) is known once the fitted parameters'
-share is taken off (``fitted_wander``); q and rho by maximum likelihood on
+independent, Gauss-Markov or a random walk: ``wander.wander_shapes``) is
+known once the fitted parameters' share is taken off (``fitted_wander``); q and rho by maximum likelihood on
 what the parameters leave free (restricted maximum likelihood, Patterson
 & Thompson 1971). A wander w moves the estimates by G^-1 J' W E w (E the
 segments' indicators, whitened as the samples), so the covariance gains
@@ -40,7 +39,7 @@ import numpy as np
 
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
 from rotcal.diagnose.scans import p_is
-from rotcal.diagnose.wander import WANDER_TIMES, OffsetNoise
+from rotcal.diagnose.wander import OffsetNoise, wander_shapes
 
 Q_GRID = np.r_[0.0, np.geomspace(0.03, 3.0, 24)]   # the wander's sd as shares of the means' spread
 # directions of the segments' sums the parameters all but absorb (below this share of the largest freedom):
@@ -54,19 +53,6 @@ def _log_likelihood(m: np.ndarray, v: np.ndarray) -> float:
     chol = np.linalg.cholesky(v)
     white = np.linalg.solve(chol, m)
     return -float(np.sum(np.log(np.diag(chol)))) - 0.5 * float(white @ white)
-
-
-def wander_shapes(t_s: np.ndarray, start_s: float, duration_s: float) -> list[np.ndarray]:
-    """The segments' correlation under each wander tried: independent, a
-    Gauss-Markov term of each of ``WANDER_TIMES`` of the duration, a random
-    walk from the recording's start (min(t_i, t_j) / duration)."""
-    n = t_s.size
-    if duration_s <= 0:
-        return [np.eye(n)]
-    lag = np.abs(t_s[:, None] - t_s[None, :])
-    since = t_s - start_s
-    return ([np.eye(n)] + [np.exp(-lag / (share * duration_s)) for share in WANDER_TIMES]
-            + [np.minimum.outer(since, since) / duration_s])
 
 
 def fitted_wander(sums: np.ndarray, free: np.ndarray, noise_var: float, shapes: list[np.ndarray]) -> np.ndarray:
@@ -105,8 +91,13 @@ def with_offset_wander(final: ModelFit, noise: OffsetNoise) -> ModelFit:
     seg = final.obs.segment
     ids, idx = np.unique(seg, return_inverse=True)
     t = final.obs.motion.t_s
-    centre = np.bincount(idx, t, ids.size) / np.bincount(idx, minlength=ids.size)
-    shapes = wander_shapes(centre, float(t.min()), float(t.max() - t.min()))
+    start, stop = np.full(ids.size, np.inf), np.full(ids.size, -np.inf)
+    np.minimum.at(start, idx, t)
+    np.maximum.at(stop, idx, t)
+    shapes, _, walk = wander_shapes(start, stop)
+    duration = float(stop.max() - start.min())
+    if duration > 0:   # the walk per unit variance at the record's end
+        shapes = [*shapes, walk / duration]
     indicator = (idx[:, None] == np.arange(ids.size)[None, :]).astype(float)
     p = final.beta.size
     base = final.covariance()

@@ -16,7 +16,7 @@ So, where the fits measured a wander, a selected step is exchanged for
 each catalogue effect that moves segments' offsets, one at a time, and
 the segment means of the exchanged model's residuals are tested for what
 the step adds beyond that effect, with the wander refitted under both
-hypotheses (``wander._segment_test``, as the step's own test, Bonferroni
+hypotheses (``wander.segment_test``, as the step's own test, Bonferroni
 over the segment boundaries its time could take). Where the wander
 explains what the step adds, the effect that explains most of the rest
 (least BIC) replaces it; the effect then faces the wander's test as every
@@ -31,7 +31,7 @@ from rotcal.diagnose.candidates import STEP
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, fit_model
 from rotcal.diagnose.model import Structure
 from rotcal.diagnose.scans import p_is
-from rotcal.diagnose.wander import OffsetNoise, _offset_slopes, _segment_test
+from rotcal.diagnose.wander import OffsetNoise, offset_slopes, segment_test
 from rotcal.model.effects import catalogue
 from rotcal.model.effects.base import Candidate
 
@@ -51,7 +51,7 @@ def step_or_effect(final: ModelFit, candidates: tuple[Candidate, ...], noise: Of
         if cand.effect not in movers or cand in final.active:
             continue
         trial = fit_model(final.obs, final.layout, final.beta, others + (cand,), final.clip, Structure(), final.use)
-        test = _segment_test(final, trial, STEP, noise, _offset_slopes(trial, movers))
+        test = segment_test(final, trial, STEP, noise, offset_slopes(trial, movers))
         if test is None:
             continue
         stat = test.stat
