@@ -41,6 +41,7 @@ from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segme
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
+from rotcal.diagnose.offset_reentry import taken_back
 from rotcal.diagnose.offset_wander import wander_tested
 from rotcal.diagnose.reconstructed import with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
@@ -330,6 +331,7 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     # an offset step against the catalogue effect it holds, then offset effects against the offsets' measured
     # wander (``step_exchange``, ``wander``)
     offsets = OffsetNoise.from_fits(fits, random_walk)
+    selected = final.active
     final, exchanged = step_or_effect(final, cands, offsets, alpha)
     final, wander = against_wander(final, offsets, alpha, output_unit)
     for name, text in exchanged.items():
@@ -341,6 +343,10 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
     # the wander between segments in every uncertainty, and the extensions it leaves within them (``offset_wander``)
     final, widened = wander_tested(final, offsets, alpha)
     for name, text in widened.items():
+        wander[name] = f"{wander[name]}; {text}" if name in wander else text
+    # an offset effect set aside beside others that these stages then dropped, tried again (``offset_reentry``)
+    final, back = taken_back(final, selected, offsets, alpha)
+    for name, text in back.items():
         wander[name] = f"{wander[name]}; {text}" if name in wander else text
 
     rows, params, before = [], [], {}

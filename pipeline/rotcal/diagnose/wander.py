@@ -251,7 +251,7 @@ def segment_test(final: ModelFit, reduced: ModelFit, cand: Candidate, noise: Off
     # the fits size their floor about one common offset, so it holds the pattern of whatever moves segments'
     # offsets (an axis tilt made a floor of 90 counts, which then explained the tilt): every pattern is tested
     # with the wander refitted under both hypotheses, the noise model's walk kept as known
-    stat, wander = _likelihood_ratio(c, d, within, ok, fixed, start, stop, noise.random_walk)
+    stat, wander = _likelihood_ratio(c, d, within, ok, fixed, start, stop, np.zeros(3))
     return WanderTest(stat, constant, wander)
 
 
