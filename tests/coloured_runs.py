@@ -14,8 +14,10 @@ from rotcal.run.stages import determined, reduce, segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 
 
-def diagnosis_under(noise: str, seed: int, tmp: Path) -> Diagnosis:
+def diagnosis_under(noise: str, seed: int, tmp: Path, effects: str = "") -> Diagnosis:
     spec = SimulationSpec().with_noise(noise)
+    if effects:
+        spec = spec.with_effects(effects)
     path = write_dataset(simulate(spec, seed), spec, tmp / "d")
     ds = load_dataset(path)
     config = RunConfig(run=RunSection(workers=1))

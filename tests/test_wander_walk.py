@@ -6,7 +6,7 @@ still found."""
 import numpy as np
 from coloured_runs import diagnosis_under
 
-from rotcal.diagnose.wander import _gls_statistic
+from rotcal.diagnose.wander import _likelihood_ratio
 
 CHI2_1E4 = 15.14  # chi-square on 1 degree of freedom at the diagnosis's false-alarm rate 1e-4
 
@@ -30,29 +30,46 @@ def _walk_means(rng, k: float, start, stop, white_sd: float) -> np.ndarray:
     return means + rng.normal(0.0, white_sd, means.shape)
 
 
-def test_a_drift_statistic_under_a_random_walk_takes_the_walk_as_its_null():
+def _naive(c: np.ndarray, d: np.ndarray, within: np.ndarray, fixed: np.ndarray) -> float:
+    """The drift's chi-square against the segment means' own noise alone
+    (generalised least squares with the rates' offsets free, no wander)."""
+    stat_num, stat_den = 0.0, 0.0
+    for r in range(3):
+        w = 1 / np.sqrt(within[:, r])
+        x, m, y = fixed[:, :, r] * w[:, None], c[:, r] * w, d[:, r] * w
+        q, _ = np.linalg.qr(x)
+        m, y = m - q @ (q.T @ m), y - q @ (q.T @ y)
+        stat_num += float(y @ m)
+        stat_den += float(y @ y)
+    return stat_num**2 / stat_den if stat_den > 0 else 0.0
+
+
+def test_a_drift_statistic_under_a_random_walk_fits_the_walk_under_its_null():
     """K = 0.05 bit/sqrt(s) over 3.8 ks (the walk moves 3 bit over the record,
     0.8 bit between neighbouring segments) and 0.12 bit of white noise in
-    each segment mean: a linear drift in channel u, tested with the walk's
-    covariance, has a chi-square(1) law (300 draws: mean 0.94, the largest
-    7.8); with the segment means' own noise alone 90 % of the draws pass
-    the 1e-4 level (median 393). A drift of 6e-3 bit/s beside the walk (23
-    bit over the record) is found in all of 50 draws."""
+    each segment mean: a linear drift in channel u, tested by the
+    restricted likelihood ratio with the wander (its size and shape, a
+    walk among them) fitted under both hypotheses, stays below the 1e-4
+    level in 300 draws (the largest 11.5; mean 2.2 and 5.7 % above the 1 %
+    point: the shape chosen among eight makes it heavier than chi-square(1),
+    one reason for the diagnosis's Bonferroni over patterns); against the
+    segment means' own noise alone 90 % of the draws pass it. A drift of
+    6e-3 bit/s beside the walk (23 bit over the record) is found in 86 % of
+    50 draws."""
     start, stop, rate, fixed = _plan()
     mid = (start + stop) / 2
     d = np.zeros((15, 3))
     d[:, 0] = mid - mid.mean()
-    within, floor, ok = np.full((15, 3), 0.12**2), np.zeros((15, 3)), np.ones((15, 3), bool)
+    within, ok = np.full((15, 3), 0.12**2), np.ones((15, 3), bool)
     rng = np.random.default_rng(5)
     walked = [_walk_means(rng, 0.05, start, stop, 0.12) for _ in range(300)]
-    k = np.full(3, 0.05)
-    null = np.array([_gls_statistic(c, d, within, floor, ok, fixed, start, stop, k) for c in walked])
-    assert 0.75 <= null.mean() <= 1.25, null.mean()
+    null = np.array([_likelihood_ratio(c, d, within, ok, fixed, start, stop)[0] for c in walked])
+    assert 1.0 <= null.mean() <= 3.0, null.mean()
     assert np.sum(null > CHI2_1E4) == 0
-    unmodelled = np.array([_gls_statistic(c, d, within, floor, ok, fixed, start, stop, np.zeros(3)) for c in walked])
+    unmodelled = np.array([_naive(c, d, within, fixed) for c in walked])
     assert np.mean(unmodelled > CHI2_1E4) > 0.5
-    drifting = np.array([_gls_statistic(c + 6e-3 * d, d, within, floor, ok, fixed, start, stop, k) for c in walked[:50]])
-    assert np.mean(drifting > CHI2_1E4) >= 0.9
+    drifting = np.array([_likelihood_ratio(c + 6e-3 * d, d, within, ok, fixed, start, stop)[0] for c in walked[:50]])
+    assert np.mean(drifting > CHI2_1E4) >= 0.8, np.mean(drifting > CHI2_1E4)
 
 
 def test_a_random_walk_of_the_offsets_is_not_named_a_drift(tmp_path):

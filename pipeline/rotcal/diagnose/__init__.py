@@ -41,6 +41,8 @@ from rotcal.diagnose.misfits import SegmentNoise, residual_autoregression, segme
 from rotcal.diagnose.model import Layout, Observations, Structure, predict
 from rotcal.diagnose.noise import whitening
 from rotcal.diagnose.observed import observations
+from rotcal.diagnose.offset_reentry import taken_back
+from rotcal.diagnose.offset_wander import wander_tested
 from rotcal.diagnose.reconstructed import with_phases_free, with_reconstructed_angles
 from rotcal.diagnose.scans import (
     Residuals,
@@ -51,6 +53,7 @@ from rotcal.diagnose.scans import (
     tone_scan,
 )
 from rotcal.diagnose.spectral import against_spectrum
+from rotcal.diagnose.step_exchange import step_or_effect
 from rotcal.diagnose.wander import OffsetNoise, against_wander
 from rotcal.model.effects import LimitEffect, catalogue, listed
 from rotcal.model.effects.base import Candidate
@@ -325,11 +328,25 @@ def diagnose(samples: pl.DataFrame, segments: pl.DataFrame, fits: pl.DataFrame,
         final, clip, evidence, q = _modelled(obs, layout, list(results), cands, alpha)
     if phases is not None and absorbed:  # reconstructed angles: their phases' uncertainty in every covariance
         final = with_phases_free(final, phases["segment"].to_numpy())
-    # offset effects against the offsets' measured wander (``wander``)
-    final, wander = against_wander(final, OffsetNoise.from_fits(fits, random_walk), alpha, output_unit)
+    # an offset step against the catalogue effect it holds, then offset effects against the offsets' measured
+    # wander (``step_exchange``, ``wander``)
+    offsets = OffsetNoise.from_fits(fits, random_walk)
+    selected = final.active
+    final, exchanged = step_or_effect(final, cands, offsets, alpha)
+    final, wander = against_wander(final, offsets, alpha, output_unit)
+    for name, text in exchanged.items():
+        wander[name] = f"{text}; {wander[name]}" if name in wander else text
     # every extension against the noise's density at its signature's frequencies (``spectral``)
     final, spectral = against_spectrum(final, alpha)
     for name, text in spectral.items():
+        wander[name] = f"{wander[name]}; {text}" if name in wander else text
+    # the wander between segments in every uncertainty, and the extensions it leaves within them (``offset_wander``)
+    final, widened = wander_tested(final, offsets, alpha)
+    for name, text in widened.items():
+        wander[name] = f"{wander[name]}; {text}" if name in wander else text
+    # an offset effect set aside beside others that these stages then dropped, tried again (``offset_reentry``)
+    final, back = taken_back(final, selected, offsets, alpha)
+    for name, text in back.items():
         wander[name] = f"{wander[name]}; {text}" if name in wander else text
 
     rows, params, before = [], [], {}

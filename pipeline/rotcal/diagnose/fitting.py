@@ -45,6 +45,8 @@ class ModelFit:
     b: np.ndarray
     idx: np.ndarray
     converged: bool  # Gauss-Newton stopped at its tolerance: ``ev`` is the evaluation at ``beta``
+    # the offsets' wander between segments, which the whitened samples leave out (``offset_wander``; order ``idx``)
+    wander_cov: np.ndarray | None = None
     # the scores of extensions already asked for (``score``), and the fit's own decrement
     memo: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -75,12 +77,14 @@ class ModelFit:
         pseudo-inverse of the normal matrix scaled to unit diagonal (as
         ``solve``). Unscaled, the parameters' scales span 1e15 where a rate
         error is fitted, and the pseudo-inverse's cut-off lost three digits:
-        the last bits of G moved refined uncertainties by 3e-3."""
+        the last bits of G moved refined uncertainties by 3e-3. With the
+        offsets' wander between segments where it was measured."""
         G = self.G[np.ix_(self.idx, self.idx)]
         scale = np.sqrt(np.diag(G))
         scale[scale == 0] = 1.0
         outer = np.outer(scale, scale)
-        return np.linalg.pinv(G / outer) / outer
+        cov = np.linalg.pinv(G / outer) / outer
+        return cov if self.wander_cov is None else cov + self.wander_cov
 
     def param_block(self, cand: Candidate) -> tuple[np.ndarray, np.ndarray]:
         """(values, covariance) of an active extension's parameters."""

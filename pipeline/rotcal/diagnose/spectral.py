@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotcal.diagnose.candidates import STEP
+from rotcal.diagnose.candidates import STEP, Candidate
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
 from rotcal.diagnose.scans import p_is
 from rotcal.fit.spectrum import band_index, density_ratio_at, periodogram
@@ -88,17 +88,19 @@ class NoiseDensity:
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
 
 
-def against_spectrum(final: ModelFit, alpha: float) -> tuple[ModelFit, dict[str, str]]:
+def against_spectrum(final: ModelFit, alpha: float, only: tuple[Candidate, ...] = ()
+                     ) -> tuple[ModelFit, dict[str, str]]:
     """The model with the catalogue extensions the noise's spectrum explains
-    dropped, and per effect the sentence its diagnosis row adds (module
-    docstring). Nothing changes where the residuals' spectrum is white."""
+    dropped (``only`` these where given), and per effect the sentence its
+    diagnosis row adds (module docstring). Nothing changes where the
+    residuals' spectrum is white."""
     texts: dict[str, str] = {}
     if not any(c != STEP for c in final.active):
         return final, texts
     density = NoiseDensity(final)
     if not density.coloured:
         return final, texts
-    for cand in [c for c in final.active if c != STEP]:
+    for cand in [c for c in final.active if c != STEP and (not only or c in only)]:
         reduced = without(final, (cand,))
         signature = reduced.ev.resid - final.ev.resid
         f_eff = density.effective(signature)
