@@ -424,14 +424,16 @@ def noise_table(curve: dict[str, dict]) -> str:
 
 
 def noise_calibration(clean: list[dict]) -> list[str]:
-    """Clean datasets under the noise: those with any finding, and the
-    diagnosis's per-test score p-values against the nominal rates."""
+    """Clean datasets under the noise: those with any finding (rotcal's
+    false alarms), and the white-noise score test's p-values at the plain
+    baseline (how far from calibrated a test blind to the noise would be)."""
     p = np.array([v for r in clean for v in r["clean_p"].values()])
     rates = ", ".join(f"{np.mean(p < a):.3f} at {a:g}" for a in (0.1, 0.01, 0.001))
     return [f"- clean datasets: {len(clean)}, {sum(bool(r['findings']) for r in clean)} with any finding "
             f"({', '.join(sorted({f for r in clean for f in r['findings']})) or 'none'})",
-            f"- diagnosis score test: {p.size} per-test p-values on clean data, fraction below level: {rates}; "
-            f"below {ALPHA:g}: {int(np.sum(p < ALPHA))} of {p.size}"]
+            f"- the white-noise score test at the plain baseline (each candidate against the null fit, the "
+            f"diagnosis's own tests add the noise model and the offsets' wander): {p.size} per-test p-values on "
+            f"clean data, fraction below level: {rates}; below {ALPHA:g}: {int(np.sum(p < ALPHA))} of {p.size}"]
 
 
 def table(curve: dict[str, dict]) -> str:
@@ -477,6 +479,8 @@ def plot(curve: dict[str, dict], path: Path) -> None:
         ax.set_title(f"{name}: ratio {c['s50']['rotcal'] / c['s50']['glr']:.2f}", fontsize=9)
         ax.set_xlabel(CLIP_MEASURE if name == "clipping" else effect_named(name).size_of.split(" (")[0], fontsize=7)
         ax.tick_params(labelsize=7)
+    for ax in axes.flat[len(curve):]:
+        ax.axis("off")
     axes[0, 0].set_ylabel("detection probability")
     axes[1, 0].set_ylabel("detection probability")
     axes[0, 0].legend(fontsize=7, loc="upper left")
@@ -569,7 +573,10 @@ def coloured(results: list[dict], args: argparse.Namespace, noise: str, began: f
     plot(curve, args.plot)
     print(noise_table(curve))
     print()
-    print(f"Noise {noise}. Per-test false-alarm rate {ALPHA:g}; {args.seeds} datasets per size, {args.points} sizes "
+    effect_rows = [r for r in results if r["effect"]]
+    points = max(len({r["size"] for r in effect_rows if r["effect"] == e}) for e in curve)
+    seeds = max(sum(r["effect"] == e and r["size"] == s for r in effect_rows) for e in curve for s in curve[e]["sizes"])
+    print(f"Noise {noise}. Per-test false-alarm rate {ALPHA:g}; {seeds} datasets per size, {points} sizes "
           f"per effect from {NOISE_SPAN[0]:g}x below to {NOISE_SPAN[1]:g}x above the oracle's pilot 50 % size; the "
           f"oracle from the noncentralities of the {sum('lambda' in r for r in results)} datasets at the middle size.")
     print("\n".join(noise_calibration(clean)))
