@@ -18,7 +18,7 @@ datasets are drawn with that noise and the yardstick is the likelihood-ratio
 test that knows the true noise model, by its asymptotic power: the GLS
 noncentrality lambda(s) of the effect's noise-free signal against the
 baseline's Jacobian under the noise's exact covariance
-(``rotcal.noise.covariance``), computed for every seed at the grid's middle
+(``rotcal.simulate.noise_covariance``), computed for every seed at the grid's middle
 size and at twice it (the exponent of lambda in the size, 2 for a linear
 effect), and the power P(noncentral chi-square(k, lambda) > its threshold)
 averaged over the seeds. Clipping is left out there (its GLR is not a
@@ -57,11 +57,11 @@ from rotcal.ingest.dataset import load_dataset
 from rotcal.model.effects import effect_named, names
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.results import IntrinsicResult
-from rotcal.noise.covariance import SampleCovariance, noncentrality
 from rotcal.run.recommended import diagnose_stage
 from rotcal.run.stages import Reductions, determined, reduce, segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
 from rotcal.simulate.core import dut_noise
+from rotcal.simulate.noise_covariance import SampleCovariance, noncentrality
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from noise_coverage import SHAPES, noise_request  # noqa: E402 (the script beside this one)
@@ -187,7 +187,7 @@ def rescaled(req: str, factor: float) -> str:
 def oracle_lambdas(job: Job, null) -> list[float]:
     """The noncentrality lambda of the likelihood-ratio test that knows the
     true noise, at the job's size and at twice it: the GLS distance
-    (``noise.covariance.noncentrality``, exact conjugate-gradient solves on
+    (``simulate.noise_covariance.noncentrality``, exact conjugate-gradient solves on
     the samples the diagnosis fits, the logger's pauses as gaps in the
     sensor's grid) of delta, the noise-free output with the effect less the
     noise-free output without it (the same seed: DUT, plan and effect

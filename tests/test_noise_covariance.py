@@ -1,5 +1,5 @@
 """The simulator noise's covariance and the GLS noncentrality of the
-oracle of scripts/power_curves.py --noise (rotcal.noise.covariance),
+oracle of scripts/power_curves.py --noise (rotcal.simulate.noise_covariance),
 against independent truths: the hand formula under white noise, the dense
 Cholesky GLS on a short series with gaps, and the simulator's own draws."""
 
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.linalg import cho_factor, cho_solve
 
-from rotcal.noise.covariance import (
+from rotcal.simulate.noise import NoiseSpec, draw_channels
+from rotcal.simulate.noise_covariance import (
     SampleCovariance,
     autocovariance,
     dense_covariance,
@@ -15,7 +16,6 @@ from rotcal.noise.covariance import (
     noncentrality_from,
     whittle_noncentrality,
 )
-from rotcal.simulate.noise import NoiseSpec, draw_channels
 
 FS = 1 / 0.06
 MIX = NoiseSpec(white_sd=6.0, ar=(0.5,), ar_sd=4.0, lowpass_order=2, lowpass_cutoff=0.4,
@@ -38,6 +38,9 @@ def test_white_noise_is_the_hand_formula():
     spec = NoiseSpec(white_sd=3.0)
     assert noncentrality(SampleCovariance(spec, FS, index, step=0.0), delta, basis) == pytest.approx(expected, rel=1e-9)
     assert whittle_noncentrality(spec, FS, delta, basis, step=0.0) == pytest.approx(expected, rel=1e-9)
+    # the integer output's rounding: white of variance 1/12 more
+    rounded = resid @ resid / (9.0 + 1 / 12)
+    assert noncentrality(SampleCovariance(spec, FS, index), delta, basis) == pytest.approx(rounded, rel=1e-9)
 
 
 @pytest.mark.parametrize("spec", [NoiseSpec(white_sd=2.0, ar=(0.9,), ar_sd=5.0), MIX], ids=["ar1", "mix"])
