@@ -11,6 +11,18 @@ rejects the baseline, both at rotcal's false-alarm rate per effect test
 sizes at 50 % and 80 % power. Clean datasets calibrate both tests.
 
     python scripts/power_curves.py [--seeds 8] [--points 7] [--clean 24] [--workers 2] [--quick]
+    python scripts/power_curves.py --noise mix [--seeds 4] [--points 5] [--clean 4] ...
+
+Under a coloured noise (``--noise``, a shape of ``noise_coverage.py``) the
+datasets are drawn with that noise and the yardstick is the likelihood-ratio
+test that knows the true noise model, by its asymptotic power: the GLS
+noncentrality lambda(s) of the effect's noise-free signal against the
+baseline's Jacobian under the noise's exact covariance
+(``rotcal.simulate.noise_covariance``), computed for every seed at the grid's middle
+size and at twice it (the exponent of lambda in the size, 2 for a linear
+effect), and the power P(noncentral chi-square(k, lambda) > its threshold)
+averaged over the seeds. Clipping is left out there (its GLR is not a
+smooth extension and assumes white noise).
 
 Prints the Markdown table (docs/power.md, docs/measured.md) and the run's
 cost (each dataset's CPU time, summed: over two cores, the wall time on a
@@ -23,15 +35,16 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import minimize
-from scipy.stats import chi2, norm
+from scipy.optimize import brentq, minimize
+from scipy.stats import chi2, ncx2, norm
 from threadpoolctl import threadpool_limits
 
 from rotcal.config import DiagnosisConfig, RunConfig, RunSection
@@ -39,6 +52,7 @@ from rotcal.diagnose import Diagnosis, _start
 from rotcal.diagnose.clipping import quantum
 from rotcal.diagnose.fitting import score
 from rotcal.diagnose.glr import clipping_glr, clipping_threshold, glr, null_fit
+from rotcal.diagnose.model import predict
 from rotcal.ingest.dataset import load_dataset
 from rotcal.model.effects import effect_named, names
 from rotcal.model.physics import AXES, CHANNELS
@@ -46,6 +60,11 @@ from rotcal.model.results import IntrinsicResult
 from rotcal.run.recommended import diagnose_stage
 from rotcal.run.stages import Reductions, determined, reduce, segment_and_fit
 from rotcal.simulate import SimulationSpec, simulate, write_dataset
+from rotcal.simulate.core import dut_noise
+from rotcal.simulate.noise_covariance import SampleCovariance, noncentrality
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from noise_coverage import SHAPES, noise_request  # noqa: E402 (the script beside this one)
 
 SPAN = (2.5, 4.0)   # the grid from this factor below to this factor above the GLR's estimated 50 % size
 CLIP_SIGMAS = (1.0, 4.0)   # clipping: limits from 1 to 4 noise standard deviations above the largest output
@@ -53,6 +72,8 @@ CLIP_MEASURE = "expected samples beyond the limit"
 # Option keys that give an effect's shape, not its size: kept as drawn when the size is scaled.
 SHAPE = frozenset({"axis", "ripple_phase_deg", "warmup_k", "tau_frac", "start_c", "step_k", "step_frac"})
 ALPHA = DiagnosisConfig().false_alarm
+NOISE_SPAN = (1.5, 16.0)   # under coloured noise: from this factor below to this factor above the oracle's 50 % size
+NOISE_SEED = 0            # the noise shape's draw (``noise_request``; the mix has none)
 CLIP_CALIBRATIONS = 3   # clean datasets whose null model calibrates the clipping GLR by Monte Carlo
 
 
@@ -91,6 +112,8 @@ class Job:
     req: str          # the simulator request ("" for none)
     seed: int
     workdir: str
+    noise: str = ""      # the simulator's noise request ("" the DUT's white noise)
+    oracle: bool = False  # compute the oracle's noncentrality (coloured noise) at this size and twice it
 
 
 def diagnosed(path: Path) -> tuple[tuple[IntrinsicResult, ...], Diagnosis]:
@@ -114,7 +137,7 @@ def run_job(job: Job) -> dict:
     of its true extension (and, clean, each candidate's score p-value)."""
     began = cpu_seconds()
     req = clip_request(job) if job.effect == "clipping" else job.req
-    spec = SimulationSpec().with_effects(*([req] if req else []))
+    spec = (SimulationSpec().with_noise(job.noise) if job.noise else SimulationSpec()).with_effects(*([req] if req else []))
     data = Path(job.workdir) / f"{job.effect or 'clean'}_{job.seed}_{job.size:.6g}"
     write_dataset(simulate(spec, job.seed), spec, data / "data")
     results, diagnosis = diagnosed(data / "data")
@@ -125,6 +148,16 @@ def run_job(job: Job) -> dict:
         final = diagnosis.final
         null = null_fit(final.obs, final.layout, _start(final.layout, sorted(
             results, key=lambda r: (abs(r.rate_hz), r.rate_hz))))
+        if job.noise:
+            out["noise"] = job.noise
+            if job.effect:
+                out["k"] = sum(len(c.names) for c in true_candidates(final.layout, job.effect, req))
+            if job.oracle:
+                out["lambda"] = oracle_lambdas(job, null)
+            if not job.effect:
+                out["clean_p"] = {c.key: score(null, (c,)).p_value for c in final.layout.candidates}
+            out["cpu_s"] = cpu_seconds() - began
+            return out
         if job.effect == "clipping" or not job.effect:
             out["clip_glr"] = clipping_glr(null, quantum(final.obs.y))
         if job.effect == "clipping":   # its size: the expected number of samples beyond the limit
@@ -143,6 +176,79 @@ def run_job(job: Job) -> dict:
     return out
 
 
+def rescaled(req: str, factor: float) -> str:
+    """An effect request with its size scaled by ``factor``: every magnitude
+    (not its shape keys) in proportion, as ``request`` scales them."""
+    head, body = req.split(":", 1)
+    params = dict(kv.split("=") for kv in body.split(","))
+    return head + ":" + ",".join(f"{k}={v if k in SHAPE else f'{float(v) * factor:.6g}'}" for k, v in params.items())
+
+
+def oracle_lambdas(job: Job, null) -> list[float]:
+    """The noncentrality lambda of the likelihood-ratio test that knows the
+    true noise, at the job's size and at twice it: the GLS distance
+    (``simulate.noise_covariance.noncentrality``, exact conjugate-gradient solves on
+    the samples the diagnosis fits, the logger's pauses as gaps in the
+    sensor's grid) of delta, the noise-free output with the effect less the
+    noise-free output without it (the same seed: DUT, plan and effect
+    shape), from the span of the baseline's Jacobian J (offsets and
+    responsivities per rate, by central differences of the diagnosis's
+    model at the null fit; the baseline is linear, so exact), summed over
+    the three channels (independent, the same noise model each)."""
+    base = SimulationSpec()
+    quiet = replace(base, dut=replace(base.dut, noise_std=0.0, integer_output=False))
+    noise = dut_noise(base.with_noise(job.noise))
+    assert noise is not None
+    fs_hz = 1 / base.plan.dt_s
+    clean = simulate(quiet, job.seed).samples
+    t_ns = clean["t_ns"].to_numpy()
+    grid = np.round((t_ns - t_ns[0]) / 1e9 * fs_hz).astype(np.int64)
+    obs = null.obs
+    rows = np.searchsorted(t_ns, np.round(obs.motion.t_s * 1e9).astype(np.int64))
+    assert np.array_equal(t_ns[np.minimum(rows, t_ns.size - 1)], np.round(obs.motion.t_s * 1e9).astype(np.int64))
+    signals = []
+    for factor in (1.0, 2.0):
+        with_effect = simulate(quiet.with_effects(rescaled(job.req, factor)), job.seed).samples
+        signals += [(with_effect[c].to_numpy() - clean[c].to_numpy())[rows] for c in CHANNELS]
+    layout = null.layout
+
+    def column(name: str) -> np.ndarray:
+        i, h = layout.index[name], 1.0
+        up, down = null.beta.copy(), null.beta.copy()
+        up[i] += h
+        down[i] -= h
+        return (predict(obs, up, layout, (), null.clip, null.structure)
+                - predict(obs, down, layout, (), null.clip, null.structure)) / (2 * h)
+    names_of = [[n for n in layout.names[:layout.n_base] if n.split(".")[2] == str(r)] for r in range(3)]
+    basis = np.column_stack([column(n)[:, 0] for n in names_of[0]])
+    # the baseline's regressors (1 and a / g per rate) are the same on every channel: checked on one column each
+    for r in (1, 2):
+        assert np.allclose(column(names_of[r][-1])[:, r], basis[:, -1], rtol=1e-9, atol=1e-9)
+    cov = SampleCovariance(noise, fs_hz, grid[rows], int(grid[-1]) + 1)
+    lam = noncentrality(cov, np.column_stack(signals), basis, rtol=1e-8)
+    return [float(lam[:3].sum()), float(lam[3:].sum())]
+
+
+def oracle_power(rows: list[dict], size: float) -> float:
+    """The oracle's power at ``size``: over the datasets with a noncentrality,
+    the mean of P(noncentral chi-square(k, lambda) > chi-square(k)'s upper
+    ``ALPHA`` quantile), each lambda carried from the dataset's size as
+    size^p, p its exponent between the size and twice it."""
+    out = []
+    for r in rows:
+        lam, lam2 = r["lambda"]
+        p = float(np.log2(lam2 / lam)) if lam > 0 and lam2 > 0 else 2.0
+        out.append(ncx2.sf(chi2.isf(ALPHA, r["k"]), r["k"], min(lam * (size / r["size"]) ** p, 1e9)))
+    return float(np.mean(out))
+
+
+def oracle_size(rows: list[dict], power: float) -> float:
+    """The size at which the oracle's power is ``power`` (bisection in log size)."""
+    centre = float(np.exp(np.mean(np.log([r["size"] for r in rows]))))
+    return float(np.exp(brentq(lambda x: oracle_power(rows, float(np.exp(x))) - power,
+                               np.log(centre) - 12, np.log(centre) + 12, xtol=1e-10)))
+
+
 def cpu_seconds() -> float:
     """CPU time of this process and its finished children (user and system):
     what a dataset costs, whatever else shares the cores."""
@@ -159,17 +265,25 @@ def clip_request(job: Job) -> str:
     return f"clipping:clip_high={np.floor(peak + job.size * SimulationSpec().dut.noise_std):.0f}"
 
 
-def pilot_jobs(sizes: dict[str, float], stage: int, workdir: str) -> list[Job]:
+def pilot_jobs(sizes: dict[str, float], stage: int, workdir: str, noise: str = "") -> list[Job]:
     """One dataset per effect of ``sizes`` at its size."""
     return [Job(name, sizes[name], request(name, sizes[name], np.random.default_rng([k, 0])), 10000 + 100 * stage + k,
-                workdir) for k, name in enumerate(names()) if name in sizes]
+                workdir, noise, bool(noise)) for k, name in enumerate(names()) if name in sizes]
 
 
-def centres(pool: ProcessPoolExecutor, effects: set[str], workdir: str) -> dict[str, float]:
+def centres(pool: ProcessPoolExecutor, effects: set[str], workdir: str, noise: str = "") -> dict[str, float]:
     """Each effect's ``centre`` from a pilot at the low end of its catalogue
     range, refined by a second pilot there (far above the limit, the
-    statistic of a misfit grows faster than the size squared)."""
+    statistic of a misfit grows faster than the size squared). Under a
+    coloured noise, the oracle's 50 % size from one pilot's noncentrality
+    (exact, so one stage)."""
     sizes = {name: effect_named(name).sizes[0] for name in names() if name in effects - {"clipping"}}
+    if noise:
+        pilots = list(pool.map(run_job, pilot_jobs(sizes, 0, workdir, noise)))
+        for r in pilots:
+            print(f"pilot {r['effect']}: size {r['size']:.4g}, k {r['k']}, lambda {r['lambda'][0]:.4g} "
+                  f"(twice the size {r['lambda'][1]:.4g}), {r['cpu_s']:.1f} CPU s", flush=True)
+        return {r["effect"]: oracle_size([r], 0.5) for r in pilots}
     for stage in range(2):
         sizes = {r["effect"]: centre(r) for r in pool.map(run_job, pilot_jobs(sizes, stage, workdir))}
     return sizes
@@ -186,23 +300,27 @@ def centre(pilot: dict) -> float:
 
 
 def jobs(effects: set[str], centres: dict[str, float], n_seeds: int, n_points: int, n_clean: int,
-         workdir: str) -> list[Job]:
+         workdir: str, noise: str = "") -> list[Job]:
     """The grid of every effect, ``n_points`` sizes from ``SPAN[0]`` below to
     ``SPAN[1]`` above its pilot centre (clipping: limits ``CLIP_SIGMAS``
     above its largest output), shapes drawn per seed (the same across sizes);
     and the clean datasets, the last third of them with a logged warm-up
-    (thermal with zero coefficients) so that the thermal test is calibrated too."""
-    out = [Job("", 0.0, "", 1000 + s, workdir) for s in range(n_clean - n_clean // 3)]
-    out += [Job("", 0.0, "thermal:tco_u=0,tcs_u=0", 1500 + s, workdir) for s in range(n_clean // 3)]
+    (thermal with zero coefficients) so that the thermal test is calibrated too.
+    Under a coloured noise (``noise``) the grid spans ``NOISE_SPAN`` about the
+    oracle's 50 % size, and the datasets of its middle size compute the oracle."""
+    out = [Job("", 0.0, "", 1000 + s, workdir, noise) for s in range(n_clean - n_clean // 3)]
+    out += [Job("", 0.0, "thermal:tco_u=0,tcs_u=0", 1500 + s, workdir, noise) for s in range(n_clean // 3)]
+    span = NOISE_SPAN if noise else SPAN
     for k, name in enumerate(names()):
         if name not in effects:
             continue
         grid = (np.linspace(*CLIP_SIGMAS, n_points) if name == "clipping"
-                else centres[name] * np.geomspace(1 / SPAN[0], SPAN[1], n_points))
+                else centres[name] * np.geomspace(1 / span[0], span[1], n_points))
         for i, size in enumerate(grid):
             for s in range(n_seeds):
                 req = "" if name == "clipping" else request(name, float(size), np.random.default_rng([k, s]))
-                out.append(Job(name, float(size), req, 20000 + 1000 * k + 100 * i + s, workdir))
+                out.append(Job(name, float(size), req, 20000 + 1000 * k + 100 * i + s, workdir, noise,
+                               bool(noise) and i == n_points // 2))
     return out
 
 
@@ -272,6 +390,52 @@ def curves(results: list[dict], clip_threshold: float) -> dict[str, dict]:
     return out
 
 
+def noise_curves(results: list[dict]) -> dict[str, dict]:
+    """Under a coloured noise, per effect: sizes, rotcal's detections and
+    probit, and the oracle's 50 % and 80 % sizes (``oracle_size``) with the
+    exponents of its noncentrality in the size (2: quadratic)."""
+    z80 = norm.ppf(0.8)
+    out = {}
+    for name in names():
+        rs = [r for r in results if r["effect"] == name]
+        if not rs:
+            continue
+        sizes = np.array([r["size"] for r in rs])
+        rot = np.array([r["named"] for r in rs], float)
+        m, w = probit(sizes, rot)
+        oracle = [r for r in rs if "lambda" in r]
+        out[name] = {"sizes": sizes, "rotcal": rot, "fits": {"rotcal": (m, w)}, "k": rs[0]["k"], "oracle": oracle,
+                     "exponents": [float(np.log2(r["lambda"][1] / r["lambda"][0])) for r in oracle],
+                     "s50": {"rotcal": float(np.exp(m)), "glr": oracle_size(oracle, 0.5)},
+                     "s80": {"rotcal": float(np.exp(m + z80 * w)), "glr": oracle_size(oracle, 0.8)}}
+    return out
+
+
+def noise_table(curve: dict[str, dict]) -> str:
+    lines = ["| effect | size measure | k | rotcal s50 | oracle s50 | ratio s50 | rotcal s80 | oracle s80 | ratio s80 "
+             "| lambda exponent |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, c in curve.items():
+        s50, s80, p = c["s50"], c["s80"], c["exponents"]
+        lines.append(f"| {name} | {effect_named(name).size_of.split(' (')[0]} | {c['k']} | {s50['rotcal']:.3g} | "
+                     f"{s50['glr']:.3g} | {s50['rotcal'] / s50['glr']:.2f} | {s80['rotcal']:.3g} | {s80['glr']:.3g} | "
+                     f"{s80['rotcal'] / s80['glr']:.2f} | {min(p):.3f} to {max(p):.3f} |")
+    return "\n".join(lines)
+
+
+def noise_calibration(clean: list[dict]) -> list[str]:
+    """Clean datasets under the noise: those with any finding (rotcal's
+    false alarms), and the white-noise score test's p-values at the plain
+    baseline (how far from calibrated a test blind to the noise would be)."""
+    p = np.array([v for r in clean for v in r["clean_p"].values()])
+    rates = ", ".join(f"{np.mean(p < a):.3f} at {a:g}" for a in (0.1, 0.01, 0.001))
+    return [f"- clean datasets: {len(clean)}, {sum(bool(r['findings']) for r in clean)} with any finding "
+            f"({', '.join(sorted({f for r in clean for f in r['findings']})) or 'none'})",
+            f"- the white-noise score test at the plain baseline (each candidate against the null fit, the "
+            f"diagnosis's own tests add the noise model and the offsets' wander): {p.size} per-test p-values on "
+            f"clean data, fraction below level: {rates}; below {ALPHA:g}: {int(np.sum(p < ALPHA))} of {p.size}"]
+
+
 def table(curve: dict[str, dict]) -> str:
     lines = ["| effect | size measure | catalogue range | k | rotcal s50 | GLR s50 | ratio s50 | rotcal s80 | GLR s80 | ratio s80 |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -300,7 +464,12 @@ def plot(curve: dict[str, dict], path: Path) -> None:
         fine = np.geomspace(grid[0], grid[-1], 200)
         if name != "clipping":
             ax.axvspan(*effect_named(name).sizes, color="0.92")
+        if "oracle" in c:
+            ax.plot(fine, [oracle_power(c["oracle"], float(s)) for s in fine], "-", color="C3",
+                    label="LR test, true noise")
         for kind, colour, label in (("rotcal", "C0", "rotcal diagnosis"), ("glr", "C3", "GLR, true model")):
+            if kind not in c["fits"]:
+                continue
             m, w = c["fits"][kind]
             frac = [c[kind][c["sizes"] == s].mean() for s in grid]
             ax.plot(grid, frac, "o", color=colour, ms=4)
@@ -310,6 +479,8 @@ def plot(curve: dict[str, dict], path: Path) -> None:
         ax.set_title(f"{name}: ratio {c['s50']['rotcal'] / c['s50']['glr']:.2f}", fontsize=9)
         ax.set_xlabel(CLIP_MEASURE if name == "clipping" else effect_named(name).size_of.split(" (")[0], fontsize=7)
         ax.tick_params(labelsize=7)
+    for ax in axes.flat[len(curve):]:
+        ax.axis("off")
     axes[0, 0].set_ylabel("detection probability")
     axes[1, 0].set_ylabel("detection probability")
     axes[0, 0].legend(fontsize=7, loc="upper left")
@@ -353,21 +524,31 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="a smoke test: 1 seed, 2 sizes, 2 clean datasets")
     parser.add_argument("--plot", type=Path, default=Path("docs/power_curves.png"))
     parser.add_argument("--json", type=Path, help="also write every dataset's outcome here")
-    parser.add_argument("--effects", nargs="+", choices=names(), default=list(names()), help="only these effects")
+    parser.add_argument("--effects", nargs="+", choices=names(), help="only these effects (default: all; "
+                        "under --noise all but clipping)")
+    parser.add_argument("--noise", choices=SHAPES, default="white",
+                        help="the noise shape (noise_coverage.py); not white: the oracle is the LR test that knows it")
     parser.add_argument("--load", type=Path, nargs="+",
                         help="tabulate saved outcomes (--json) instead of simulating: each effect's rows from the "
                              "last file holding it, the clean rows from the file holding most")
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.points, args.clean = 1, 2, 2
+    noise = noise_request(args.noise, NOISE_SEED)
+    if args.effects is None:
+        args.effects = [n for n in names() if not (noise and n == "clipping")]
     began, cpu_began = time.perf_counter(), cpu_seconds()
     if args.load:
         results = loaded(args.load)
     else:
         with tempfile.TemporaryDirectory() as workdir, ProcessPoolExecutor(args.workers) as pool:
             effects = set(args.effects)
-            results = list(pool.map(run_job, jobs(effects, centres(pool, effects, workdir), args.seeds, args.points,
-                                                  args.clean, workdir)))
+            results = list(pool.map(run_job, jobs(effects, centres(pool, effects, workdir, noise), args.seeds,
+                                                  args.points, args.clean, workdir, noise)))
+    noise = next((r["noise"] for r in results if r.get("noise")), "")
+    if noise:
+        coloured(results, args, noise, began, cpu_began)
+        return
     clean = [r for r in results if not r["effect"]]
     threshold = clip_threshold(clean)
     curve = curves([r for r in results if r["effect"]], threshold)
@@ -380,6 +561,25 @@ def main() -> None:
           f"per effect from {SPAN[0]:g}x below to {SPAN[1]:g}x above the GLR's pilot 50 % size "
           f"(clipping: limits {CLIP_SIGMAS[0]:g} to {CLIP_SIGMAS[1]:g} noise sd above the largest output).")
     print("\n".join(calibration(clean, threshold)))
+    print(runtime(results, time.perf_counter() - began, cpu_seconds() - cpu_began, args.workers))
+
+
+def coloured(results: list[dict], args: argparse.Namespace, noise: str, began: float, cpu_began: float) -> None:
+    """Tabulate a run under a coloured noise: rotcal against the oracle."""
+    if args.json and not args.load:
+        args.json.write_text(json.dumps(results, indent=1, default=str))
+    clean = [r for r in results if not r["effect"]]
+    curve = noise_curves([r for r in results if r["effect"]])
+    plot(curve, args.plot)
+    print(noise_table(curve))
+    print()
+    effect_rows = [r for r in results if r["effect"]]
+    points = max(len({r["size"] for r in effect_rows if r["effect"] == e}) for e in curve)
+    seeds = max(sum(r["effect"] == e and r["size"] == s for r in effect_rows) for e in curve for s in curve[e]["sizes"])
+    print(f"Noise {noise}. Per-test false-alarm rate {ALPHA:g}; {seeds} datasets per size, {points} sizes "
+          f"per effect from {NOISE_SPAN[0]:g}x below to {NOISE_SPAN[1]:g}x above the oracle's pilot 50 % size; the "
+          f"oracle from the noncentralities of the {sum('lambda' in r for r in results)} datasets at the middle size.")
+    print("\n".join(noise_calibration(clean)))
     print(runtime(results, time.perf_counter() - began, cpu_seconds() - cpu_began, args.workers))
 
 
