@@ -125,15 +125,17 @@ def with_offset_wander(final: ModelFit, noise: OffsetNoise) -> ModelFit:
 
 def wander_tested(final: ModelFit, noise: OffsetNoise, alpha: float) -> tuple[ModelFit, dict[str, str]]:
     """``final`` with the wander between segments in its covariance
-    (``with_offset_wander``) and without the offset effects (and step)
-    whose parameters that covariance leaves within their uncertainty (Wald
+    (``with_offset_wander``) and without the slow effects (those that move
+    segments' offsets or vary in time or temperature, and the step) whose
+    parameters that covariance leaves within their uncertainty (Wald
     at ``alpha``), one at a time, the least significant first; per effect
     the sentence its row adds."""
     texts: dict[str, str] = {}
-    # the wander moves whole segments: it can explain what moves segments' offsets, not a harmonic within
-    # them (a quadratic nonlinearity's second harmonic was set aside at Wald 4.3 beside chi-square 116 on the
-    # noise's spectrum, its constant part's share of the wander widening it), whose uncertainty it still widens
-    movers = {e.name for e in catalogue() if e.moves_segment_offsets}
+    # the wander moves whole segments slowly: it can explain what moves segments' offsets or varies slowly in
+    # time or temperature (a warm-up), not a harmonic within segments (a quadratic nonlinearity's second
+    # harmonic was set aside at Wald 4.3 beside chi-square 116 on the noise's spectrum, its constant part's
+    # share of the wander widening it), whose uncertainty it still widens
+    movers = {e.name for e in catalogue() if e.moves_segment_offsets or e.at_rest in ("time", "temperature")}
     final = with_offset_wander(final, noise)
     while final.wander_cov is not None and any(c == STEP or c.effect in movers for c in final.active):
         wald = []
