@@ -38,6 +38,7 @@ import resource
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -367,17 +368,21 @@ def calibration(clean: list[dict], clip_threshold: float) -> list[str]:
     return lines
 
 
+def detections(results: list[dict]) -> Iterator[tuple[str, list[dict], np.ndarray, np.ndarray]]:
+    """Per effect with outcomes, in the catalogue's order: its outcomes,
+    their sizes and rotcal's detections (0/1)."""
+    for name in names():
+        rs = [r for r in results if r["effect"] == name]
+        if rs:
+            yield name, rs, np.array([r["size"] for r in rs]), np.array([r["named"] for r in rs], float)
+
+
 def curves(results: list[dict], clip_threshold: float) -> dict[str, dict]:
     """Per effect: sizes, rotcal's and the GLR's detections (0/1), the
     probit fits and the 50 % and 80 % power sizes."""
     z80 = norm.ppf(0.8)
     out = {}
-    for name in names():
-        rs = [r for r in results if r["effect"] == name]
-        if not rs:
-            continue
-        sizes = np.array([r["size"] for r in rs])
-        rot = np.array([r["named"] for r in rs], float)
+    for name, rs, sizes, rot in detections(results):
         if name == "clipping":
             best = np.array([r["clip_glr"] > clip_threshold for r in rs], float)
         else:
@@ -396,12 +401,7 @@ def noise_curves(results: list[dict]) -> dict[str, dict]:
     exponents of its noncentrality in the size (2: quadratic)."""
     z80 = norm.ppf(0.8)
     out = {}
-    for name in names():
-        rs = [r for r in results if r["effect"] == name]
-        if not rs:
-            continue
-        sizes = np.array([r["size"] for r in rs])
-        rot = np.array([r["named"] for r in rs], float)
+    for name, rs, sizes, rot in detections(results):
         m, w = probit(sizes, rot)
         oracle = [r for r in rs if "lambda" in r]
         out[name] = {"sizes": sizes, "rotcal": rot, "fits": {"rotcal": (m, w)}, "k": rs[0]["k"], "oracle": oracle,

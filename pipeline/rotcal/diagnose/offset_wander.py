@@ -37,7 +37,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from rotcal.diagnose.candidates import STEP
+from rotcal.diagnose.candidates import STEP, Candidate
 from rotcal.diagnose.fitting import ModelFit, chi2_sf, without
 from rotcal.diagnose.scans import p_is
 from rotcal.diagnose.wander import OffsetNoise, wander_shapes
@@ -123,6 +123,14 @@ def with_offset_wander(final: ModelFit, noise: OffsetNoise) -> ModelFit:
     return replace(final, wander_cov=base @ spread @ base)
 
 
+def wald_test(final: ModelFit, cand: Candidate) -> tuple[float, float]:
+    """(chi-square, p) of the extension's parameters against zero under
+    ``final``'s covariance (Wald)."""
+    value, block = final.param_block(cand)
+    stat = float(value @ np.linalg.pinv(block) @ value)
+    return stat, chi2_sf(stat, value.size)
+
+
 def wander_tested(final: ModelFit, noise: OffsetNoise, alpha: float) -> tuple[ModelFit, dict[str, str]]:
     """``final`` with the wander between segments in its covariance
     (``with_offset_wander``) and without the slow effects (those that move
@@ -140,9 +148,8 @@ def wander_tested(final: ModelFit, noise: OffsetNoise, alpha: float) -> tuple[Mo
     while final.wander_cov is not None and any(c == STEP or c.effect in movers for c in final.active):
         wald = []
         for cand in [c for c in final.active if c == STEP or c.effect in movers]:
-            value, block = final.param_block(cand)
-            stat = float(value @ np.linalg.pinv(block) @ value)
-            wald.append((chi2_sf(stat, value.size), cand.key, cand, stat))
+            stat, p = wald_test(final, cand)
+            wald.append((p, cand.key, cand, stat))
         p, _, worst, stat = max(wald)
         if p < alpha:
             break
