@@ -13,6 +13,7 @@ from rotcal.fit.correlated import density_ratio
 from rotcal.fit.quantization import mean_rounding_variance, output_step
 from rotcal.model.columns import Outputs, columns_of, selected_rows
 from rotcal.model.physics import CHANNELS
+from rotcal.noise.poses import PoseCovariance, pose_covariance, with_pose_variances
 
 
 def group_statistics(y: np.ndarray | Outputs, group: np.ndarray, n_groups: int
@@ -104,3 +105,16 @@ def pose_table(t_ns: np.ndarray, y: np.ndarray | Outputs, starts: np.ndarray, st
         "n_samples": counts, **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
         "cov_mean": cov.reshape(-1, 9).tolist(),
     }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
+
+
+def modelled_pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray
+                        ) -> tuple[pl.DataFrame, PoseCovariance]:
+    """``pose_table`` with each pose mean's variance from the noise model
+    identified from the poses' residuals (``noise.poses``), and the
+    covariance between the pose means that the static reductions weigh
+    them by (generalised least squares)."""
+    poses = pose_table(t_ns, y, starts, stops)
+    own = np.array(poses["cov_mean"].to_list(), float).reshape(-1, 3, 3)
+    between = pose_covariance(t_ns, np.asarray(y, float), np.asarray(starts, np.int64), np.asarray(stops, np.int64), own)
+    cov = with_pose_variances(own, between)
+    return poses.with_columns(cov_mean=pl.Series(cov.reshape(-1, 9).tolist(), dtype=pl.List(pl.Float64))), between
