@@ -197,15 +197,19 @@ def direction_spread(directions: np.ndarray, free: np.ndarray = FULL) -> float:
     return float(np.linalg.svd(design, compute_uv=False)[-1] / np.sqrt(len(d)))
 
 
-def _generalised(params: np.ndarray, m: np.ndarray, cov: np.ndarray, g: float, free: np.ndarray, prior: float,
-                 between: PoseCovariance) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _generalised(params: np.ndarray, m: np.ndarray, g: float, free: np.ndarray, prior: float,
+                 between: PoseCovariance) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Generalised least squares of |a_k| - g under the pose means'
     covariance between poses (``noise.poses``) with the wander their
     scatter shows beyond it (``noise.poses.scalar_wander``), from the
     weighted fit's ``params``: (params, the residuals' covariance under
-    the noise model, and with the wander)."""
+    the noise model, and with the wander); None where that covariance is
+    the poses' own alone and their scatter shows no wander (the weighted
+    fit as it was)."""
     floor = VARIANCE_FLOOR * g**2 * np.eye(len(m))
     mag, grad, jac = magnitude_and_gradient(params, m)
+    if between.plain and scalar_wander(between, mag - g, grad, jac[:, free]) is between:
+        return None
     wandering = between
     for _ in range(3):  # the wander from the residuals, the fit with it: the residuals move little
         wandering = scalar_wander(between, mag - g, grad, jac[:, free])
@@ -264,8 +268,10 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         if converged:
             break
     model_cov = residual_cov = None
-    if between is not None and dof > 0 and np.all(np.isfinite(params)):
-        params, model_cov, residual_cov = _generalised(params, m, cov, g_local, free, prior, between)
+    generalised = _generalised(params, m, g_local, free, prior, between) \
+        if between is not None and dof > 0 and np.all(np.isfinite(params)) else None
+    if generalised is not None:
+        params, model_cov, residual_cov = generalised
         mag, grad, jac = magnitude_and_gradient(params, m)
         noise_var, tau2 = np.diag(residual_cov).copy(), 0.0
     L = _lower(params)
@@ -275,16 +281,16 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None], free)
     if spread < MIN_SPREAD:
         return Failure(0.0, TOO_ALIKE.format(k=k, detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
-    r = mag - g_local
-    chi2_reduced = (float(np.sum(r**2 / noise_var) if model_cov is None else r @ np.linalg.solve(model_cov, r)) / dof
-                    if dof else float("nan"))
-    # the residuals' weight: the inverse of their covariance (diagonal unless generalised)
-    weight = np.diag(1.0 / (noise_var + tau2)) if residual_cov is None else np.linalg.inv(residual_cov)
+    resid = mag - g_local
+    chi2_reduced = (float(np.sum(resid**2 / noise_var) if model_cov is None else resid @ np.linalg.solve(model_cov, resid))
+                    / dof if dof else float("nan"))
     full_jac = jac
     jac = jac[:, free]
     cosines = _cosine_jacobian(params)[:, free] / prior if prior else np.zeros((0, len(free)))
-    params_cov = np.linalg.inv(jac.T @ weight @ jac + cosines.T @ cosines)
-    gain = params_cov @ (weight @ jac).T  # (k, n): d params / d residual
+    # the residuals weighed by the inverse of their covariance: diagonal, unless generalised
+    weighed = jac * (1.0 / (noise_var + tau2))[:, None] if residual_cov is None else np.linalg.solve(residual_cov, jac)
+    params_cov = np.linalg.inv(jac.T @ weighed + cosines.T @ cosines)
+    gain = params_cov @ weighed.T  # (k, n): d params / d residual
     # state = g * rows of L (the g-free coefficient space of combine) and O
     lift = np.zeros((12, 9))
     for j, (r, c) in enumerate(zip(*TRIL)):

@@ -228,16 +228,20 @@ class OrthogonalReferenceFit:
         return float(np.sum(self.residuals**2 * self.weights))
 
 
-def generalised_fit(design: np.ndarray, m: np.ndarray, between: PoseCovariance) -> tuple[LinearFit, PoseCovariance]:
+def generalised_fit(design: np.ndarray, m: np.ndarray, between: PoseCovariance) -> tuple[LinearFit, PoseCovariance] | None:
     """Generalised least squares of each channel of the pose means ``m``
     (n, 3) on ``design`` (n, p) under the pose means' covariance between
     poses with the wander their scatter shows beyond it
     (``noise.poses.channel_wander``): per channel (X' V_r^-1 X)^-1 X' V_r^-1,
-    the channels independent; and the covariance with the wander. Raises
+    the channels independent; and the covariance with the wander. None
+    where that covariance is the poses' own alone and their scatter shows
+    no wander (``ols`` as it was). Raises
     ``UndeterminedError`` as ``ols`` does. (The excess covariance is zero:
     the wander stands for the scatter beyond the noise.)"""
     least_squares_solution(design)  # the design's conditioning, as ``ols`` checks it
     wandering = channel_wander(between, design, m)
+    if between.plain and wandering is between:
+        return None
     total = wandering.channels
     n, p = design.shape
     gains = []
@@ -267,7 +271,8 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     m, cov = pose_arrays(poses)
     design = np.column_stack([references(poses), np.ones(n)])
     try:
-        fit, between = (ols(design, m, cov), None) if between is None or n <= 4 else generalised_fit(design, m, between)
+        generalised = generalised_fit(design, m, between) if between is not None and n > 4 else None
+        fit, between = (ols(design, m, cov), None) if generalised is None else generalised
     except UndeterminedError as exc:
         return Failure(0.0, f"the reference accelerations do not determine the 12 parameters: {exc.problem}")
     # coefficient order (channel, [ref_x, ref_y, ref_z, 1]) -> state (g r_u, g r_v, g r_w, O)

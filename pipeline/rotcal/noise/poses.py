@@ -48,7 +48,10 @@ SIGNIFICANCE = 0.05
 # correlation times up to twice the poses' span; slower ones the random walk from the record's start stands for
 TAU_SPANS = 2.0
 TAU_GRID = 25
-MISFIT = 3.0  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
+MISFIT = 3.0
+# a pose's own variance beyond its independent samples' by this factor: ``fit.means`` widened it for a lag
+# (its density ratio is at least 1.4 where applied), which the model replaces
+LAG_WIDENED = 1.2  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
 VARIANCE_GRID = 41
 
 
@@ -64,6 +67,7 @@ class PoseCovariance:
     duration_s: np.ndarray
     modelled: np.ndarray
     note: str | None = None
+    plain: bool = False  # each pose's own variances, no covariance between poses: white noise as it was
 
     def projected(self, h: np.ndarray) -> np.ndarray:
         """The covariance (n, n) of the scalars sum_r h_kr m_kr of the pose
@@ -87,29 +91,36 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
     record = (-dt / 2, (float(t_ns[-1]) - t0) / 1e9 + dt / 2 if t_ns.size else 0.0)
     n = len(starts)
     channels = np.zeros((3, n, n))
-    modelled = np.zeros(3, bool)
+    modelled, kept = np.zeros(3, bool), np.zeros(3, bool)
+    # each pose's variance of its mean as independent samples give it (the lag widening's and rounding's base)
+    plain = np.array([y[a:b].var(axis=0, ddof=1) / (b - a) if b - a > 1 else np.full(3, np.nan) for a, b in zip(starts, stops)])
     pieces = [p for a, b in zip(starts, stops) if b - a >= 2
               for p in split_at_pauses(t_ns[a:b], y[a:b] - y[a:b].mean(axis=0), dt)] if dt > 0 else []
     allan = pooled_avars(pieces, 1 / dt) if pieces else []
     for r in range(3):
         channels[r][np.diag_indices(n)] = own[:, r, r]
+        kept[r] = True
         if not pieces:
             continue
         noise = identify_channel("", [p[:, r] for p in pieces], 1 / dt, "", allan[r])
         if noise.reason:
             continue
         modelled[r] = True
+        process = short_record_process(noise, float(noise.allan.tau_s[-1]))
+        if not (process.gauss_markov or process.flicker_b) and not np.any(own[:, r, r] > LAG_WIDENED * plain[:, r]):
+            continue  # white, and no pose's scatter was widened for its lag: each pose's own variance, as it was
+        kept[r] = False
         # a pose's Allan variance reaches a few seconds: the terms shorter than its longest averaging time
         # are a filter's or an autoregression's; a slower one is shared between poses only where the data
         # show it (the scatter between poses measures the rest, ``channel_wander``), while each pose's
         # own variance holds the slower terms at their fitted values where they lift the longest octaves
-        shown = window_mean_covariance(short_record_process(noise, float(noise.allan.tau_s[-1])), a0, a1, dt, record)
+        shown = window_mean_covariance(process, a0, a1, dt, record)
         if noise.chi2_reduced > MISFIT:  # a model that misses its own Allan variance: each pose's own scatter at least
             shown[np.diag_indices(n)] = np.maximum(np.diag(shown), own[:, r, r])
         channels[r] = shown
     missing = [c for c, ok in zip("uvw", modelled) if not ok]
     note = UNMODELLED.format(channels=", ".join(missing)) if missing else None
-    return PoseCovariance(channels, (a0 + a1) / 2, a1 - a0, modelled, note)
+    return PoseCovariance(channels, (a0 + a1) / 2, a1 - a0, modelled, note, bool(kept.all()))
 
 
 def with_pose_variances(cov: np.ndarray, between: PoseCovariance) -> np.ndarray:
