@@ -4,14 +4,17 @@ random orientation (``tests/posesim.py``: 24 poses of 30 s at 0.06 s
 with 6 s turns between them, about 14 minutes; the noise drawn over the
 whole session), and per shape the sd of the normalised errors
 z = (estimate - truth) / u and the fraction |z| <= 2 of the pose means
-(``fit.means``, the stage on its own) and of the nine parameters per class
-(s, phi, O) of the orientation-free model (``combine.posemodels``, nine
-parameters) and of the labelled one (``combine.refmodels``: each pose's
-true direction as its reference).
+(``fit.means.modelled_pose_table``, the stage on its own: the noise model
+of the poses' residuals; then as the labelled fit weighs them, with the
+wander their scatter shows, ``noise.poses``) and of the nine parameters
+per class (s, phi, O) of the orientation-free model
+(``combine.posemodels``, nine parameters) and of the labelled one
+(``combine.refmodels``: each pose's true direction as its reference), both
+by generalised least squares with the pose means' covariance.
 
     python scripts/pose_noise_coverage.py [--sessions 50] [--shapes white,gauss_markov,...]
 
-Prints a Markdown table. About 0.3 s a session.
+Prints a Markdown table. About 0.7 s a session.
 """
 
 from __future__ import annotations

@@ -47,11 +47,9 @@ from rotcal.combine.poses import (
     without_scatter,
 )
 from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
-from rotcal.fit.means import modelled_poses
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.placement import Placement
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
-from rotcal.noise.poses import PoseCovariance
 from rotcal.tables import conform
 
 FRAMES = {"label": "pose", "jig": "jig", "stillness": "intrinsic"}
@@ -158,20 +156,15 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
         if positions.height == 0:
             return Failure(0.0, "no still intervals found" + (f" that the stillness detector accepts ({unused.height} "
                                                               "rejected: too short or too noisy)" if unused.height else ""))
-    # poses of the samples: their means' covariance between poses from the noise model (``noise.poses``)
-    positions, between = modelled_poses(samples, positions) if positions["t_start_ns"].null_count() == 0 \
-        and not single.height else (positions, None)
     # (a jig's references are exact: a hand's labels are placed off them by ``placement``'s measure)
     fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
     if fault is not None:
         return Failure(0.0, fault)
-    reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement, between)
+    reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
     if not isinstance(reduction, Failure) and reduction.results:
         reduction = _with_datasheet(reduction, placement)
     if unused is not None and unused.height and not isinstance(reduction, Failure):
         reduction = with_unused(reduction, unused, positions.height)
-    if between is not None and between.note and not isinstance(reduction, Failure):
-        reduction = replace(reduction, notes=reduction.notes + (between.note,))
     if isinstance(reduction, Failure) or not without_scatter(positions):
         return reduction
     return replace(reduction, notes=reduction.notes + (
@@ -209,17 +202,17 @@ def with_unused(reduction: AnyReduction, unused: pl.DataFrame, used: int) -> Any
 
 
 def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertainty: float,
-             placement: Placement, between: PoseCovariance | None = None) -> StaticReduction | Failure:
+             placement: Placement) -> StaticReduction | Failure:
     """``reduce_static`` of a pose table."""
     source = positions["source"][0]
     if source == "jig":
         prior = placement.misalignment_u
-        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty, prior, between), "reference",
+        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty, prior), "reference",
                        {"baseline": reference_fit, "orthogonal": partial(orthogonal_reference_fit, misalignment_u=prior)},
                        g_local, g_uncertainty)
     # the raw means' directions: gravity's when the offsets are small beside g (the refusal's reason only)
     cone = gravity_cone(pose_arrays(positions)[0])
-    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u, between)
+    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u)
     if cone is not None and isinstance(choice.full, Failure) and isinstance(choice.orthogonal, Failure):
         return _chosen(positions, dataset, Failure(0.0, cone), "orientation-free", {}, g_local, g_uncertainty)
     reduction = _chosen(positions, dataset, choice, "orientation-free",
