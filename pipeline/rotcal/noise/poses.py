@@ -48,11 +48,11 @@ SIGNIFICANCE = 0.05
 # correlation times up to twice the poses' span; slower ones the random walk from the record's start stands for
 TAU_SPANS = 2.0
 TAU_GRID = 25
-MISFIT = 3.0
+VARIANCE_GRID = 41
+MISFIT = 3.0  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
 # a pose's own variance beyond its independent samples' by this factor: ``fit.means`` widened it for a lag
 # (its density ratio is at least 1.4 where applied), which the model replaces
-LAG_WIDENED = 1.2  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
-VARIANCE_GRID = 41
+LAG_WIDENED = 1.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,9 +111,8 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
             continue  # white, and no pose's scatter was widened for its lag: each pose's own variance, as it was
         kept[r] = False
         # a pose's Allan variance reaches a few seconds: the terms shorter than its longest averaging time
-        # are a filter's or an autoregression's; a slower one is shared between poses only where the data
-        # show it (the scatter between poses measures the rest, ``channel_wander``), while each pose's
-        # own variance holds the slower terms at their fitted values where they lift the longest octaves
+        # are a filter's or an autoregression's; a slower one enters only where the data show it
+        # (``short_record_process``), the scatter between poses measures the rest (``channel_wander``)
         shown = window_mean_covariance(process, a0, a1, dt, record)
         if noise.chi2_reduced > MISFIT:  # a model that misses its own Allan variance: each pose's own scatter at least
             shown[np.diag_indices(n)] = np.maximum(np.diag(shown), own[:, r, r])
