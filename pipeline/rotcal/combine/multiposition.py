@@ -41,9 +41,10 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.lsq import excess_is_significant, nonlinear
+from rotcal.fit.means import scalar_wander
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
-from rotcal.noise.poses import PoseCovariance, scalar_wander
+from rotcal.noise.poses import PoseCovariance
 
 TRIL = np.tril_indices(3)  # (0,0) (1,0) (1,1) (2,0) (2,1) (2,2)
 MIN_SPREAD = 1e-3  # below it the directions are degenerate to within noise; weaker geometry shows in u

@@ -30,12 +30,12 @@ import polars as pl
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
 from rotcal.fit.lsq import LinearFit, least_squares_solution, ols
-from rotcal.fit.means import group_statistics
+from rotcal.fit.means import channel_wander, group_statistics
 from rotcal.fit.segments import segment_rows
 from rotcal.model.columns import Outputs, sample_step, selected_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
-from rotcal.noise.poses import PoseCovariance, channel_wander
+from rotcal.noise.poses import PoseCovariance
 from rotcal.segment.stillness import StillnessConfig, still_and_short, unused_rows
 
 LABEL_REFERENCE = {f"{axis}_{side}": tuple(float(sign * (a == axis)) for a in AXES)
