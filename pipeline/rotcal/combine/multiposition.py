@@ -41,8 +41,10 @@ import numpy as np
 import polars as pl
 
 from rotcal.fit.lsq import excess_is_significant, nonlinear
+from rotcal.fit.means import scalar_wander
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
+from rotcal.noise.poses import PoseCovariance
 
 TRIL = np.tril_indices(3)  # (0,0) (1,0) (1,1) (2,0) (2,1) (2,2)
 MIN_SPREAD = 1e-3  # below it the directions are degenerate to within noise; weaker geometry shows in u
@@ -69,6 +71,7 @@ class OrientationFreeFit:
     excess_std: float = 0.0
     direction_spread: float = float("nan")
     noise_var: np.ndarray | None = None
+    residual_cov: np.ndarray | None = None  # generalised least squares: the residuals' covariance between poses
 
     @property
     def parameters(self) -> int:
@@ -145,18 +148,25 @@ def _solve(start: np.ndarray, m: np.ndarray, g: float, sigma: np.ndarray, free: 
     """Weighted least squares of (|a_k| - g) / sigma_k with fixed weights,
     over the ``free`` parameters (the others stay as in ``start``); with
     ``prior_u`` > 0, the angles' cosines as three observations of 0 with
-    that standard uncertainty (the datasheet's prior)."""
+    that standard uncertainty (the datasheet's prior). ``sigma`` (n, n):
+    the lower Cholesky factor of the residuals' covariance, generalised
+    least squares (the residuals whitened by it)."""
+    from scipy.linalg import solve_triangular  # here: scipy's import would slow every CLI start
+
+    def white(r: np.ndarray) -> np.ndarray:
+        return solve_triangular(sigma, r, lower=True) if sigma.ndim == 2 else (r.T / sigma).T
+
     def whole(p: np.ndarray) -> np.ndarray:
         params = start.copy()
         params[free] = p
         return params
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        r = (magnitude_and_gradient(whole(p), m)[0] - g) / sigma
+        r = white(magnitude_and_gradient(whole(p), m)[0] - g)
         return np.concatenate([r, angle_cosines(whole(p)) / prior_u]) if prior_u else r
 
     def jacobian(p: np.ndarray) -> np.ndarray:
-        j = magnitude_and_gradient(whole(p), m)[2][:, free] / sigma[:, None]
+        j = white(magnitude_and_gradient(whole(p), m)[2][:, free])
         return np.vstack([j, _cosine_jacobian(whole(p))[:, free] / prior_u]) if prior_u else j
 
     return whole(nonlinear(residuals, jacobian, start[free]).x)
@@ -188,8 +198,30 @@ def direction_spread(directions: np.ndarray, free: np.ndarray = FULL) -> float:
     return float(np.linalg.svd(design, compute_uv=False)[-1] / np.sqrt(len(d)))
 
 
+def _generalised(params: np.ndarray, m: np.ndarray, g: float, free: np.ndarray, prior: float,
+                 between: PoseCovariance) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Generalised least squares of |a_k| - g under the pose means'
+    covariance between poses (``noise.poses``) with the wander their
+    scatter shows beyond it (``noise.poses.scalar_wander``), from the
+    weighted fit's ``params``: (params, the residuals' covariance under
+    the noise model, and with the wander); None where that covariance is
+    the poses' own alone and their scatter shows no wander (the weighted
+    fit as it was)."""
+    floor = VARIANCE_FLOOR * g**2 * np.eye(len(m))
+    mag, grad, jac = magnitude_and_gradient(params, m)
+    if between.plain and scalar_wander(between, mag - g, grad, jac[:, free]) is between:
+        return None
+    wandering = between
+    for _ in range(3):  # the wander from the residuals, the fit with it: the residuals move little
+        wandering = scalar_wander(between, mag - g, grad, jac[:, free])
+        params = _solve(params, m, g, np.linalg.cholesky(wandering.projected(grad) + floor), free, prior)
+        mag, grad, jac = magnitude_and_gradient(params, m)
+    return params, between.projected(grad) + floor, wandering.projected(grad) + floor
+
+
 def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                     free: np.ndarray = FULL, misalignment_u: float = 0.0) -> OrientationFreeFit | Failure:
+                     free: np.ndarray = FULL, misalignment_u: float = 0.0,
+                     between: PoseCovariance | None = None) -> OrientationFreeFit | Failure:
     """The nine intrinsic parameters from static poses of unknown orientation
     (``free = ORTHOGONAL``: the six of orthogonal axes, the angles 90 degrees;
     ``misalignment_u`` > 0: the standard uncertainty of the angles' cosines
@@ -199,8 +231,12 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     determine rests on the datasheet, not on the poses' small tilts).
 
     ``poses`` holds ``mean_u, mean_v, mean_w`` and ``cov_mean`` (as from
-    ``fit.means.pose_table``). Returns a ``Failure`` (rate 0) with the reason when the poses
-    are too few or too alike to identify the model's parameters.
+    ``fit.means.pose_table``). ``between``: the pose means' covariance
+    between poses (``fit.means.modelled_pose_table``), the residuals then
+    weighed by generalised least squares with it and the wander their
+    scatter shows (the offsets carry the wander all poses share). Returns
+    a ``Failure`` (rate 0) with the reason when the poses are too few or
+    too alike to identify the model's parameters.
     """
     n, k = poses.height, len(free)
     # the orthogonal model may be exactly determined (the six faces): its angles' prior and the pose noise give its u
@@ -232,6 +268,13 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         tau2 = new
         if converged:
             break
+    model_cov = residual_cov = None
+    generalised = _generalised(params, m, g_local, free, prior, between) \
+        if between is not None and dof > 0 and np.all(np.isfinite(params)) else None
+    if generalised is not None:
+        params, model_cov, residual_cov = generalised
+        mag, grad, jac = magnitude_and_gradient(params, m)
+        noise_var, tau2 = np.diag(residual_cov).copy(), 0.0
     L = _lower(params)
     if not np.all(np.isfinite(params)) or np.any(np.diag(L) <= 0):
         return Failure(0.0, "the orientation-free fit did not converge to a valid responsivity matrix")
@@ -239,13 +282,16 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     spread = direction_spread(a / np.linalg.norm(a, axis=1)[:, None], free)
     if spread < MIN_SPREAD:
         return Failure(0.0, TOO_ALIKE.format(k=k, detail=f" (direction spread {spread:.3g} < {MIN_SPREAD})"))
-    chi2_reduced = float(np.sum((mag - g_local) ** 2 / noise_var) / dof) if dof else float("nan")
-    weight = 1.0 / (noise_var + tau2)
+    resid = mag - g_local
+    chi2_reduced = (float(np.sum(resid**2 / noise_var) if model_cov is None else resid @ np.linalg.solve(model_cov, resid))
+                    / dof if dof else float("nan"))
     full_jac = jac
     jac = jac[:, free]
     cosines = _cosine_jacobian(params)[:, free] / prior if prior else np.zeros((0, len(free)))
-    params_cov = np.linalg.inv(jac.T @ (jac * weight[:, None]) + cosines.T @ cosines)
-    gain = params_cov @ (jac * weight[:, None]).T  # (k, n): d params / d residual
+    # the residuals weighed by the inverse of their covariance: diagonal, unless generalised
+    weighed = jac * (1.0 / (noise_var + tau2))[:, None] if residual_cov is None else np.linalg.solve(residual_cov, jac)
+    params_cov = np.linalg.inv(jac.T @ weighed + cosines.T @ cosines)
+    gain = params_cov @ weighed.T  # (k, n): d params / d residual
     # state = g * rows of L (the g-free coefficient space of combine) and O
     lift = np.zeros((12, 9))
     for j, (r, c) in enumerate(zip(*TRIL)):
@@ -254,8 +300,13 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
     lift = lift[:, free]
     gain = lift @ gain
     # the pose means' noise is known from many samples each; the excess scatter is estimated from the dof residuals
-    parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T)]
-    if dof:  # an exactly determined fit has no residual to estimate the scatter from (its u rests on the noise and priors)
+    if residual_cov is None:
+        parts = [(whole_fit_input("pose noise", float("inf")), (gain * noise_var) @ gain.T)]
+    else:  # the noise model's covariance, and the wander the residuals' scatter measures beyond it
+        assert model_cov is not None
+        parts = [(whole_fit_input("pose noise", float("inf")), gain @ model_cov @ gain.T),
+                 (whole_fit_input("pose wander", float(dof)), gain @ (residual_cov - model_cov) @ gain.T)]
+    if dof and residual_cov is None:  # an exactly determined fit has no residual to estimate the scatter from
         parts.append((whole_fit_input("excess scatter", float(dof)), (gain * tau2) @ gain.T))
     if prior:  # the datasheet's prior of the angles, a Type B input (GUM 4.3)
         prior_gain = lift @ params_cov @ cosines.T
@@ -268,4 +319,4 @@ def orientation_free(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
         parts.append((whole_fit_input("misalignment prior", float("inf")), sensitivity @ sensitivity.T))
     state = np.concatenate([(g_local * L).ravel(), params[6:]])
     result = IntrinsicResult.from_state(0.0, state, sum(p for _, p in parts), g_local, g_uncertainty, parts)
-    return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var)
+    return OrientationFreeFit(result, mag, chi2_reduced, dof, float(np.sqrt(tau2)), spread, noise_var, residual_cov)

@@ -47,6 +47,7 @@ from rotcal.combine.multiposition import FULL, ORTHOGONAL, TRIL, OrientationFree
 from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit
 from rotcal.model.physics import ANGLE_PAIRS, CHANNELS, INTRINSIC
 from rotcal.model.results import Failure
+from rotcal.noise.poses import PoseCovariance
 
 MIN_CONE_DEG = 15.0  # poses whose gravity lies within it of one direction determine neither model
 SELECTION_LEVEL = 0.01  # the orthogonal model is rejected when the F test's p-value falls below it
@@ -109,6 +110,11 @@ def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFre
     parameters, both weighed by the nine-parameter fit's variances (S_9 = nu
     when the excess scatter is estimated, so the scale is one either way)."""
     assert restricted.noise_var is not None
+    if full.residual_cov is not None:  # generalised least squares: both weighed by the full model's covariance
+        r_full, r_restricted = full.magnitude - g_local, restricted.magnitude - g_local
+        s_full = float(r_full @ np.linalg.solve(full.residual_cov, r_full))
+        s_restricted = float(r_restricted @ np.linalg.solve(full.residual_cov, r_restricted))
+        return f_test(s_restricted - s_full, full.parameters - restricted.parameters, 1.0, float("inf"))
     s_full = float(np.sum((full.magnitude - g_local) ** 2 / full.variance))
     s_restricted = float(np.sum((restricted.magnitude - g_local) ** 2 / (restricted.noise_var + full.excess_std**2)))
     return f_test(s_restricted - s_full, full.parameters - restricted.parameters, 1.0,
@@ -116,15 +122,16 @@ def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFre
 
 
 def choose_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float, misalignment_u: float = 0.0,
-                 stated_u: float = 0.0) -> ModelChoice:
+                 stated_u: float = 0.0, between: PoseCovariance | None = None) -> ModelChoice:
     """Both models fitted to ``poses`` and the one the evidence chooses; where
     the poses do not determine the nine parameters, the orthogonal model's
     angles carry the prior ``misalignment_u`` (``combine.placement``); the
     nine parameters' angles the datasheet's prior ``stated_u`` where the
-    user states one."""
-    full = orientation_free(poses, g_local, g_uncertainty, FULL, stated_u)
+    user states one; ``between``: the pose means' covariance between poses
+    (``noise.poses``), both fits then generalised least squares."""
+    full = orientation_free(poses, g_local, g_uncertainty, FULL, stated_u, between)
     orthogonal = orientation_free(poses, g_local, g_uncertainty, ORTHOGONAL,
-                                  misalignment_u if isinstance(full, Failure) else 0.0)
+                                  misalignment_u if isinstance(full, Failure) else 0.0, between)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):
         return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")
     f, p, dof = orientation_free_f_test(full, orthogonal, g_local)

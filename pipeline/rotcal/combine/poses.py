@@ -29,12 +29,13 @@ import polars as pl
 
 from rotcal.combine.multiposition import pose_arrays
 from rotcal.errors import UndeterminedError
-from rotcal.fit.lsq import ols
-from rotcal.fit.means import group_statistics
+from rotcal.fit.lsq import LinearFit, least_squares_solution, ols
+from rotcal.fit.means import channel_wander, group_statistics
 from rotcal.fit.segments import segment_rows
 from rotcal.model.columns import Outputs, sample_step, selected_rows
 from rotcal.model.physics import AXES, CHANNELS, axis_index, gravity_direction
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
+from rotcal.noise.poses import PoseCovariance
 from rotcal.segment.stillness import StillnessConfig, still_and_short, unused_rows
 
 LABEL_REFERENCE = {f"{axis}_{side}": tuple(float(sign * (a == axis)) for a in AXES)
@@ -200,6 +201,7 @@ class ReferenceFit:
     dof: int
     excess_cov: np.ndarray
     chi2_reduced: float
+    pose_cov: PoseCovariance | None = None  # generalised least squares: the pose means' covariance it weighed them by
 
     @property
     def excess_std(self) -> np.ndarray:
@@ -226,10 +228,42 @@ class OrthogonalReferenceFit:
         return float(np.sum(self.residuals**2 * self.weights))
 
 
-def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> ReferenceFit | Failure:
+def generalised_fit(design: np.ndarray, m: np.ndarray, between: PoseCovariance) -> tuple[LinearFit, PoseCovariance] | None:
+    """Generalised least squares of each channel of the pose means ``m``
+    (n, 3) on ``design`` (n, p) under the pose means' covariance between
+    poses with the wander their scatter shows beyond it
+    (``noise.poses.channel_wander``): per channel (X' V_r^-1 X)^-1 X' V_r^-1,
+    the channels independent; and the covariance with the wander. None
+    where that covariance is the poses' own alone and their scatter shows
+    no wander (``ols`` as it was). Raises
+    ``UndeterminedError`` as ``ols`` does. (The excess covariance is zero:
+    the wander stands for the scatter beyond the noise.)"""
+    least_squares_solution(design)  # the design's conditioning, as ``ols`` checks it
+    wandering = channel_wander(between, design, m)
+    if between.plain and wandering is between:
+        return None
+    total = wandering.channels
+    n, p = design.shape
+    gains = []
+    for r in range(3):
+        weighed = np.linalg.solve(total[r], design)  # V_r^-1 X
+        gains.append(np.linalg.solve(design.T @ weighed, weighed.T))  # (p, n)
+    coef = np.column_stack([a @ m[:, r] for r, a in enumerate(gains)])
+    resid = m - design @ coef
+    out = np.zeros((3 * p, 3 * p))
+    for r in range(3):  # the channels' noise independent, as the noise model is per channel (``PoseCovariance.projected``)
+        out[r * p:(r + 1) * p, r * p:(r + 1) * p] = gains[r] @ total[r] @ gains[r].T
+    chi2 = float(sum(resid[:, r] @ np.linalg.solve(total[r], resid[:, r]) for r in range(3)))
+    return LinearFit(coef, out, resid, np.zeros((3, 3)), n - p, chi2), wandering
+
+
+def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
+                  between: PoseCovariance | None = None) -> ReferenceFit | Failure:
     """Responsivity rows and offsets from positions of known reference
     acceleration (Geist 2017 Eq. 19; ordinary least squares on the pose
-    means, the normal equations of AN4399 Eq. 34 per channel)."""
+    means, the normal equations of AN4399 Eq. 34 per channel; with
+    ``between``, the pose means' covariance between poses, generalised
+    least squares, ``generalised_fit``)."""
     n = poses.height
     if n < MIN_REFERENCE_POSES:
         return Failure(0.0, f"{n} positions with a known reference: at least {MIN_REFERENCE_POSES} "
@@ -237,7 +271,8 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
     m, cov = pose_arrays(poses)
     design = np.column_stack([references(poses), np.ones(n)])
     try:
-        fit = ols(design, m, cov)
+        generalised = generalised_fit(design, m, between) if between is not None and n > 4 else None
+        fit, between = (ols(design, m, cov), None) if generalised is None else generalised
     except UndeterminedError as exc:
         return Failure(0.0, f"the reference accelerations do not determine the 12 parameters: {exc.problem}")
     # coefficient order (channel, [ref_x, ref_y, ref_z, 1]) -> state (g r_u, g r_v, g r_w, O)
@@ -257,7 +292,7 @@ def reference_fit(poses: pl.DataFrame, g_local: float, g_uncertainty: float) -> 
     # the positions' noise and excess scatter together: the sandwich covariance of one fit
     result = IntrinsicResult.from_state(0.0, state, state_cov, g_local, g_uncertainty,
                                         [(whole_fit_input("positions", noise_dof), state_cov)])
-    return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"))
+    return ReferenceFit(result, fit.residuals, dof, fit.excess_cov, fit.chi2 / dof if dof else float("nan"), between)
 
 
 @dataclass(frozen=True, eq=False)

@@ -48,6 +48,7 @@ from rotcal.combine.poses import OrthogonalReferenceFit, ReferenceFit, reference
 from rotcal.fit.lsq import CONDITION_LIMIT, excess_is_significant, psd_part
 from rotcal.model.physics import CHANNELS
 from rotcal.model.results import Failure, IntrinsicResult, whole_fit_input
+from rotcal.noise.poses import PoseCovariance
 
 MAX_ITERATIONS = 50
 STEP_TOLERANCE = 1e-12  # of the relative sensitivity, angle (rad) and offset steps
@@ -210,15 +211,17 @@ def _orthogonal_angles(result: IntrinsicResult) -> IntrinsicResult:
 
 
 def choose_reference_model(poses: pl.DataFrame, g_local: float, g_uncertainty: float,
-                           misalignment_u: float = 0.0) -> ModelChoice | Failure:
+                           misalignment_u: float = 0.0, between: PoseCovariance | None = None) -> ModelChoice | Failure:
     """Both models fitted to positions of known reference and the one the
     evidence chooses (the orthogonal one with the angles' prior
     ``misalignment_u``); a ``Failure`` when the references lie within
-    ``MIN_CONE_DEG`` of one direction (neither model determined)."""
+    ``MIN_CONE_DEG`` of one direction (neither model determined);
+    ``between``: the pose means' covariance between poses (``noise.poses``),
+    the 12-parameter fit then generalised least squares."""
     cone = gravity_cone(references(poses))
     if cone is not None:
         return Failure(0.0, cone)
-    full = reference_fit(poses, g_local, g_uncertainty)
+    full = reference_fit(poses, g_local, g_uncertainty, between)
     orthogonal = orthogonal_reference_fit(poses, g_local, g_uncertainty, full, misalignment_u)
     if isinstance(full, Failure) or isinstance(orthogonal, Failure):
         return ModelChoice(full, orthogonal, "orthogonal" if isinstance(full, Failure) else "baseline")

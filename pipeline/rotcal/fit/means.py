@@ -2,17 +2,29 @@
 that mean, the fit of a constant to a still segment (GUM 4.2.3: the
 experimental standard deviation of the mean), widened where the noise is
 correlated from sample to sample (``fit.correlated``). The segmentation's
-dwells and the static reductions' poses both summarise their samples here."""
+dwells and the static reductions' poses both summarise their samples here.
+
+Under coloured noise (``modelled_pose_table``) each pose mean's variance
+and the covariance between pose means come from the noise model of the
+poses' residuals (``noise.poses``), and the wander beyond it from the
+poses' scatter about the static model (``channel_wander``,
+``scalar_wander``: ``fit.wander``'s restricted likelihood, as the table
+segments' offsets measure it), which the static reductions weigh the poses
+by (generalised least squares)."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import polars as pl
 
 from rotcal.fit.correlated import density_ratio
 from rotcal.fit.quantization import mean_rounding_variance, output_step
+from rotcal.fit.wander import generalised_q, restricted_loglik
 from rotcal.model.columns import Outputs, columns_of, selected_rows
 from rotcal.model.physics import CHANNELS
+from rotcal.noise.poses import PoseCovariance, pose_covariance, with_pose_variances
 
 
 def group_statistics(y: np.ndarray | Outputs, group: np.ndarray, n_groups: int
@@ -50,6 +62,13 @@ def group_statistics(y: np.ndarray | Outputs, group: np.ndarray, n_groups: int
     return counts.astype(np.int64), means, cov
 
 
+# the wander test's level: a pose fit's few residual degrees of freedom (15 for 24 poses without references)
+# leave a wander that moves the offsets by several u at p of 0.01 to 0.02 (docs/measured.md)
+SIGNIFICANCE = 0.05
+# correlation times up to twice the poses' span; slower ones the random walk from the record's start stands for
+TAU_SPANS = 2.0
+TAU_GRID = 25
+VARIANCE_GRID = 41
 # samples a block of the centred sums: a block's products stay a few MB
 SUM_BLOCK = 1 << 18
 
@@ -104,3 +123,108 @@ def pose_table(t_ns: np.ndarray, y: np.ndarray | Outputs, starts: np.ndarray, st
         "n_samples": counts, **{f"mean_{c}": means[:, r] for r, c in enumerate(CHANNELS)},
         "cov_mean": cov.reshape(-1, 9).tolist(),
     }, schema_overrides={"cov_mean": pl.List(pl.Float64)})
+
+
+
+def with_noise_model(poses: pl.DataFrame, t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray
+                     ) -> tuple[pl.DataFrame, PoseCovariance]:
+    """The pose table ``poses`` of the samples ``starts[k]:stops[k]`` with
+    each pose mean's variance from the noise model identified from the
+    poses' residuals (``noise.poses``), and the covariance between the pose
+    means that the static reductions weigh them by (generalised least
+    squares)."""
+    own = np.array(poses["cov_mean"].to_list(), float).reshape(-1, 3, 3)
+    between = pose_covariance(t_ns, np.asarray(y, float), np.asarray(starts, np.int64), np.asarray(stops, np.int64), own)
+    cov = with_pose_variances(own, between)
+    return poses.with_columns(cov_mean=pl.Series(cov.reshape(-1, 9).tolist(), dtype=pl.List(pl.Float64))), between
+
+
+def modelled_pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: np.ndarray
+                        ) -> tuple[pl.DataFrame, PoseCovariance]:
+    """``pose_table`` with the noise model's variances and covariance between poses (``with_noise_model``)."""
+    return with_noise_model(pose_table(t_ns, y, starts, stops), t_ns, y, starts, stops)
+
+
+def _correlations(between: PoseCovariance) -> list[np.ndarray]:
+    """The wander's correlation between poses for each correlation time of
+    the grid: exp(-|t_k - t_l| / T) for T log-spaced from half the shortest
+    pose to ``TAU_SPANS`` times the poses' span, and a random walk from the
+    record's start (min(t_k, t_l) / max t; the grid's last), which a
+    wander slower than the record resembles over it."""
+    t = between.t_mid_s
+    span = float(np.ptp(t)) if t.size else 0.0
+    low = max(float(np.min(between.duration_s)) / 2, 1e-9) if t.size else 1.0
+    lag = np.abs(t[:, None] - t[None, :])
+    since = t - (t - between.duration_s / 2).min()
+    walk = np.minimum.outer(since, since) / max(float(since.max()), 1e-9)
+    return [np.exp(-lag / tau) for tau in np.geomspace(low, max(TAU_SPANS * span, 2 * low), TAU_GRID)] + [walk]
+
+
+def averaged_wander(c: np.ndarray, base: np.ndarray, corrs: list[np.ndarray], spread: float, x: np.ndarray,
+                    seen: list[np.ndarray] | None = None) -> np.ndarray:
+    """The wander's covariance s^2 C_T (n, n) beside ``base`` that the
+    residuals ``c`` (n,) about a model of fixed effects ``x`` (n, p,
+    orthonormal columns) show, averaged over a grid of correlations
+    ``corrs`` and variances s^2 (0, and log-spaced about ``spread``)
+    weighted by the restricted likelihood (Patterson & Thompson 1971,
+    ``fit.wander.restricted_loglik``): the posterior mean under priors flat
+    in log T and log s^2. A record of a few poses pins neither well, and
+    the offsets' variance grows with both: the average carries their
+    uncertainty into u, where the single best pair understates it whenever
+    it falls short. ``seen``: the correlations as the residuals see them
+    (a projection of ``corrs``; default ``corrs``)."""
+    grid = np.r_[0.0, np.geomspace(1e-4, 1e4, VARIANCE_GRID - 1) * max(spread, 1e-300)]
+    ll = np.array([restricted_loglik(c, base, corr, grid, x) for corr in (corrs if seen is None else seen)])
+    weight = np.exp(ll - ll.max())
+    weight /= weight.sum()
+    return sum((float(w @ grid) * corr for w, corr in zip(weight, corrs)), np.zeros(corrs[0].shape))
+
+
+def channel_wander(between: PoseCovariance, residual_basis: np.ndarray, means: np.ndarray) -> PoseCovariance:
+    """``between`` with each channel's wander beyond the noise model,
+    measured from the pose means ``means`` (n, 3) about a model linear in
+    ``residual_basis`` (n, p; e.g. the known references and 1) per channel
+    (``averaged_wander``), where the generalised Q rejects the model's
+    covariance at ``SIGNIFICANCE`` (per channel or pooled; always where the
+    model is not identified)."""
+    n, p = residual_basis.shape
+    if n - p < 1:
+        return between
+    from scipy.special import chdtri  # here: scipy's import would slow every CLI start
+
+    q = np.array([generalised_q(means[:, r], between.channels[r], residual_basis) for r in range(3)])
+    wanders = (q > chdtri(n - p, SIGNIFICANCE)) | (q.sum() > chdtri(3 * (n - p), SIGNIFICANCE)) | ~between.modelled
+    if not wanders.any():
+        return between
+    corrs = _correlations(between)
+    x = np.linalg.svd(residual_basis, full_matrices=False)[0]
+    resid = means - x @ (x.T @ means)  # what the model leaves: REML sees only that, and it sizes the variance grid
+    added = np.zeros_like(between.channels)
+    for r in np.flatnonzero(wanders):
+        spread = max(float(np.var(resid[:, r])), float(np.mean(np.diag(between.channels[r]))))
+        added[r] = averaged_wander(resid[:, r], between.channels[r], corrs, spread, x)
+    return replace(between, channels=between.channels + added)
+
+
+def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray, design: np.ndarray) -> PoseCovariance:
+    """``between`` with a wander beyond the noise model measured from
+    scalar residuals of the pose means (``residuals`` (n,) = sum_r h_kr
+    m_kr less a model of Jacobian ``design`` (n, p); e.g. |a_k| - g of the
+    orientation-free fit, whose scalars show less of it than a labelled
+    fit's three channels): one wander variance (output units^2) common to
+    the channels (``averaged_wander``), where the generalised Q rejects the
+    model's covariance at ``SIGNIFICANCE`` (always where the model is not
+    identified)."""
+    n, p = design.shape
+    if n - p < 1:
+        return between
+    from scipy.special import chdtri  # here: scipy's import would slow every CLI start
+
+    base = between.projected(h)
+    x = np.linalg.svd(design, full_matrices=False)[0][:, : np.linalg.matrix_rank(design)]
+    if generalised_q(residuals, base, x) <= chdtri(n - x.shape[1], SIGNIFICANCE) and between.modelled.all():
+        return between
+    corrs = _correlations(between)
+    spread = float(np.mean(np.einsum("rkk->rk", between.channels)))
+    added = averaged_wander(residuals, base, corrs, spread, x, [(h @ h.T) * corr for corr in corrs])
+    return replace(between, channels=between.channels + added[None])

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rotcal.noise.model import ChannelNoise, gauss_markov_avar
+from rotcal.noise.model import FLICKER, ChannelNoise, gauss_markov_avar
 
 FLICKER_PER_DECADE = 2
 # the averaging times that decide whether a noise slower than white is shown: the longest five octaves
@@ -150,3 +150,34 @@ def process_of(channel: ChannelNoise) -> NoiseProcess:
 
 def _value(channel: ChannelNoise, term: str) -> float:
     return next((t.value for t in channel.terms if t.term == term and t.index == 0), 0.0)
+
+
+
+def short_record_process(channel: ChannelNoise, fast_below_s: float) -> NoiseProcess:
+    """A channel's process identified from pieces too short for
+    ``slow_shown``'s longest octaves to pass a filter's or an
+    autoregression's correlation time (a static pose's few seconds of
+    averaging): its white density and Gauss-Markov terms shorter than
+    ``fast_below_s`` (their share of each piece's scatter), and the slower
+    terms (flicker, Gauss-Markov) where the data show them: each beyond
+    its standard uncertainty (``model._terms``), or, where the fit split
+    them so that none is alone (flicker beside a random walk), all at their
+    fitted values where ``slow_shown`` and their Allan variance at the
+    longest averaging time exceeds the fast terms' (below it the fit could
+    have given them a fast term's tail). The random walk is left out, as
+    ``process_of`` leaves it."""
+    value = {(t.term, t.index): t for t in channel.terms}
+    fast = _fast(channel, fast_below_s)
+    slow = [((value[("gauss_markov_tau_s", j)].value, sd.value), sd) for (term, j), sd in value.items()
+            if term == "gauss_markov_sd" and value[("gauss_markov_tau_s", j)].value >= fast_below_s]
+    flicker = value.get(("bias_instability", 0))
+    shown = replace(fast, gauss_markov=fast.gauss_markov + tuple(t for t, sd in slow if sd.value > sd.u),
+                    flicker_b=flicker.value if flicker is not None and flicker.value > flicker.u else 0.0)
+    if shown != fast or not slow_shown(channel) or not channel.allan.tau_s.size:
+        return shown
+    tau = channel.allan.tau_s[-1:]
+    fast_avar = fast.white_density**2 / tau + sum(gauss_markov_avar(tau, q, t, channel.dt) for t, q in fast.gauss_markov)
+    slow_avar = (FLICKER * _value(channel, "bias_instability") ** 2 + sum(gauss_markov_avar(tau, q, t, channel.dt) for (t, q), _ in slow) + _value(channel, "random_walk") ** 2 * tau / 3)
+    if float(slow_avar[0]) <= float(fast_avar[0]):
+        return fast
+    return replace(fast, gauss_markov=fast.gauss_markov + tuple(t for t, _ in slow), flicker_b=_value(channel, "bias_instability"))
