@@ -17,19 +17,23 @@ from rotcal.model.conventions import CHANNELS, Motion
 from rotcal.model.effects import effect_named
 from rotcal.model.physics import nonlinearity, observe, offset_terms, scale_terms, scaled
 from rotcal.simulate import DutSpec, build_effects, draw_dut
+from rotcal.simulate.noise import NoiseSpec, draw_channels
 from rotcal.simulate.spec import parse_effect
 
 from posesim import G_LOCAL, random_directions
 
 
 def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, rest_s: float = 4.0,
-                 move_s: float = 3.0, dt_s: float = 0.01, jig: bool = False, excess: float = 0.0) -> tuple[pl.DataFrame, dict]:
+                 move_s: float = 3.0, dt_s: float = 0.01, jig: bool = False, excess: float = 0.0,
+                 noise: NoiseSpec | None = None) -> tuple[pl.DataFrame, dict]:
     """The samples (``t`` in s, u, v, w, and ``temperature_c`` when an
     effect draws a temperature) and the effects' parameters as drawn;
     ``jig``: each sample's gravity direction as the jig's ``gx, gy, gz``
     (no moves then: every sample rests in a known position); ``excess``:
     each rest's mean shifted by a normal error of that standard deviation
-    per channel (output units), as an unsteady hand leaves it."""
+    per channel (output units), as an unsteady hand leaves it; ``noise``:
+    the DUT's noise drawn over the whole session in place of its white
+    noise (``rotcal.simulate.noise``)."""
     dut_rng, pose_rng, effect_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
     dut, _ = draw_dut(DutSpec(), dut_rng)
     requested, described = build_effects(tuple(parse_effect(e) for e in effects), effect_rng)
@@ -58,6 +62,9 @@ def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, re
     x1g = np.linalg.norm(dut.responsivity, axis=1) * G_LOCAL
     clean = np.vstack(shifts) + dut.offsets + offset_terms(motion, requested) + scaled(nonlinearity(y, x1g, requested),
                                                                    scale_terms(motion, requested))
+    if noise is not None:
+        clean = clean + draw_channels(noise, n, 1 / dt_s, noise_rng, 3)
+        dut = replace(dut, noise_std=np.zeros(3))
     out = observe(clean, dut, requested, noise_rng)
     frame = pl.DataFrame({"t": t_s, **{c: out[:, r] for r, c in enumerate(CHANNELS)}})
     if jig:

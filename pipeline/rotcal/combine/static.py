@@ -47,9 +47,11 @@ from rotcal.combine.poses import (
     without_scatter,
 )
 from rotcal.combine.refmodels import choose_reference_model, orthogonal_reference_fit, reference_advice
+from rotcal.fit.means import modelled_poses
 from rotcal.model.physics import AXES, CHANNELS
 from rotcal.model.placement import Placement
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
+from rotcal.noise.poses import PoseCovariance
 from rotcal.tables import conform
 
 FRAMES = {"label": "pose", "jig": "jig", "stillness": "intrinsic"}
@@ -160,11 +162,17 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
     if fault is not None:
         return Failure(0.0, fault)
-    reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement)
+    # poses of the samples: their means' covariance between poses from the noise model (``noise.poses``);
+    # poses without scatter (noise-free) have no noise to model
+    positions, between = modelled_poses(samples, positions) if samples is not None and not positions["t_start_ns"].null_count() \
+        and not single.height and not without_scatter(positions) and _scattered(positions) else (positions, None)
+    reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement, between)
     if not isinstance(reduction, Failure) and reduction.results:
         reduction = _with_datasheet(reduction, placement)
     if unused is not None and unused.height and not isinstance(reduction, Failure):
         reduction = with_unused(reduction, unused, positions.height)
+    if between is not None and between.note and not isinstance(reduction, Failure):
+        reduction = replace(reduction, notes=reduction.notes + (between.note,))
     if isinstance(reduction, Failure) or not without_scatter(positions):
         return reduction
     return replace(reduction, notes=reduction.notes + (
@@ -202,17 +210,17 @@ def with_unused(reduction: AnyReduction, unused: pl.DataFrame, used: int) -> Any
 
 
 def _reduced(positions: pl.DataFrame, dataset: str, g_local: float, g_uncertainty: float,
-             placement: Placement) -> StaticReduction | Failure:
+             placement: Placement, between: PoseCovariance | None = None) -> StaticReduction | Failure:
     """``reduce_static`` of a pose table."""
     source = positions["source"][0]
     if source == "jig":
         prior = placement.misalignment_u
-        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty, prior), "reference",
+        return _chosen(positions, dataset, choose_reference_model(positions, g_local, g_uncertainty, prior, between), "reference",
                        {"baseline": reference_fit, "orthogonal": partial(orthogonal_reference_fit, misalignment_u=prior)},
                        g_local, g_uncertainty)
     # the raw means' directions: gravity's when the offsets are small beside g (the refusal's reason only)
     cone = gravity_cone(pose_arrays(positions)[0])
-    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u)
+    choice = choose_model(positions, g_local, g_uncertainty, placement.misalignment_u, placement.stated_u, between)
     if cone is not None and isinstance(choice.full, Failure) and isinstance(choice.orthogonal, Failure):
         return _chosen(positions, dataset, Failure(0.0, cone), "orientation-free", {}, g_local, g_uncertainty)
     reduction = _chosen(positions, dataset, choice, "orientation-free",
@@ -258,3 +266,9 @@ def _chosen(positions: pl.DataFrame, dataset: str, choice: ModelChoice | Failure
     nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
     return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(told), method, general,
                            positions, check, model, nested, (choice.note,), (choice.chosen, choice.reason))
+
+
+def _scattered(positions: pl.DataFrame) -> bool:
+    """Every pose's mean has a variance in every channel (identical samples have none to model)."""
+    var = np.array(positions["cov_mean"].to_list(), float).reshape(-1, 9)[:, [0, 4, 8]]
+    return bool(np.all(var > 0))

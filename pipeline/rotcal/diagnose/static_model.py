@@ -38,8 +38,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotcal.combine import StaticReduction
-from rotcal.combine.multiposition import FULL, ORTHOGONAL, TRIL, OrientationFreeFit, pose_arrays
-from rotcal.combine.poses import references
+from rotcal.combine.multiposition import (
+    FULL,
+    ORTHOGONAL,
+    TRIL,
+    VARIANCE_FLOOR,
+    OrientationFreeFit,
+    excess_variance,
+    magnitude_and_gradient,
+    pose_arrays,
+)
+from rotcal.combine.poses import ReferenceFit, references
+from rotcal.fit.lsq import ols
 from rotcal.model.conventions import CHANNELS
 from rotcal.model.effects import listed
 from rotcal.model.effects.base import Candidate
@@ -173,16 +183,39 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
     # poses without scatter (noise-free, or identical samples with no output step known) or a fit with
     # no residual degree of freedom leave nothing to test an effect against
     if isinstance(fit, OrientationFreeFit):
-        if not np.all(fit.variance > 0):
-            return None
         L = fit.result.state[:9].reshape(3, 3) / fit.result.g_local
         start = np.concatenate([L[TRIL], fit.result.state[9:]])
         free = ORTHOGONAL if static.model == "orthogonal" else FULL
-        return PoseModel(means, elapsed, excursion, None, np.sqrt(fit.variance), start, free, cands,
-                         fit.result.g_local, fit.excess_std > 0)
-    weight = cov + fit.excess_cov[None]
+        variance, excess = _scalar_scatter(fit, start, means, cov, free.size)
+        if not np.all(variance > 0):
+            return None
+        return PoseModel(means, elapsed, excursion, None, np.sqrt(variance), start, free, cands,
+                         fit.result.g_local, excess)
+    excess_cov = fit.excess_cov if not isinstance(fit, ReferenceFit) or fit.pose_cov is None else _vector_excess(means, cov, references(poses))
+    weight = cov + excess_cov[None]
     if fit.dof == 0 or not np.all(np.linalg.eigvalsh(weight) > 0):
         return None
     chol = np.linalg.cholesky(weight)
     return PoseModel(means, elapsed, excursion, references(poses), chol, fit.result.state.copy(), np.arange(12),
-                     cands, fit.result.g_local, bool(np.any(fit.excess_cov != 0)))
+                     cands, fit.result.g_local, bool(np.any(excess_cov != 0)))
+
+
+# The tests weigh each pose by its own noise and an excess scatter common to the poses, estimated from the
+# larger model of each test (F). A fit that weighed its poses by the wander between them (generalised least
+# squares, ``fit.means.channel_wander``) holds the scatter in that wander, sized under the baseline alone: an
+# effect's own pattern would be taken for wander and tested against itself. The scatter is measured here again.
+
+def _scalar_scatter(fit: OrientationFreeFit, start: np.ndarray, means: np.ndarray, cov: np.ndarray,
+                    k: int) -> tuple[np.ndarray, bool]:
+    """Each pose's residual variance (noise and excess scatter) and whether an excess was estimated."""
+    if fit.residual_cov is None:
+        return fit.variance, fit.excess_std > 0
+    mag, grad, _ = magnitude_and_gradient(start, means)
+    noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), VARIANCE_FLOOR * fit.result.g_local**2)
+    tau2 = excess_variance(mag - fit.result.g_local, noise_var, len(means) - k) if len(means) > k else 0.0
+    return noise_var + tau2, tau2 > 0
+
+
+def _vector_excess(means: np.ndarray, cov: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The excess covariance of the poses about their ordinary least-squares fit (``fit.lsq.ols``)."""
+    return ols(np.column_stack([reference, np.ones(len(means))]), means, cov).excess_cov

@@ -228,3 +228,24 @@ def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray,
     spread = float(np.mean(np.einsum("rkk->rk", between.channels)))
     added = averaged_wander(residuals, base, corrs, spread, x, [(h @ h.T) * corr for corr in corrs])
     return replace(between, channels=between.channels + added[None])
+
+
+def modelled_poses(samples: pl.DataFrame, poses: pl.DataFrame) -> tuple[pl.DataFrame, PoseCovariance | None]:
+    """``with_noise_model`` of a recording's pose table (still intervals,
+    labelled poses: ``combine.poses``), each pose the run of samples from
+    its first to its last time stamp; ``poses`` as they are and None where
+    the samples' time stamps do not increase or a pose's run holds other
+    samples than its own (its count differs)."""
+    t_all = samples["t_ns"].to_numpy()
+    if poses.height < 2 or poses["t_start_ns"].null_count() or t_all.size < 2 or not np.all(np.diff(t_all) > 0):
+        return poses, None
+    first = np.searchsorted(t_all, poses["t_start_ns"].to_numpy(), "left")
+    last = np.searchsorted(t_all, poses["t_end_ns"].to_numpy(), "right")
+    if not np.array_equal(last - first, poses["n_samples"].to_numpy()) or np.any(first[1:] < last[:-1]):
+        return poses, None
+    # the poses' rows alone, one after another (a long recording's moves and table segments are not copied)
+    rows = np.concatenate([np.arange(a, b) for a, b in zip(first, last)])
+    stops = np.cumsum(last - first)
+    y = samples.select(CHANNELS).to_numpy()[rows] if rows.size == samples.height else \
+        samples.select(CHANNELS)[rows].to_numpy()
+    return with_noise_model(poses, t_all[rows], y, stops - (last - first), stops)
