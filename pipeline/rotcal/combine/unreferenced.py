@@ -19,6 +19,7 @@ from rotcal.combine.channels import channel_fault
 from rotcal.combine.labelled import segment_coefficients
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free
 from rotcal.combine.phasefree import PhaseFreeFit, PhaseSegment, solve_phase_free
+from rotcal.fit.means import modelled_poses
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.segment.stillness import unused_rows
 
@@ -77,14 +78,18 @@ def segment_phases(fits: pl.DataFrame, segments: pl.DataFrame, own_phase: frozen
 
 
 def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float,
-                  single: frozenset[int] = frozenset(), rejected: pl.DataFrame | None = None) -> Reduction:
+                  single: frozenset[int] = frozenset(), rejected: pl.DataFrame | None = None,
+                  samples: pl.DataFrame | None = None) -> Reduction:
     """The static result (rate 0) from the dwells when ``need_static``, and
     the ``dwells`` table (with |a| after calibration when they gave it);
     otherwise the dwells of ``single`` (segments of one pose, outside every
     step sequence) are not used. Every still interval not used (those and
     the detector's ``rejected`` ones) is listed in ``still_unused`` and
-    counted in a warning."""
-    from rotcal.combine.static import with_unused  # here: static imports the pose machinery this module need not
+    counted in a warning. ``samples``: the recording's, the dwells' means
+    then weighed as static poses are, by their covariance between dwells
+    from the noise model and the wander their scatter shows
+    (``fit.means.modelled_poses``)."""
+    from rotcal.combine.static import scattered, with_unused  # here: static imports the pose machinery this module need not
 
     results: tuple[IntrinsicResult, ...] = ()
     failures: tuple[Failure, ...] = ()
@@ -97,7 +102,10 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
     if fault is not None:
         failures = (Failure(0.0, f"static dwells: {fault}"),)
     elif need_static and dwells.height:
-        fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty)
+        between = None
+        if samples is not None and scattered(dwells):
+            dwells, between = modelled_poses(samples, dwells)
+        fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty, between=between)
         if isinstance(fit, OrientationFreeFit):
             results = (fit.result,)
             dwells = dwells.with_columns(g_magnitude=pl.Series(fit.magnitude))

@@ -189,7 +189,8 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     labelled = reduce_labelled(seg.labelled_fits, g, u, ds.name, seg.labelled_rates)
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
     single = frozenset(seg.segments.filter(pl.col("kind") == "pose")["segment"].to_list())
-    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single, seg.unused)
+    dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single, seg.unused,
+                           seg.samples)
     return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
 
 

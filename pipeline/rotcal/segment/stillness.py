@@ -31,6 +31,8 @@ from rotcal.model.columns import Outputs, sample_step, steps_over
 from rotcal.model.physics import CHANNELS
 
 NOISY_FACTOR = 10.0  # a noisy rest: windows up to this many times the threshold's variance (about 3.2 x its std)
+NOISE_FRACTION = 0.01  # a rest's noise sd below this fraction of the output's range (MEMS: about 0.1 %)
+PLATEAU = 1.5  # second differences that grow less than this from lag L to 2 L show the noise's variance at L
 TREND_SIGMAS = 4.0  # a move: its first and last thirds' means differ by more than this many standard errors
 
 
@@ -95,11 +97,16 @@ def window_ratios(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessCo
     integer = outputs.integer()
     # each channel's floor first, then the ratios block by block: at most one column-long array at a time
     floors, centres = [], []
+    # the output's range where gravity turns (its largest over the channels), from at most a million samples
+    scale = max(float(np.ptp(np.percentile(c[:: max(1, n // 1_000_000)], [1.0, 99.0]))) for c in outputs.columns)
     for column in outputs.columns:
         second = np.diff(column, 2)
         second -= np.median(second, overwrite_input=True)  # (the median of the values, whatever their order)
         white = (1.4826 * np.median(np.abs(second, out=second), overwrite_input=True)) ** 2 / 6.0
         del second
+        factor = filter_memory_factor(column, window, config.floor_percentile)
+        # a filter's memory only where the noise it gives stays far below that range (a rotation's signal does not)
+        white *= factor if factor * white < (NOISE_FRACTION * scale) ** 2 else 1.0
         centres.append(_median(column))
         var = column_variance(column, window, centres[-1])
         floors.append(max(min(float(np.percentile(var, config.floor_percentile, overwrite_input=True)), white),
@@ -116,6 +123,32 @@ def window_ratios(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessCo
         np.cumsum(gap, dtype=np.int64, out=gap_before[1:])
         ratio[gap_before[window - 1 :] != gap_before[: n - window + 1]] = np.inf
     return ratio, window
+
+
+def _second_difference_floor(column: np.ndarray, lag: int, window: int, percentile: float) -> float:
+    """The ``percentile`` of the window variances of y[k + 2L] - 2 y[k + L] + y[k]
+    (the rests' quietest windows: moves are most of no recording's windows)."""
+    second = column[2 * lag :] - 2 * column[lag : column.size - lag] + column[: column.size - 2 * lag]
+    return float(np.percentile(column_variance(second, window), percentile, overwrite_input=True))
+
+
+def filter_memory_factor(column: np.ndarray, window: int, percentile: float) -> float:
+    """How much more the noise's variance is than white noise's second
+    differences show: 1 for white noise; for a sensor whose low-pass filter
+    correlates neighbouring samples, second differences at lags L = 1, 2,
+    4, ... grow until L passes the filter's memory, and the factor is their
+    growth to the first lag whose doubling adds less than ``PLATEAU`` (var
+    = 6 sigma^2 wherever the noise is uncorrelated over L; a rotation's
+    signal keeps growing as L^4, so no plateau leaves the factor 1). A
+    low-pass at 0.1 of the sample rate reads 1/30 of its variance at L = 1:
+    every rest then looked ten times too noisy to be one."""
+    lags = [lag for lag in (1, 2, 4, 8, 16, 32) if column.size >= 2 * lag + window]
+    values: list[float] = []
+    for lag in lags:
+        values.append(_second_difference_floor(column, lag, window, percentile))
+        if len(values) > 1 and values[-1] < PLATEAU * values[-2]:
+            return max(values[-2] / values[0], 1.0) if values[0] > 0 else 1.0
+    return 1.0
 
 
 def quiet_windows(t_ns: np.ndarray, y: np.ndarray | Outputs, config: StillnessConfig = StillnessConfig()
