@@ -44,7 +44,8 @@ from rotcal.diagnose.candidates import report_parameters
 from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.scans import counted, p_is
 from rotcal.diagnose.static_model import PoseModel, pose_model
-from rotcal.fit.lsq import nonlinear
+from rotcal.diagnose.static_wander import WANDER_LEVEL, is_slow, wander_p_value
+from rotcal.fit.lsq import excess_is_significant, nonlinear
 from rotcal.model.effects import effect_named, listed
 from rotcal.model.effects.base import Candidate
 from rotcal.model.results import IntrinsicResult, whole_fit_input
@@ -307,7 +308,7 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
     if lin.dof(()) < 2:
         return None
     alpha = config.false_alarm
-    active = select(lin, alpha)
+    active = against_wander(lin, select(lin, alpha))
     heldout = _held_out(lin, active) if active else None
     if heldout is not None and not heldout.better:  # fits these poses, but does not predict the next: not modelled
         active = ()
@@ -319,6 +320,28 @@ def diagnose_static(static: StaticReduction, t0_ns: int | None, dataset: str, ou
                   if params else schema("effect_parameters").empty())
     return StaticDiagnosis(findings, parameters, refined, before, against, model.residuals(theta), limits,
                            len(model.means), static.method, "" if heldout is None else heldout.text("baseline", "refined"))
+
+
+def against_wander(lin: Linearised, active: tuple[Candidate, ...]) -> tuple[Candidate, ...]:
+    """``active`` less the slow effects a wander of the offsets explains as
+    well (``static_wander``: p at or above ``WANDER_LEVEL``), the weakest first."""
+    model = lin.model
+    if model.bounds_s is None or not any(is_slow(c) for c in active):
+        return active
+    # where the model with the effects leaves no scatter beyond the poses' own noise, no wander competes with them
+    theta, _ = lin.solve(active)
+    cols = lin.cols(active)
+    left = lin.r0 + lin.jac[:, cols] @ (theta[cols] - lin.theta0[cols])
+    if not excess_is_significant(float(left @ np.linalg.solve(model.noise, left)), lin.dof(active)):
+        return active
+    while True:
+        tests = [(wander_p_value(lin.r0, lin.jac, lin.cols(tuple(a for a in active if a is not c)),
+                                 np.array(model.columns(c)), model.offsets, model.noise, model.pose_of_row,
+                                 model.bounds_s), c.key, c) for c in active if is_slow(c)]
+        weakest = max(tests, default=None)
+        if weakest is None or weakest[0] < WANDER_LEVEL:
+            return active
+        active = tuple(c for c in active if c is not weakest[2])
 
 
 def _held_out(lin: Linearised, active: tuple[Candidate, ...]) -> HeldOut:

@@ -79,6 +79,17 @@ class PoseModel:
     candidates: tuple[Candidate, ...]
     g_local: float
     excess: bool           # the weights hold an estimated excess scatter (the tests then use F)
+    noise: np.ndarray      # the weighted residuals' covariance of the poses' own noise (n_residuals, n_residuals)
+    bounds_s: np.ndarray | None  # each pose's first and last sample time since the first sample (s)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """The offsets' columns in the parameter vector."""
+        return np.arange(6, 9) if self.reference is None else np.arange(9, 12)
+
+    @property
+    def pose_of_row(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.means)), self.n_residuals // len(self.means))
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -170,7 +181,8 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
     poses = static.positions
     means, cov = pose_arrays(poses)
     times = poses.select("t_start_ns", "t_end_ns").to_numpy().astype(float)
-    elapsed = None if t0_ns is None or not np.isfinite(times).all() else (times.mean(axis=1) - t0_ns) / 1e9
+    bounds = None if t0_ns is None or not np.isfinite(times).all() else (times - t0_ns) / 1e9
+    elapsed = None if bounds is None else bounds.mean(axis=1)
     temperature = poses["temperature_c"].to_numpy().astype(float)
     excursion = None
     if np.isfinite(temperature).all() and np.ptp(temperature) > 0:
@@ -186,18 +198,29 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
         L = fit.result.state[:9].reshape(3, 3) / fit.result.g_local
         start = np.concatenate([L[TRIL], fit.result.state[9:]])
         free = ORTHOGONAL if static.model == "orthogonal" else FULL
-        variance, excess = _scalar_scatter(fit, start, means, cov, free.size)
+        noise_var, tau2 = _scalar_scatter(fit, start, means, cov, free.size)
+        variance = noise_var + tau2
         if not np.all(variance > 0):
             return None
         return PoseModel(means, elapsed, excursion, None, np.sqrt(variance), start, free, cands,
-                         fit.result.g_local, excess)
+                         fit.result.g_local, tau2 > 0, np.diag(noise_var / variance), bounds)
     excess_cov = fit.excess_cov if not isinstance(fit, ReferenceFit) or fit.pose_cov is None else _vector_excess(means, cov, references(poses))
     weight = cov + excess_cov[None]
     if fit.dof == 0 or not np.all(np.linalg.eigvalsh(weight) > 0):
         return None
     chol = np.linalg.cholesky(weight)
+    inner = np.linalg.solve(chol, cov)
+    noise = np.linalg.solve(chol, np.swapaxes(inner, 1, 2))   # L^-1 cov L^-T, pose by pose
     return PoseModel(means, elapsed, excursion, references(poses), chol, fit.result.state.copy(), np.arange(12),
-                     cands, fit.result.g_local, bool(np.any(excess_cov != 0)))
+                     cands, fit.result.g_local, bool(np.any(excess_cov != 0)), _block_diagonal(noise), bounds)
+
+
+def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    n, b, _ = blocks.shape
+    out = np.zeros((n * b, n * b))
+    for k in range(n):
+        out[k * b:(k + 1) * b, k * b:(k + 1) * b] = blocks[k]
+    return out
 
 
 # The tests weigh each pose by its own noise and an excess scatter common to the poses, estimated from the
@@ -206,14 +229,15 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
 # effect's own pattern would be taken for wander and tested against itself. The scatter is measured here again.
 
 def _scalar_scatter(fit: OrientationFreeFit, start: np.ndarray, means: np.ndarray, cov: np.ndarray,
-                    k: int) -> tuple[np.ndarray, bool]:
-    """Each pose's residual variance (noise and excess scatter) and whether an excess was estimated."""
+                    k: int) -> tuple[np.ndarray, float]:
+    """Each pose's residual variance of its noise, and the excess scatter's (0 where none was estimated)."""
     if fit.residual_cov is None:
-        return fit.variance, fit.excess_std > 0
+        assert fit.noise_var is not None
+        return fit.noise_var, fit.excess_std**2
     mag, grad, _ = magnitude_and_gradient(start, means)
     noise_var = np.maximum(np.einsum("ki,kij,kj->k", grad, cov, grad), VARIANCE_FLOOR * fit.result.g_local**2)
     tau2 = excess_variance(mag - fit.result.g_local, noise_var, len(means) - k) if len(means) > k else 0.0
-    return noise_var + tau2, tau2 > 0
+    return noise_var, tau2
 
 
 def _vector_excess(means: np.ndarray, cov: np.ndarray, reference: np.ndarray) -> np.ndarray:

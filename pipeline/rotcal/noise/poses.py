@@ -22,9 +22,8 @@ every pose shares.
 Where a channel's model cannot be identified (poses too short for five
 averaging times), its poses keep their own covariance (the lag widening of
 ``fit.means``), the wander is measured from the scatter whatever the test
-says, and the note says so; where the model misses its own Allan variance
-(reduced chi-square beyond ``MISFIT``), each pose's own variance is its
-floor.
+says, and the note says so; so too where the model misses its own Allan
+variance (reduced chi-square beyond ``MISFIT``).
 """
 
 from __future__ import annotations
@@ -38,8 +37,8 @@ from rotcal.noise.means import short_record_process, window_mean_covariance
 from rotcal.noise.model import identify_channel
 from rotcal.noise.residuals import split_at_pauses
 
-UNMODELLED = ("the poses are too short to identify the noise model of channel(s) {channels} (fewer than five averaging "
-              "times): their means keep their own scatter's variance, and a wander between poses rests on their scatter "
+UNMODELLED = ("the poses do not identify the noise model of channel(s) {channels} (fewer than five averaging times, or "
+              "no model of the catalogue's terms fits their Allan variance): their means keep their own scatter's variance, and a wander between poses rests on their scatter "
               "about the model alone")
 MISFIT = 3.0  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
 # a pose's own variance beyond its independent samples' by this factor: ``fit.means`` widened it for a lag
@@ -95,7 +94,9 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
         if not pieces:
             continue
         noise = identify_channel("", [p[:, r] for p in pieces], 1 / dt, "", allan[r])
-        if noise.reason:
+        if noise.reason or noise.chi2_reduced > MISFIT:
+            # a model that misses its own Allan variance (a filter's hump read as flicker: pose means of 3 s
+            # under a low-pass at 0.1 of the rate came out with 6 counts for 0.5) is no model of the means
             continue
         modelled[r] = True
         process = short_record_process(noise, float(noise.allan.tau_s[-1]))
@@ -105,10 +106,7 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
         # a pose's Allan variance reaches a few seconds: the terms shorter than its longest averaging time
         # are a filter's or an autoregression's; a slower one enters only where the data show it
         # (``short_record_process``), the scatter between poses measures the rest (``fit.means.channel_wander``)
-        shown = window_mean_covariance(process, a0, a1, dt, record)
-        if noise.chi2_reduced > MISFIT:  # a model that misses its own Allan variance: each pose's own scatter at least
-            shown[np.diag_indices(n)] = np.maximum(np.diag(shown), own[:, r, r])
-        channels[r] = shown
+        channels[r] = window_mean_covariance(process, a0, a1, dt, record)
     missing = [c for c, ok in zip("uvw", modelled) if not ok]
     note = UNMODELLED.format(channels=", ".join(missing)) if missing else None
     return PoseCovariance(channels, (a0 + a1) / 2, a1 - a0, modelled, note, bool(kept.all()))
