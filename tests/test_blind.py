@@ -127,10 +127,10 @@ def test_rests_of_a_low_pass_filtered_sensor_are_still():
     rests of a hand session ten times too noisy (none found before); the
     filter's memory, from where the second differences stop growing with
     the lag, gives the floor back: each rest found, none split."""
-    from handsim import hand_session
-
     from rotcal.segment.stillness import filter_memory_factor, still_intervals
     from rotcal.simulate.noise import NoiseSpec
+
+    from handsim import hand_session
 
     noise = NoiseSpec(white_sd=8.0, lowpass_order=2, lowpass_cutoff=0.1)
     frame, _ = hand_session(100, (), noise=noise)
