@@ -185,15 +185,14 @@ def channel_wander(between: PoseCovariance, residual_basis: np.ndarray, means: n
     measured from the pose means ``means`` (n, 3) about a model linear in
     ``residual_basis`` (n, p; e.g. the known references and 1) per channel
     (``averaged_wander``), where the generalised Q rejects the model's
-    covariance at ``SIGNIFICANCE`` (per channel or pooled; always where the
-    model is not identified)."""
+    covariance at ``SIGNIFICANCE`` (per channel or pooled)."""
     n, p = residual_basis.shape
     if n - p < 1:
         return between
     from scipy.special import chdtri  # here: scipy's import would slow every CLI start
 
     q = np.array([generalised_q(means[:, r], between.channels[r], residual_basis) for r in range(3)])
-    wanders = (q > chdtri(n - p, SIGNIFICANCE)) | (q.sum() > chdtri(3 * (n - p), SIGNIFICANCE)) | ~between.modelled
+    wanders = (q > chdtri(n - p, SIGNIFICANCE)) | (q.sum() > chdtri(3 * (n - p), SIGNIFICANCE))
     if not wanders.any():
         return between
     corrs = _correlations(between)
@@ -213,8 +212,7 @@ def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray,
     orientation-free fit, whose scalars show less of it than a labelled
     fit's three channels): one wander variance (output units^2) common to
     the channels (``averaged_wander``), where the generalised Q rejects the
-    model's covariance at ``SIGNIFICANCE`` (always where the model is not
-    identified)."""
+    model's covariance at ``SIGNIFICANCE``."""
     n, p = design.shape
     if n - p < 1:
         return between
@@ -222,7 +220,7 @@ def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray,
 
     base = between.projected(h)
     x = np.linalg.svd(design, full_matrices=False)[0][:, : np.linalg.matrix_rank(design)]
-    if generalised_q(residuals, base, x) <= chdtri(n - x.shape[1], SIGNIFICANCE) and between.modelled.all():
+    if generalised_q(residuals, base, x) <= chdtri(n - x.shape[1], SIGNIFICANCE):
         return between
     corrs = _correlations(between)
     spread = float(np.mean(np.einsum("rkk->rk", between.channels)))

@@ -21,9 +21,11 @@ every pose shares.
 
 Where a channel's model cannot be identified (poses too short for five
 averaging times), its poses keep their own covariance (the lag widening of
-``fit.means``), the wander is measured from the scatter whatever the test
-says, and the note says so; so too where the model misses its own Allan
-variance (reduced chi-square beyond ``MISFIT``).
+``fit.means``), a wander is added where their scatter shows one (as where
+the model is identified: at a few residual degrees of freedom the scatter
+alone sizes a wander poorly, ten poses of a nine-parameter fit gave s_w
+0.4 % for 0.02 %), and the note says so; so too where the model misses its
+own Allan variance (reduced chi-square beyond ``MISFIT``).
 """
 
 from __future__ import annotations
@@ -38,8 +40,7 @@ from rotcal.noise.model import identify_channel
 from rotcal.noise.residuals import split_at_pauses
 
 UNMODELLED = ("the poses do not identify the noise model of channel(s) {channels} (fewer than five averaging times, or "
-              "no model of the catalogue's terms fits their Allan variance): their means keep their own scatter's variance, and a wander between poses rests on their scatter "
-              "about the model alone")
+              "no model of the catalogue's terms fits their Allan variance): their means keep their own scatter's variance (its lag widening)")
 MISFIT = 3.0  # a noise model's reduced chi-square beyond it: the model misses its own Allan variance
 # a pose's own variance beyond its independent samples' by this factor: ``fit.means`` widened it for a lag
 # (its density ratio is at least 1.4 where applied), which the model replaces
