@@ -116,7 +116,10 @@ def orientation_free_f_test(full: OrientationFreeFit, restricted: OrientationFre
         s_restricted = float(r_restricted @ np.linalg.solve(full.residual_cov, r_restricted))
         return f_test(s_restricted - s_full, full.parameters - restricted.parameters, 1.0, float("inf"))
     s_full = float(np.sum((full.magnitude - g_local) ** 2 / full.variance))
-    s_restricted = float(np.sum((restricted.magnitude - g_local) ** 2 / (restricted.noise_var + full.excess_std**2)))
+    # a restricted fit that took a wander for its misfit (generalised) is weighed by the poses' noise as the full one is
+    noise = restricted.noise_var if restricted.residual_cov is None else full.noise_var
+    assert noise is not None
+    s_restricted = float(np.sum((restricted.magnitude - g_local) ** 2 / (noise + full.excess_std**2)))
     return f_test(s_restricted - s_full, full.parameters - restricted.parameters, 1.0,
                   float("inf") if full.excess_std == 0.0 else float(full.dof))
 
