@@ -162,10 +162,9 @@ def reduce_static(samples: pl.DataFrame, segments: pl.DataFrame, dataset: str, g
     fault = channel_fault(positions) or (reference_fault(positions) if positions["source"][0] == "jig" else None)
     if fault is not None:
         return Failure(0.0, fault)
-    # poses of the samples: their means' covariance between poses from the noise model (``noise.poses``);
-    # poses without scatter (noise-free) have no noise to model
-    positions, between = modelled_poses(samples, positions) if samples is not None and not positions["t_start_ns"].null_count() \
-        and not single.height and not without_scatter(positions) and scattered(positions) else (positions, None)
+    # poses of the samples: their means' covariance between poses from the noise model (``noise.poses``)
+    positions, between = modelled_poses(samples, positions) if samples is not None and not single.height \
+        else (positions, None)
     reduction = _reduced(positions, dataset, g_local, g_uncertainty, placement, between)
     if not isinstance(reduction, Failure) and reduction.results:
         reduction = _with_datasheet(reduction, placement)
@@ -266,9 +265,3 @@ def _chosen(positions: pl.DataFrame, dataset: str, choice: ModelChoice | Failure
     nested = (("orthogonal", choice.orthogonal.result),) if model == "baseline" and not isinstance(choice.orthogonal, Failure) else ()
     return StaticReduction(frame, (general.result,), (), (Table("poses", check),), tuple(told), method, general,
                            positions, check, model, nested, (choice.note,), (choice.chosen, choice.reason))
-
-
-def scattered(positions: pl.DataFrame) -> bool:
-    """Every pose's mean has a variance in every channel (identical samples have none to model)."""
-    var = np.array(positions["cov_mean"].to_list(), float).reshape(-1, 9)[:, [0, 4, 8]]
-    return bool(np.all(var > 0))

@@ -89,7 +89,7 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
     then weighed as static poses are, by their covariance between dwells
     from the noise model and the wander their scatter shows
     (``fit.means.modelled_poses``)."""
-    from rotcal.combine.static import scattered, with_unused  # here: static imports the pose machinery this module need not
+    from rotcal.combine.static import with_unused  # here: static imports the pose machinery this module need not
 
     results: tuple[IntrinsicResult, ...] = ()
     failures: tuple[Failure, ...] = ()
@@ -102,9 +102,7 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
     if fault is not None:
         failures = (Failure(0.0, f"static dwells: {fault}"),)
     elif need_static and dwells.height:
-        between = None
-        if samples is not None and scattered(dwells):
-            dwells, between = modelled_poses(samples, dwells)
+        dwells, between = (dwells, None) if samples is None else modelled_poses(samples, dwells)
         fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty, between=between)
         if isinstance(fit, OrientationFreeFit):
             results = (fit.result,)

@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 
 from rotcal.combine import StaticReduction
 from rotcal.combine.multiposition import (
@@ -212,15 +213,7 @@ def pose_model(static: StaticReduction, t0_ns: int | None) -> PoseModel | None:
     inner = np.linalg.solve(chol, cov)
     noise = np.linalg.solve(chol, np.swapaxes(inner, 1, 2))   # L^-1 cov L^-T, pose by pose
     return PoseModel(means, elapsed, excursion, references(poses), chol, fit.result.state.copy(), np.arange(12),
-                     cands, fit.result.g_local, bool(np.any(excess_cov != 0)), _block_diagonal(noise), bounds)
-
-
-def _block_diagonal(blocks: np.ndarray) -> np.ndarray:
-    n, b, _ = blocks.shape
-    out = np.zeros((n * b, n * b))
-    for k in range(n):
-        out[k * b:(k + 1) * b, k * b:(k + 1) * b] = blocks[k]
-    return out
+                     cands, fit.result.g_local, bool(np.any(excess_cov != 0)), block_diag(*noise), bounds)
 
 
 # The tests weigh each pose by its own noise and an excess scatter common to the poses, estimated from the

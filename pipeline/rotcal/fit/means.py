@@ -232,10 +232,13 @@ def modelled_poses(samples: pl.DataFrame, poses: pl.DataFrame) -> tuple[pl.DataF
     """``with_noise_model`` of a recording's pose table (still intervals,
     labelled poses: ``combine.poses``), each pose the run of samples from
     its first to its last time stamp; ``poses`` as they are and None where
-    the samples' time stamps do not increase or a pose's run holds other
-    samples than its own (its count differs)."""
+    a pose's mean has no variance in some channel (identical samples: no
+    noise to model), the samples' time stamps do not increase or a pose's
+    run holds other samples than its own (its count differs)."""
     t_all = samples["t_ns"].to_numpy()
-    if poses.height < 2 or poses["t_start_ns"].null_count() or t_all.size < 2 or not np.all(np.diff(t_all) > 0):
+    variances = np.array(poses["cov_mean"].to_list(), float).reshape(-1, 9)[:, [0, 4, 8]]
+    if (poses.height < 2 or poses["t_start_ns"].null_count() or not np.all(variances > 0) or t_all.size < 2
+            or not np.all(np.diff(t_all) > 0)):
         return poses, None
     first = np.searchsorted(t_all, poses["t_start_ns"].to_numpy(), "left")
     last = np.searchsorted(t_all, poses["t_end_ns"].to_numpy(), "right")
