@@ -11,6 +11,8 @@ Seeded sessions of 24 hand-placed poses of 30 s, as
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from rotcal.combine.posemodels import choose_model
@@ -54,3 +56,27 @@ def test_wander_moves_the_offsets_within_their_uncertainty():
     # 36 offsets' z: an rms within about 0.2 of 1 by chance; taken as independent, they were 2.6 and 4.7
     assert all(0.7 <= v <= 1.4 for v in rms.values()), rms
     assert np.mean(np.abs(labelled) <= 2) >= 0.85 and np.mean(np.abs(free) <= 2) >= 0.85, rms
+
+
+def test_short_dwells_under_an_autoregression_get_its_mean_variance():
+    """An unlabelled table run's 3 s dwells (50 samples at 0.06 s) under an
+    AR(1) of phi 0.9 and sd 8 beside white noise of sd 8 give five octave
+    averaging times: too few for the model to try a Gauss-Markov term, and
+    the full model split the autoregression into flicker, extrapolated to
+    the record's length (10.8 counts for a dwell's mean). Each dwell mean's
+    sd, from the AR(1)'s autocovariance, is sqrt(64 / 50 (1 + (1 + phi) /
+    (1 - phi) - 2 phi (1 - phi^50) / (50 (1 - phi)^2))) = 4.58 counts."""
+    n, gap, dwells, phi = 50, 50, 72, 0.9
+    spec = NoiseSpec(white_sd=WHITE_SD, ar=(phi,), ar_sd=WHITE_SD)
+    truth = math.sqrt(WHITE_SD**2 / n * (1 + (1 + phi) / (1 - phi) - 2 * phi * (1 - phi**n) / (n * (1 - phi) ** 2)))
+    starts = np.arange(dwells) * (n + gap)
+    t_ns = np.arange(dwells * (n + gap), dtype=np.int64) * round(DT_S * 1e9)
+    sd, z = [], []
+    for seed in range(4):
+        y = draw_channels(spec, t_ns.size, 1 / DT_S, np.random.default_rng([seed, 0xA9]), 3)
+        _, between = modelled_pose_table(t_ns, y, starts, starts + n)
+        model = np.sqrt(np.einsum("rkk->kr", between.channels))
+        sd.append(float(np.median(model)))
+        z.append((np.array([y[a:a + n].mean(axis=0) for a in starts]) / model).ravel())
+    assert all(0.7 * truth <= s <= 1.3 * truth for s in sd), (sd, truth)
+    assert 0.75 <= float(np.std(np.concatenate(z))) <= 1.3, np.std(np.concatenate(z))

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rotcal.noise.model import FLICKER, ChannelNoise, gauss_markov_avar
+from rotcal.noise.model import FLICKER, ChannelNoise, bounded_channel, free_parameters, gauss_markov_avar
 
 FLICKER_PER_DECADE = 2
 # the averaging times that decide whether a noise slower than white is shown: the longest five octaves
@@ -164,7 +164,11 @@ def short_record_process(channel: ChannelNoise, fast_below_s: float) -> NoisePro
     them so that none is alone (flicker beside a random walk), all at their
     fitted values where ``slow_shown`` and their Allan variance at the
     longest averaging time exceeds the fast terms' (below it the fit could
-    have given them a fast term's tail). The random walk is left out, as
+    have given them a fast term's tail). Where the averaging times are too
+    few for the model to have tried a Gauss-Markov term, that slow part is
+    white noise and one Gauss-Markov term fitted alone
+    (``model.bounded_channel``): a bounded process, the scatter between
+    poses measuring any slower rest. The random walk is left out, as
     ``process_of`` leaves it."""
     value = {(t.term, t.index): t for t in channel.terms}
     fast = _fast(channel, fast_below_s)
@@ -180,4 +184,6 @@ def short_record_process(channel: ChannelNoise, fast_below_s: float) -> NoisePro
     slow_avar = (FLICKER * _value(channel, "bias_instability") ** 2 + sum(gauss_markov_avar(tau, q, t, channel.dt) for (t, q), _ in slow) + _value(channel, "random_walk") ** 2 * tau / 3)
     if float(slow_avar[0]) <= float(fast_avar[0]):
         return fast
+    if channel.allan.tau_s.size <= free_parameters(1):  # too few for ``model`` to try a Gauss-Markov term
+        return _fast(bounded_channel(channel), np.inf)
     return replace(fast, gauss_markov=fast.gauss_markov + tuple(t for t, _ in slow), flicker_b=_value(channel, "bias_instability"))

@@ -123,12 +123,13 @@ def _alphas(tau: np.ndarray, avar: np.ndarray) -> np.ndarray:
 
 
 def _linear(tau: np.ndarray, a: np.ndarray, sd: np.ndarray, taus_c: tuple[float, ...],
-            dt: float) -> tuple[np.ndarray, float, np.ndarray]:
+            dt: float, power: tuple[int, ...] = (0, 1, 2, 3)) -> tuple[np.ndarray, float, np.ndarray]:
     """The coefficients linear in the Allan variance (c_Q, N^2, B^2, K^2,
     q_j^2) for fixed correlation times, by bounded weighted least squares
-    (``nnls``, columns scaled to unit norm): (coefficients, chi-square,
-    the weighted design)."""
-    design = np.column_stack([_basis(tau), *(gauss_markov_avar(tau, 1.0, t, dt) for t in taus_c)]) / sd[:, None]
+    (``nnls``, columns scaled to unit norm), the power-law terms outside
+    ``power`` held at 0: (coefficients, chi-square, the weighted design)."""
+    basis = _basis(tau) * np.isin(np.arange(len(POWER_TERMS)), power)
+    design = np.column_stack([basis, *(gauss_markov_avar(tau, 1.0, t, dt) for t in taus_c)]) / sd[:, None]
     norm = np.linalg.norm(design, axis=0)
     norm[norm == 0] = 1.0
     # the 3 / tau^2 coefficient may be negative: a low-pass takes from the shortest averaging times what
@@ -142,7 +143,7 @@ def _linear(tau: np.ndarray, a: np.ndarray, sd: np.ndarray, taus_c: tuple[float,
 
 
 def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float, first: float | None = None,
-         start: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+         start: np.ndarray | None = None, power: tuple[int, ...] = (0, 1, 2, 3)) -> tuple[np.ndarray, float, np.ndarray]:
     """The weighted least-squares fit with ``n_gm`` Gauss-Markov terms by
     variable projection: the linear coefficients solved for each set of
     correlation times, the times searched on a grid (one per octave; a
@@ -155,7 +156,7 @@ def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float, first: float |
     def chi2(log_t: np.ndarray) -> float:
         if np.any(log_t < low) or np.any(log_t > high):
             return np.inf
-        return _linear(tau, a, sd, tuple(np.exp(np.sort(log_t))), dt)[1]
+        return _linear(tau, a, sd, tuple(np.exp(np.sort(log_t))), dt, power)[1]
 
     log_t = np.empty(0)
     if n_gm and start is not None:
@@ -167,13 +168,30 @@ def _fit(av: AllanVariance, sd: np.ndarray, n_gm: int, dt: float, first: float |
         log_t = min(candidates, key=chi2)
     if n_gm:
         log_t = np.sort(minimize(chi2, log_t, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-3}).x)
-    coef, value, design = _linear(tau, a, sd, tuple(np.exp(log_t)), dt)
+    coef, value, design = _linear(tau, a, sd, tuple(np.exp(log_t)), dt, power)
     columns = [design]
     for j in range(n_gm):  # d residual / d log T_j = q_j^2 d GM(tau; 1, T_j) / d log T_j
         step = 1e-5
         up, down = (gauss_markov_avar(tau, 1.0, math.exp(log_t[j] + h), dt) for h in (step, -step))
         columns.append((coef[4 + j] * (up - down) / (2 * step) / sd)[:, None])
     return np.r_[coef, log_t], value, np.hstack(columns)
+
+
+def _reweighted(av: AllanVariance, dt: float, n_gm: int, first: float | None = None,
+                power: tuple[int, ...] = (0, 1, 2, 3)) -> tuple[np.ndarray, float, np.ndarray]:
+    """``_fit`` weighted by its own model's Allan variance, iterated once
+    from the estimates' (x, chi2, jac)."""
+    sd = av.avar * np.sqrt(2 / av.edf)
+    start = None
+    for _ in range(2):
+        x, chi2, jac = _fit(av, sd, n_gm, dt, first, start, power)
+        start = x[4 + n_gm:]  # the reweighted fit starts where the first ended
+        gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
+        # the weights never above a thousandth of the observed variance's: a model that misses some
+        # averaging time by orders (a deterministic misfit left in the residuals) would otherwise
+        # weigh it by 1e300 and overflow the design
+        sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-3 * av.avar) * np.sqrt(2 / av.edf)
+    return x, chi2, jac
 
 
 def _select(av: AllanVariance, dt: float):
@@ -186,19 +204,10 @@ def _select(av: AllanVariance, dt: float):
     the white noise with N. (aic, n_gm, x, chi2, jac)."""
     best = None
     for n_gm in range(MAX_GAUSS_MARKOV + 1):
-        if av.tau_s.size - (4 + 2 * n_gm) < 1 or (best is not None and best[1] < n_gm - 1):
+        if av.tau_s.size <= free_parameters(n_gm) or (best is not None and best[1] < n_gm - 1):
             break
-        sd = av.avar * np.sqrt(2 / av.edf)
         first = float(best[2][5]) if best is not None and best[1] == 1 else None
-        start = None
-        for _ in range(2):
-            x, chi2, jac = _fit(av, sd, n_gm, dt, first, start)
-            start = x[4 + n_gm:]  # the reweighted fit starts where the first ended
-            gm = [(math.sqrt(x[4 + j]), math.exp(x[4 + n_gm + j])) for j in range(n_gm)]
-            # the weights never above a thousandth of the observed variance's: a model that misses some
-            # averaging time by orders (a deterministic misfit left in the residuals) would otherwise
-            # weigh it by 1e300 and overflow the design
-            sd = np.maximum(_model(av.tau_s, x[:4], gm, dt), 1e-3 * av.avar) * np.sqrt(2 / av.edf)
+        x, chi2, jac = _reweighted(av, dt, n_gm, first)
         if not (np.isfinite(chi2) and np.isfinite(jac).all()):
             break
         aic = chi2 + 2 * (4 + 2 * n_gm)
@@ -207,6 +216,11 @@ def _select(av: AllanVariance, dt: float):
         if best is None or aic < best[0] - 1e-9:
             best = (aic, n_gm, x, chi2, jac)
     return best
+
+
+def free_parameters(n_gm: int) -> int:
+    """The model's parameters with ``n_gm`` Gauss-Markov terms (the power-law coefficients, q_j^2 and log T_j)."""
+    return len(POWER_TERMS) + 2 * n_gm
 
 
 def _covariance(jac: np.ndarray, chi2: float, n_tau: int, n_gm: int) -> np.ndarray:
@@ -250,6 +264,21 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
     chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
     cov = _covariance(jac, chi2, kept.tau_s.size, n_gm)
     return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
+
+
+def bounded_channel(channel: ChannelNoise) -> ChannelNoise:
+    """The channel's Allan variance fitted with white noise (and its
+    band limit) and one Gauss-Markov term alone: a slow noise the
+    averaging times show but are too few to split (the full model leaves
+    no degree of freedom for a Gauss-Markov term below seven of them),
+    taken as the bounded process it may be rather than as flicker
+    extrapolated to the record's length (an autoregression at 0.9 read
+    from 3 s dwells as flicker gave each dwell's mean 11 counts for 4.6)."""
+    av = channel.allan
+    x, chi2, jac = _reweighted(av, channel.dt, 1, power=(0, 1))
+    cov = _covariance(jac, chi2, av.tau_s.size, 1)
+    return ChannelNoise(channel.channel, av, _terms(x, cov, 1, ""), chi2 / max(av.tau_s.size - 4, 1), channel.dt,
+                        float(x[0]))
 
 
 def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, ...]:
