@@ -7,6 +7,8 @@ the normalised errors z = (estimate - truth) / u and the fraction |z| <= 2
 datasets' finding rates (any catalogue finding; any finding at all).
 
     python scripts/noise_coverage.py [--datasets 50] [--diagnosed 50] [--workers 2] [--shapes white,ar09,...] [--out FILE.jsonl]
+
+``--shapes`` also takes the ``UNSEEN`` shapes, which no test draws.
         [--recording labelled|unlabelled]
     python scripts/noise_coverage.py --summarise FILE.jsonl
 
@@ -64,7 +66,22 @@ def noise_request(shape: str, seed: int) -> str:
         "flicker": f"white_sd={WHITE_SD},flicker_b=2",
         "random_walk": f"white_sd={WHITE_SD},random_walk_k=0.05",
         "mix": "white_sd=6,ar=0.5,ar_sd=4,lowpass_order=2,lowpass_cutoff=0.4,gauss_markov=300:2,flicker_b=1,random_walk_k=0.02",
+        **UNSEEN,
     }[shape]
+
+
+# shapes no test draws (``--shapes ar2,gm_fast,...``): what a recording from elsewhere may hold
+UNSEEN = {
+    "ar2": "white_sd=6,ar=1.2;-0.4,ar_sd=6",
+    "gm_fast": "white_sd=6,gauss_markov=1.0:6",
+    "quant": "white_sd=1.5,quantization=4",
+    "lp4": "white_sd=8,lowpass_order=4,lowpass_cutoff=0.05",
+    "flicker5": "white_sd=6,flicker_b=5",
+    "gm30": "white_sd=8,gauss_markov=30:3",
+    "gm1000": "white_sd=8,gauss_markov=1000:3",
+    "gm3000": "white_sd=8,gauss_markov=3000:3",
+    "gm2": "white_sd=6,gauss_markov=30:3;2000:3",
+}
 
 
 SHAPES = ("white", "ar09", "lowpass01", "lowpass04", "gauss_markov", "flicker", "random_walk", "mix")
