@@ -175,3 +175,17 @@ def test_a_record_too_short_for_a_noise_model_is_widened_and_says_so():
     wander = np.sqrt(window_mean_covariance(NoiseProcess(gauss_markov=((5.0, 20.0),)), np.zeros(1), np.full(1, span), DT,
                                             (0.0, span))[0, 0])
     assert np.all(u >= wander), (u, wander)
+
+
+def test_a_slow_rotation_reads_the_density_at_its_own_frequency():
+    """Segments of 2.5 cycles at 0.01 Hz (4200 samples; beside one at 0.05
+    Hz) under a wander of 110 s and sd 3.8 counts: the density at 0.01 Hz
+    is 16 times the residuals' level, falling as 1/f^2 above it, and the
+    record resolves almost nothing below it, so the mean ordinate of a
+    window widened to gather its ordinates read it about 30 % low (the
+    sine terms' sd of z was 1.22 at 0.01 Hz); the power law fitted to the
+    window's bands gives the density at 0.01 Hz itself (0.94)."""
+    noise = NoiseSpec(white_sd=8.0, gauss_markov=((110.0, 3.8),))
+    z = normalised_errors(noise, (0.01, 0.05), 4200, 60, seed=5)[0].reshape(60, 2, 9)[:, :, SINE]
+    sd = np.sqrt(np.mean(z**2, axis=(0, 2)))
+    assert np.all((sd > 0.8) & (sd < 1.15)), sd

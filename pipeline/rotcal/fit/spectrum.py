@@ -116,7 +116,9 @@ def _local_slope(pooled: dict[int, tuple[np.ndarray, float]], bands: np.ndarray,
     window widened to gather its ordinates is lopsided where a short record
     resolves nothing below the target (a wander's density falling as 1/f^2
     over a rotation of 2.5 cycles was read 30 % low by the window's mean);
-    ``mean`` (the window's) where they do not."""
+    ``mean`` (the window's) where they do not. The caller takes the larger
+    of the two: the ordinates of a noise-free record (rounding alone) fit
+    no power law."""
     if bands.size < 2:
         return mean
     counts = np.array([pooled[int(k)][1] for k in bands], float)
@@ -156,8 +158,8 @@ def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, l
         return narrow
     wide, m_wide, _ = _window(pooled, low, high, WIDE_ORDINATES)
     on, on_wide = _coloured(narrow, m), _coloured(wide, m_wide)
-    if f_hz > 0 and (on | on_wide).any():  # coloured: the density at f itself, not the window's mean
-        narrow = _local_slope(pooled, bands, f_hz, narrow)
+    if f_hz > 0 and (on | on_wide).any():  # coloured: the density at f itself where above the window's mean
+        narrow = np.maximum(narrow, _local_slope(pooled, bands, f_hz, narrow))
     return np.where(on, narrow, np.where(on_wide, np.maximum(narrow, wide), 1.0))
 
 
