@@ -147,7 +147,8 @@ def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, l
     """Each channel's F at ``f_hz`` from the pooled bands (band -> (sums,
     count)): the mean ordinate over [f/2, 2f] (exact for a density falling
     as 1/f^2, 0.92 of it for 1/f), widened an octave at a time until it
-    holds ``MIN_ORDINATES``; zero frequency is read in [low/4, low], low
+    holds ``MIN_ORDINATES``, and where coloured at least the power law
+    fitted to those bands at f (``_local_slope``); zero frequency is read in [low/4, low], low
     the segment's 1 / T, from at least ``MIN_ORDINATES_AT_ZERO``. 1 where
     white noise explains it (Gamma(m, 1/m)) there and in the window widened
     to ``WIDE_ORDINATES``, which tests with more power; where only the wide
