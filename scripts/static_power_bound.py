@@ -38,9 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from static_diagnosis_acceptance import SIZES, request  # noqa: E402
 
 from rotcal.noise.means import NoiseProcess, window_mean_covariance  # noqa: E402
-from rotcal.simulate import DutSpec, draw_dut  # noqa: E402
 
-from posesim import G_LOCAL, random_directions  # noqa: E402
+from handsim import session_draws  # noqa: E402
+from posesim import G_LOCAL  # noqa: E402
 
 DT_S, REST_S, MOVE_S, POSES = 0.01, 4.0, 3.0, 30
 FALSE_ALARM = 1e-4
@@ -54,9 +54,8 @@ EFFECTS = ("cubic_nonlinearity", "quadratic_nonlinearity", "offset_drift")
 
 def noncentrality(seed: int, effect: str, size: float, cov: np.ndarray, t_mid: np.ndarray) -> float:
     """lambda of one session's effect (module docstring)."""
-    dut_rng, pose_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)[:2])
-    dut, _ = draw_dut(DutSpec(), dut_rng)  # the session's DUT and poses, as hand_session draws them
-    y = G_LOCAL * random_directions(pose_rng, POSES) @ dut.responsivity.T
+    dut, directions, *_ = session_draws(seed, POSES)
+    y = G_LOCAL * directions @ dut.responsivity.T
     x1g = np.linalg.norm(dut.responsivity, axis=1) * G_LOCAL
     a_inv = np.linalg.inv(dut.responsivity)
     unit = y @ a_inv.T

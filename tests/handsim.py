@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from rotcal.model.conventions import CHANNELS, Motion
+from rotcal.model.conventions import CHANNELS, Dut, Motion
 from rotcal.model.effects import effect_named
 from rotcal.model.physics import nonlinearity, observe, offset_terms, scale_terms, scaled
 from rotcal.simulate import DutSpec, build_effects, draw_dut
@@ -21,6 +21,15 @@ from rotcal.simulate.noise import NoiseSpec, draw_channels
 from rotcal.simulate.spec import parse_effect
 
 from posesim import G_LOCAL, random_directions
+
+
+def session_draws(seed: int, n_poses: int) -> tuple[Dut, np.ndarray, np.random.Generator, np.random.Generator,
+                                                   np.random.Generator]:
+    """A session's DUT and rest directions as ``hand_session`` draws them,
+    with the generators it draws the rest from (turns; effects; noise)."""
+    dut_rng, pose_rng, effect_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    dut, _ = draw_dut(DutSpec(), dut_rng)
+    return dut, random_directions(pose_rng, n_poses), pose_rng, effect_rng, noise_rng
 
 
 def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, rest_s: float = 4.0,
@@ -34,10 +43,8 @@ def hand_session(seed: int, effects: tuple[str, ...] = (), n_poses: int = 30, re
     per channel (output units), as an unsteady hand leaves it; ``noise``:
     the DUT's noise drawn over the whole session in place of its white
     noise (``rotcal.simulate.noise``)."""
-    dut_rng, pose_rng, effect_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
-    dut, _ = draw_dut(DutSpec(), dut_rng)
+    dut, d, pose_rng, effect_rng, noise_rng = session_draws(seed, n_poses)
     requested, described = build_effects(tuple(parse_effect(e) for e in effects), effect_rng)
-    d = random_directions(pose_rng, n_poses)
     rest, move = int(round(rest_s / dt_s)), 0 if jig else int(round(move_s / dt_s))
     blocks, shifts = [], []
     shift = pose_rng.normal(0.0, excess, (n_poses, 3)) if excess else np.zeros((n_poses, 3))

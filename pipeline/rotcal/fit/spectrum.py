@@ -89,6 +89,11 @@ def periodogram(resid: np.ndarray, dt_s: float, sine_cycles: float) -> Periodogr
                        resolution)
 
 
+def band_centre_hz(band: np.ndarray) -> np.ndarray:
+    """The geometric middle of each quarter-octave band (``band_index``)."""
+    return 2.0 ** ((np.asarray(band, float) + 0.5) / BANDS_PER_OCTAVE)
+
+
 def _window(pooled: dict[int, tuple[np.ndarray, float]], low: float, high: float, enough: float
             ) -> tuple[np.ndarray, float, np.ndarray]:
     """The mean ordinate per channel over [low, high] Hz widened an octave
@@ -123,7 +128,7 @@ def _local_slope(pooled: dict[int, tuple[np.ndarray, float]], bands: np.ndarray,
         return mean
     counts = np.array([pooled[int(k)][1] for k in bands], float)
     means = np.array([pooled[int(k)][0] for k in bands], float) / counts[:, None]
-    x = (bands + 0.5) / BANDS_PER_OCTAVE * np.log(2) - np.log(f_hz)  # ln of each band's mid frequency over f
+    x = np.log(band_centre_hz(bands) / f_hz)
     y = np.log(np.maximum(means, 1e-300)) - (digamma(counts) - np.log(counts))[:, None]
     design = np.column_stack([np.ones(bands.size), x]) * np.sqrt(counts)[:, None]
     coef = np.linalg.lstsq(design, y * np.sqrt(counts)[:, None], rcond=None)[0]

@@ -210,7 +210,7 @@ def _select(av: AllanVariance, dt: float):
         x, chi2, jac = _reweighted(av, dt, n_gm, first)
         if not (np.isfinite(chi2) and np.isfinite(jac).all()):
             break
-        aic = chi2 + 2 * (4 + 2 * n_gm)
+        aic = chi2 + 2 * free_parameters(n_gm)
         if n_gm and not _shown(x, jac, chi2, av.tau_s.size, n_gm):
             continue
         if best is None or aic < best[0] - 1e-9:
@@ -223,15 +223,20 @@ def free_parameters(n_gm: int) -> int:
     return len(POWER_TERMS) + 2 * n_gm
 
 
-def _covariance(jac: np.ndarray, chi2: float, n_tau: int, n_gm: int) -> np.ndarray:
-    """The parameters' covariance (module docstring)."""
-    chi2_red = chi2 / max(n_tau - (4 + 2 * n_gm), 1)
+def _reduced(chi2: float, n_tau: int, free: int) -> float:
+    """The chi-square over its degrees of freedom (at least 1): ``n_tau`` averaging times less ``free`` parameters."""
+    return chi2 / max(n_tau - free, 1)
+
+
+def _covariance(jac: np.ndarray, chi2: float, n_tau: int, free: int) -> np.ndarray:
+    """The parameters' covariance (module docstring) of a fit of ``free`` parameters."""
+    chi2_red = _reduced(chi2, n_tau, free)
     return np.linalg.pinv(jac.T @ jac) * max(chi2_red, 1.0) * OCTAVE_CORRELATION**2
 
 
 def _shown(x: np.ndarray, jac: np.ndarray, chi2: float, n_tau: int, n_gm: int) -> bool:
     """Whether every Gauss-Markov variance exceeds its standard uncertainty."""
-    cov = _covariance(jac, chi2, n_tau, n_gm)
+    cov = _covariance(jac, chi2, n_tau, free_parameters(n_gm))
     return all(x[4 + j] > math.sqrt(max(cov[4 + j, 4 + j], 0.0)) for j in range(n_gm))
 
 
@@ -252,7 +257,7 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
         found = _select(part, dt)
         if found is None:
             break
-        red = found[3] / max(part.tau_s.size - (4 + 2 * found[1]), 1)
+        red = _reduced(found[3], part.tau_s.size, free_parameters(found[1]))
         if best is None or red < best[0]:
             best, kept = (red, found), part
         if red <= 3.0:
@@ -261,8 +266,8 @@ def fit_channel(channel: str, av: AllanVariance, dt: float, unit: str) -> Channe
         return ChannelNoise(channel, av, (), 0.0, dt, 0.0, "no noise model fits the residuals' Allan variance "
                                                    "(a deterministic misfit dominates it)")
     _, (_, n_gm, x, chi2, jac) = best
-    chi2_red = chi2 / max(kept.tau_s.size - (4 + 2 * n_gm), 1)
-    cov = _covariance(jac, chi2, kept.tau_s.size, n_gm)
+    chi2_red = _reduced(chi2, kept.tau_s.size, free_parameters(n_gm))
+    cov = _covariance(jac, chi2, kept.tau_s.size, free_parameters(n_gm))
     return ChannelNoise(channel, av, _terms(x, cov, n_gm, unit), chi2_red, dt, float(x[0]))
 
 
@@ -274,11 +279,11 @@ def bounded_channel(channel: ChannelNoise) -> ChannelNoise:
     taken as the bounded process it may be rather than as flicker
     extrapolated to the record's length (an autoregression at 0.9 read
     from 3 s dwells as flicker gave each dwell's mean 11 counts for 4.6)."""
-    av = channel.allan
-    x, chi2, jac = _reweighted(av, channel.dt, 1, power=(0, 1))
-    cov = _covariance(jac, chi2, av.tau_s.size, 1)
-    return ChannelNoise(channel.channel, av, _terms(x, cov, 1, ""), chi2 / max(av.tau_s.size - 4, 1), channel.dt,
-                        float(x[0]))
+    av, power = channel.allan, (0, 1)
+    x, chi2, jac = _reweighted(av, channel.dt, 1, power=power)
+    free = len(power) + 2  # the band limit, N^2, q^2 and log T
+    return ChannelNoise(channel.channel, av, _terms(x, _covariance(jac, chi2, av.tau_s.size, free), 1, ""),
+                        _reduced(chi2, av.tau_s.size, free), channel.dt, float(x[0]))
 
 
 def _terms(x: np.ndarray, cov: np.ndarray, n_gm: int, unit: str) -> tuple[Term, ...]:
