@@ -172,3 +172,24 @@ def test_a_harmonic_within_rotations_is_not_set_aside_by_the_segments_wander(tmp
     diagnosis = diagnosis_under(MIX, 22200, tmp_path, "quadratic_nonlinearity:k2_v=-0.000122515")
     found = diagnosis.findings.filter(diagnosis.findings["detected"])
     assert found["effect"].to_list() == ["quadratic_nonlinearity"], found.select("effect", "where", "evidence").rows()
+
+
+def test_the_whitening_does_not_link_a_static_step_to_the_one_before(tmp_path):
+    """A fourth-order low-pass at 0.05 of the sample rate (an unseen shape
+    of ``scripts/noise_coverage.py``): its noise is correlated over tens of
+    samples, so the whitening filter is steep. Filtering the last sample
+    of one static step into the first of the next (the motion between them
+    is not modelled) weighed the steps' edges by noise the filter did not
+    describe: the refit's 0 Hz responsivities moved off the static fits
+    and the segment scan read that as a misfit (``unexplained`` in every
+    dataset, chi-square 90 to 164 on 45). The filter restarts at each gap
+    in time (``Observations.run``)."""
+    diagnosis = diagnosis_under("white_sd=8,lowpass_order=4,lowpass_cutoff=0.05", 0, tmp_path)
+    found = diagnosis.findings.filter(diagnosis.findings["detected"])
+    assert found.height == 0, found.select("effect", "where", "evidence").rows()
+    obs = diagnosis.final.obs
+    static = ~obs.motion.rotating
+    steps = np.unique(obs.motion.theta_cmd_deg[static] + 1e3 * obs.segment[static]).size
+    # each static step is a run of its own: as many runs as steps among the static samples
+    assert np.unique(obs.run[static]).size == steps
+    assert np.all(obs.whitening.phi[np.r_[True, obs.run[1:] != obs.run[:-1]]] == 0.0)

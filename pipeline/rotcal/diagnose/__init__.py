@@ -90,7 +90,7 @@ def _residuals(fit: ModelFit, output_unit: str) -> Residuals:
     m = fit.obs.motion
     # each sample's rate as its result names it (a reconstructed rotation runs at its segment's own fitted rate)
     return Residuals(m.t_s, fit.ev.resid, fit.use, fit.sigma, fit.obs.segment, m.axis_idx, fit.obs.rates[fit.obs.rate_idx],
-                     m.rotating, m.theta_cmd_deg, output_unit)
+                     m.rotating, m.theta_cmd_deg, output_unit, fit.obs.run)
 
 
 def _clip_mask(fit: ModelFit, clip: tuple[float | None, float | None], margin_sigma: float = 5.0) -> np.ndarray:
@@ -279,7 +279,7 @@ def _modelled(obs: Observations, layout: Layout, results: list[IntrinsicResult],
     clip = clip_limits(evidence, alpha)
     final = _select(_clipped(fit, clip), cands, alpha)
     if all(v is None for v in clip):   # the censoring test, against the selected model (``clipping``)
-        noise = np.minimum(final.sigma, successive_noise(obs.whitened(obs.y - final.ev.pred), obs.segment))
+        noise = np.minimum(final.sigma, successive_noise(obs.whitened(obs.y - final.ev.pred), obs.run))
         evidence = stuck_values(obs.y, q, (final.ev.pred, obs.sample_noise(noise)))
         clip = clip_limits(evidence, alpha)
         if any(v is not None for v in clip):

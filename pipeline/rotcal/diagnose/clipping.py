@@ -76,12 +76,12 @@ def censoring_gain(mu: np.ndarray, sigma: np.ndarray, limit: np.ndarray | float,
     return -np.log1p(-np.exp(log_ndtr(-upper) - log_ndtr(-lower)))
 
 
-def successive_noise(resid: np.ndarray, segment: np.ndarray) -> np.ndarray:
+def successive_noise(resid: np.ndarray, run: np.ndarray) -> np.ndarray:
     """Per channel, the noise standard deviation from the differences of
-    successive residuals within a segment (the von Neumann estimate,
+    successive residuals within a ``run`` (the von Neumann estimate,
     E (e_i+1 - e_i)^2 = 2 sigma^2 for white noise): a misfit that changes
     little between samples cancels in the differences."""
-    same = segment[1:] == segment[:-1]
+    same = run[1:] == run[:-1]
     step = np.diff(resid, axis=0)[same]
     return np.sqrt(np.mean(step**2, axis=0) / 2)
 

@@ -28,6 +28,8 @@ from rotcal.model.physics import (
 # Relative to a channel's largest output: far above float64 rounding of the
 # model (~1e-15), far below any sensor's noise or quantization (~1e-5).
 NUMERICAL_FLOOR = 1e-9
+# a time step beyond this many of its segment's median one is a gap between runs (``Observations.run``)
+GAP_STEPS = 1.5
 # ``motion_reuse``'s key of the null model's motion (no angle, sampling or force effect on)
 _NO_MOTION_EFFECT = pickle.dumps([])
 
@@ -39,7 +41,7 @@ class Whitening:
         x*_i = scale_i (x_i - phi_i x_i-1) / sqrt(1 - phi_i^2),
 
     per channel (n, 3): ``phi`` a first-order autoregression's coefficient
-    (0 at each segment's first sample), ``scale`` the pooled noise over its
+    (0 at each run's first sample, ``Observations.run``), ``scale`` the pooled noise over its
     group's (``noise.whitening``)."""
 
     scale: np.ndarray
@@ -96,6 +98,21 @@ class Observations:
         """Each sample's noise (n, 3), or (3,) where not whitened, from the
         channels' noise ``sigma`` in the whitened fit."""
         return sigma if self.whitening is None else sigma[None, :] / self.whitening.scale
+
+    @cached_property
+    def run(self) -> np.ndarray:
+        """(n,) an id per run of samples each of which is the sample after
+        the one before: a segment, split where its time step exceeds
+        ``GAP_STEPS`` of its median one (the motion between a step
+        sequence's steps). Correlated noise links a sample to the one before
+        it in time, not to the last of the step before."""
+        dt = np.diff(self.motion.t_s)
+        within = self.segment[1:] == self.segment[:-1]
+        ids, inverse = np.unique(self.segment[1:][within], return_inverse=True)
+        typical = np.array([np.median(dt[within][inverse == k]) for k in range(ids.size)])
+        follows = np.zeros(dt.size, bool)
+        follows[within] = dt[within] <= GAP_STEPS * typical[inverse]
+        return np.r_[0, np.cumsum(~follows)]
 
     @cached_property
     def noise_floor(self) -> np.ndarray:

@@ -188,7 +188,7 @@ def residual_autoregression(res: Residuals, max_order: int = MAX_AR_ORDER) -> li
     x_t = sum a_k x_t-k + e_t that describes the residuals (each segment's
     taken about its mean: a wander slower than a segment is the offsets'
     floor), by least squares on the samples with ``max_order`` consecutive
-    predecessors in their segment (the covariance method: Yule-Walker's
+    predecessors in their run (``Observations.run``) (the covariance method: Yule-Walker's
     tapering biases a filter's steep spectrum, Percival & Walden 1993
     section 9.7), of the order 0..``max_order`` with the least
     AIC = N log v_p + 2 p (v_p the innovations' mean square)."""
@@ -202,9 +202,10 @@ def residual_autoregression(res: Residuals, max_order: int = MAX_AR_ORDER) -> li
         counts = np.diff(np.r_[starts, rows.size])
         x -= np.repeat(np.add.reduceat(x, starts) / counts, counts)
         seg_of = np.repeat(np.arange(starts.size), counts)
-        # the samples whose max_order predecessors are the samples before, in their segment
+        # the samples whose max_order predecessors are the samples before, in their run
         t = np.arange(max_order, x.size)
-        ok = (seg_of[t] == seg_of[t - max_order]) & (rows[t] - rows[t - max_order] == max_order)
+        run = seg_of if res.run is None else res.run[rows]   # predecessors in time, not across a gap
+        ok = (run[t] == run[t - max_order]) & (rows[t] - rows[t - max_order] == max_order)
         t = t[ok]
         if t.size < 10 * (max_order + 1):
             out.append(np.zeros(0))

@@ -29,12 +29,12 @@ def group_noise(obs: Observations, resid: np.ndarray, use: np.ndarray) -> tuple[
     """(group of each sample, variance (g, 3), degrees of freedom (g, 3)) of
     the residuals ``resid`` in each group of one rate and axis: the von
     Neumann estimate sum (e_i+1 - e_i)^2 / 2m over the m differences within
-    a segment between used samples, whose variance 2 sigma^4 / nu gives
+    a run (``Observations.run``) between used samples, whose variance 2 sigma^4 / nu gives
     nu = 2 m^2 / (3 m - 1) (the differences are correlated, -1/2 at lag 1)."""
     keys = [(run.rate, run.axis) for run in sample_runs(obs)]
     names = {key: i for i, key in enumerate(dict.fromkeys(keys))}
     group = np.repeat([names[k] for k in keys], [run.samples.stop - run.samples.start for run in sample_runs(obs)])
-    pair = ((obs.segment[1:] == obs.segment[:-1]) & (group[1:] == group[:-1]))[:, None] & use[1:] & use[:-1]
+    pair = ((obs.run[1:] == obs.run[:-1]) & (group[1:] == group[:-1]))[:, None] & use[1:] & use[:-1]
     d2 = np.where(pair, np.diff(resid, axis=0) ** 2, 0.0)
     m = np.stack([np.bincount(group[1:], pair[:, r], len(names)) for r in range(3)], axis=1)
     ss = np.stack([np.bincount(group[1:], d2[:, r], len(names)) for r in range(3)], axis=1)
@@ -72,8 +72,8 @@ def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: floa
     None where neither applies, or where the noise is at the numerical floor
     (noise-free data)."""
     group, variance, dof = group_noise(obs, resid, use)
-    # a segment lies in one group of rate and axis: pairs within a segment are within its group
-    lag1, lag2 = grouped_autocorrelation(resid, group, variance.shape[0], obs.segment, use)
+    # a run lies in one group of rate and axis: pairs within a run are within its group
+    lag1, lag2 = grouped_autocorrelation(resid, group, variance.shape[0], obs.run, use)
     # the filter whose output is white at zero frequency, where the signals are: (1 - phi) / (1 + phi) = 1 / F(0)
     ratio = density_ratio(lag1, lag2, np.maximum(dof, 1), 0.0)
     filtering = (dof > 0) & (ratio > 1.0)
@@ -89,5 +89,5 @@ def whitening(obs: Observations, resid: np.ndarray, use: np.ndarray, alpha: floa
         scale[:, r] = np.where(on, np.sqrt(pooled / np.where(on, variance[:, r], 1.0)), 1.0)[group]
     if not filtering.any() and np.all(scale == 1.0):
         return None
-    starts = np.r_[True, obs.segment[1:] != obs.segment[:-1]]
+    starts = np.r_[True, obs.run[1:] != obs.run[:-1]]
     return Whitening(scale, np.where(starts[:, None], 0.0, phi[group]))

@@ -75,6 +75,7 @@ class Residuals:
     rotating: np.ndarray
     theta_deg: np.ndarray    # commanded angle
     output_unit: str
+    run: np.ndarray | None = None   # runs of samples in time succession (``Observations.run``); None: the segments
 
 
 def counted(n: int, noun: str) -> str:
