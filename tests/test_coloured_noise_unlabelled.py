@@ -69,5 +69,28 @@ def test_a_random_walk_is_counted_from_the_record_start():
     wander = scatter_wander(c, [np.eye(12) * 1e-4] * 3, t, np.full(12, 250.0), [("rotation", 0.1)] * 12, ["x"] * 12,
                             record_start_s=0.0)
     assert wander is not None
-    s2, corr, _ = wander
+    s2, corr = wander.s2, wander.correlation(t)
     assert np.all(s2 * corr[0, 0] >= 0.05**2 * 1000.0), s2 * corr[0, 0]
+
+
+def test_the_dwells_offsets_share_the_segments_wander(tmp_path):
+    """A random walk of K = 0.05 counts / sqrt(s) from the record's start.
+    The dwells' three groups of 24 (one per table axis, at about 0-95 s,
+    1130-1225 s and 2255-2350 s) are 3 s each: too short to see the walk,
+    which the rotations' offsets show. Their common offset is the walk's
+    mean over the dwells: for three groups of equal weight at t1 < t2 < t3
+    its variance is K^2 (5 t1 + 3 t2 + t3) / 9, about 1.7 counts^2 (sd 1.3).
+    Without the segments' wander the static result gave u(O) 0.23 counts
+    and z of -11.5, 3.9 and 5.4 on seed 0."""
+    truth, seg, results = unlabelled("white_sd=8,random_walk_k=0.05", 0, tmp_path)
+    static = next(r for r in results if r.rate_hz == 0)
+    t = (seg.dwells["t_start_ns"].to_numpy() + seg.dwells["t_end_ns"].to_numpy()) / 2e9
+    t -= seg.samples["t_ns"][0] / 1e9
+    t1, t2, t3 = (float(np.mean(part)) for part in np.array_split(np.sort(t), 3))
+    walk_sd = np.sqrt(0.05**2 * (5 * t1 + 3 * t2 + t3) / 9)
+    assert 1.1 < walk_sd < 1.5
+    u = static.std_uncertainty[OFFSETS]
+    # the wander's size is estimated (its upper bound where slower than the record): u at least the walk's share
+    assert np.all(u > 0.8 * walk_sd) and np.all(u < 4 * walk_sd), (u, walk_sd)
+    z = (static.value - truth)[OFFSETS] / u
+    assert np.all(np.abs(z) < 2.5), z

@@ -19,7 +19,8 @@ from rotcal.combine.channels import channel_fault
 from rotcal.combine.labelled import segment_coefficients
 from rotcal.combine.multiposition import OrientationFreeFit, orientation_free
 from rotcal.combine.phasefree import PhaseFreeFit, PhaseSegment, solve_phase_free
-from rotcal.fit.means import modelled_poses
+from rotcal.fit import OffsetCovariance
+from rotcal.fit.means import modelled_poses, with_segment_offsets
 from rotcal.model.results import Failure, IntrinsicResult, Reduction, Table
 from rotcal.segment.stillness import unused_rows
 
@@ -79,7 +80,7 @@ def segment_phases(fits: pl.DataFrame, segments: pl.DataFrame, own_phase: frozen
 
 def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_uncertainty: float,
                   single: frozenset[int] = frozenset(), rejected: pl.DataFrame | None = None,
-                  samples: pl.DataFrame | None = None) -> Reduction:
+                  samples: pl.DataFrame | None = None, offsets: OffsetCovariance | None = None) -> Reduction:
     """The static result (rate 0) from the dwells when ``need_static``, and
     the ``dwells`` table (with |a| after calibration when they gave it);
     otherwise the dwells of ``single`` (segments of one pose, outside every
@@ -88,7 +89,9 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
     counted in a warning. ``samples``: the recording's, the dwells' means
     then weighed as static poses are, by their covariance between dwells
     from the noise model and the wander their scatter shows
-    (``fit.means.modelled_poses``)."""
+    (``fit.means.modelled_poses``), and with what the table segments'
+    offsets showed over the record where ``offsets`` (``fit.wander``,
+    ``fit.means.with_segment_offsets``)."""
     from rotcal.combine.static import with_unused  # here: static imports the pose machinery this module need not
 
     results: tuple[IntrinsicResult, ...] = ()
@@ -103,6 +106,8 @@ def reduce_dwells(dwells: pl.DataFrame, need_static: bool, g_local: float, g_unc
         failures = (Failure(0.0, f"static dwells: {fault}"),)
     elif need_static and dwells.height:
         dwells, between = (dwells, None) if samples is None else modelled_poses(samples, dwells)
+        if between is not None and offsets is not None:
+            dwells, between = with_segment_offsets(dwells, between, offsets)
         fit = orientation_free(dwells.rename({"dwell": "pose"}), g_local, g_uncertainty, between=between)
         if isinstance(fit, OrientationFreeFit):
             results = (fit.result,)

@@ -21,7 +21,7 @@ import polars as pl
 
 from rotcal.fit.correlated import density_ratio
 from rotcal.fit.quantization import mean_rounding_variance, output_step
-from rotcal.fit.wander import generalised_q, restricted_loglik
+from rotcal.fit.wander import OffsetCovariance, generalised_q, restricted_loglik
 from rotcal.model.columns import Outputs, columns_of, selected_rows
 from rotcal.model.physics import CHANNELS
 from rotcal.noise.poses import PoseCovariance, pose_covariance, with_pose_variances
@@ -65,6 +65,7 @@ def group_statistics(y: np.ndarray | Outputs, group: np.ndarray, n_groups: int
 # the wander test's level: a pose fit's few residual degrees of freedom (15 for 24 poses without references)
 # leave a wander that moves the offsets by several u at p of 0.01 to 0.02 (docs/measured.md)
 SIGNIFICANCE = 0.05
+SEGMENT_OFFSETS = "the means carry the noise model and wander of the table segments' offsets over the record"
 # correlation times up to twice the poses' span; slower ones the random walk from the record's start stands for
 TAU_SPANS = 2.0
 TAU_GRID = 25
@@ -226,6 +227,28 @@ def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray,
     spread = float(np.mean(np.einsum("rkk->rk", between.channels)))
     added = averaged_wander(residuals, base, corrs, spread, x, [(h @ h.T) * corr for corr in corrs])
     return replace(between, channels=between.channels + added[None])
+
+
+def with_segment_offsets(poses: pl.DataFrame, between: PoseCovariance, offsets: OffsetCovariance) -> tuple[pl.DataFrame, PoseCovariance]:
+    """``poses`` (still intervals between a table recording's segments: an
+    unlabelled recording's dwells) and their covariance ``between`` with
+    what the segments' offsets showed over the whole record
+    (``fit.wander.OffsetCovariance``): the recording's noise model, which
+    the segments' long residuals identify where a pose's few seconds
+    cannot (flicker to the record's length), and the wander the offsets'
+    scatter shows beyond it. A pose's mean is an offset measured at its
+    time as a segment's is, so it shares that wander; a random walk from
+    the record's start then moves the poses' common offset as it moves
+    the segments'."""
+    # on the offsets' clock, the record's stamps in seconds (``fit.segments``); a sample stands for its interval
+    start, stop = (poses[c].to_numpy() / 1e9 for c in ("t_start_ns", "t_end_ns"))
+    dt = float(np.median((stop - start) / np.maximum(poses["n_samples"].to_numpy() - 1, 1)))
+    channels = np.stack(offsets.channels(start - dt / 2, stop + dt / 2, list(between.channels)))
+    wandering = replace(between, channels=channels, plain=False,
+                        note="; ".join(filter(None, [between.note, SEGMENT_OFFSETS])))
+    own = np.array(poses["cov_mean"].to_list(), float).reshape(-1, 3, 3)
+    cov = with_pose_variances(own, wandering)
+    return poses.with_columns(cov_mean=pl.Series(cov.reshape(-1, 9).tolist(), dtype=pl.List(pl.Float64))), wandering
 
 
 def modelled_poses(samples: pl.DataFrame, poses: pl.DataFrame) -> tuple[pl.DataFrame, PoseCovariance | None]:

@@ -32,7 +32,7 @@ from rotcal.fit.refusals import refusal, stuck_from
 from rotcal.fit.sinefit4 import four_parameter_fit
 from rotcal.fit.sines import sincos_deg, sine3_sums
 from rotcal.fit.spectrum import Periodogram, periodogram
-from rotcal.fit.wander import RecordNoise
+from rotcal.fit.wander import OffsetCovariance, RecordNoise
 from rotcal.model.physics import CHANNELS
 from rotcal.noise.residuals import split_at_pauses
 from rotcal.parallel import cores
@@ -67,6 +67,8 @@ class SegmentFit:
     noise_ratio: np.ndarray | None = None
     offset_floor: np.ndarray | None = None
     noise_note: str | None = None
+    # the offsets' covariance between any windows of the record (``fit.wander``), the same for every fit of a recording
+    offsets: OffsetCovariance | None = None
 
     @property
     def dof(self) -> int:

@@ -87,6 +87,58 @@ class RecordNoise:
     record_s: tuple[float, float]
 
 
+@dataclass(frozen=True, eq=False)
+class Wander:
+    """The wander the offsets' scatter shows beyond the noise model (part 2
+    of the module docstring): variance ``s2`` per channel, correlation
+    exp(-|t_i - t_j| / tau) between times t (s, the record's clock), or
+    (tau infinite) a random walk from ``start_s`` whose variance is s2 at
+    ``walk_s`` after it; ``slower``: tau is longer than the record (s2 its
+    upper bound)."""
+
+    s2: np.ndarray
+    tau_s: float
+    start_s: float
+    walk_s: float
+    slower: bool
+
+    def correlation(self, t_s: np.ndarray) -> np.ndarray:
+        if np.isinf(self.tau_s):
+            since = np.maximum(t_s - self.start_s, 0.0)
+            return np.minimum.outer(since, since) / max(self.walk_s, 1e-9)
+        return np.exp(-np.abs(t_s[:, None] - t_s[None, :]) / self.tau_s)
+
+
+@dataclass(frozen=True, eq=False)
+class OffsetCovariance:
+    """The offsets' covariance between any windows of the record as the
+    segments' was built: the recording's noise model (part 1) in its
+    ``coloured`` channels, and the ``wander`` their scatter showed beyond
+    it (part 2). What a static pose's mean between the segments shares
+    with them (``combine.unreferenced``: an unlabelled recording's dwells)."""
+
+    noise: RecordNoise | None
+    coloured: np.ndarray
+    wander: Wander | None
+
+    def channels(self, start_s: np.ndarray, stop_s: np.ndarray, own: list[np.ndarray]) -> list[np.ndarray]:
+        """Each channel's covariance (n, n) of the means over the windows
+        [start_s, stop_s]: the noise model's (its diagonal at least the
+        windows' ``own``), ``own`` as given where the channel is white, plus
+        the wander at the windows' mid-times."""
+        out = []
+        for r, base in enumerate(own):
+            if self.noise is not None and r < len(self.noise.processes) and self.coloured[r]:
+                modelled = window_mean_covariance(self.noise.processes[r], start_s, stop_s, self.noise.dt_s,
+                                                  self.noise.record_s)
+                modelled[np.diag_indices_from(modelled)] = np.maximum(np.diag(modelled), np.diag(base))
+                base = modelled
+            if self.wander is not None:
+                base = base + self.wander.s2[r] * self.wander.correlation((start_s + stop_s) / 2)
+            out.append(base)
+        return out
+
+
 def restricted_loglik(c: np.ndarray, base: np.ndarray, corr: np.ndarray, s2: np.ndarray, x: np.ndarray) -> np.ndarray:
     """REML log-likelihood (up to a constant) of offsets ``c`` of
     covariance ``base`` under fixed effects ``x`` (segments, full column
@@ -223,7 +275,7 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     coloured = np.array([any(fits[k].noise_ratio is not None and fits[k].noise_ratio[0, r] > 1.0 for k in ok)
                          for r in range(c.shape[1])])
     base = model_covariance(noise, v, t - half, t + half, coloured)
-    total, flag = base, None
+    total, flag, wander = base, None, None
     unmodelled = noise is None and bool(coloured.any()) and modelled
     if len(ok) < MIN_FLOOR_SEGMENTS:
         flag = UNIDENTIFIED.format(k=MIN_FLOOR_SEGMENTS)
@@ -231,12 +283,13 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
         wander = scatter_wander(c, base, t, duration_s[ok], [groups[k] for k in ok], [axis[k] for k in ok], unmodelled,
                                 record_start_s)
         if wander is not None:
-            s2, corr, slower = wander
-            total = [b + s * corr for b, s in zip(base, s2)]
-            flag = SLOWER_THAN_RECORD if slower else None
+            corr = wander.correlation(t)
+            total = [b + s * corr for b, s in zip(base, wander.s2)]
+            flag = SLOWER_THAN_RECORD if wander.slower else None
     flag = NOT_MODELLED if unmodelled and len(ok) >= MIN_FLOOR_SEGMENTS else flag
     if total is base and not (noise is not None and coloured.any()):  # white noise, no wander: the fits as they were
         return [replace(fits[k], noise_note=flag) if fits[k].status == "ok" and flag else fits[k] for k in range(len(fits))]
+    shared = OffsetCovariance(noise, coloured, wander)
     key = [groups[k] for k in ok]
     added = np.zeros(v.shape)
     for g in dict.fromkeys(key):
@@ -248,21 +301,19 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     out = list(fits)
     for i, k in enumerate(ok):
         if not added[i].any():
-            out[k] = replace(fits[k], noise_note=flag) if flag else fits[k]
+            out[k] = replace(fits[k], noise_note=flag, offsets=shared)
             continue
         cov = fits[k].cov.copy()
         cov[np.arange(0, 9, 3), np.arange(0, 9, 3)] += added[i]
-        out[k] = replace(fits[k], cov=cov, offset_floor=np.sqrt(added[i]), noise_note=flag)
+        out[k] = replace(fits[k], cov=cov, offset_floor=np.sqrt(added[i]), noise_note=flag, offsets=shared)
     return out
 
 
 def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duration_s: np.ndarray,
                    key: list[tuple[str, float]], axis: list[object], conservative: bool = False,
-                   record_start_s: float | None = None) -> tuple[np.ndarray, np.ndarray, bool] | None:
+                   record_start_s: float | None = None) -> Wander | None:
     """The wander the offsets' scatter shows beyond ``base`` (part 2 of the
-    module docstring): (s^2 per channel, the correlation between segments,
-    whether tau is longer than the record), or None where the scatter is
-    explained; ``conservative``: s^2 at its upper bound whatever tau. A
+    module docstring), or None where the scatter is explained; ``conservative``: s^2 at its upper bound whatever tau. A
     random walk starts at ``record_start_s`` (None: the first segment's
     start; a recording whose first segment comes late, after the dwells of
     an unlabelled one, has walked meanwhile)."""
@@ -285,6 +336,4 @@ def scatter_wander(c: np.ndarray, base: list[np.ndarray], t: np.ndarray, duratio
     # growth measures its size)
     slower = span <= tau < np.inf
     s2 = np.where(wanders, upper if slower or conservative else s2, 0.0)
-    if np.isinf(tau):
-        return s2, np.minimum.outer(since, since) / max(float(since.max()), 1e-9), False
-    return s2, np.exp(-np.abs(t[:, None] - t[None, :]) / tau), slower
+    return Wander(s2, tau, float(t[0] - since[0]), float(since.max()), slower)

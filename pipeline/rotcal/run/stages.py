@@ -26,7 +26,7 @@ from rotcal.combine import (
 from rotcal.combine.labelled import RateSegments, rate_segments
 from rotcal.config import RunConfig
 from rotcal.errors import UndeterminedError
-from rotcal.fit import fit_segments, fits_frame
+from rotcal.fit import OffsetCovariance, SegmentFit, fit_segments, fits_frame
 from rotcal.fit.normal import SineSums
 from rotcal.ingest.dataset import Dataset
 from rotcal.ingest.duplicates import duplicate_findings
@@ -57,6 +57,7 @@ class Segmented:
     clock_factor: float = 1.0  # what the fitted rates were multiplied by to be on the table's clock (``Inference``)
     sums: Mapping[int, SineSums] = field(default_factory=dict)  # the three-parameter fits' sums by segment (in memory)
     unused: pl.DataFrame | None = None  # still intervals the detector rejected (``still_unused`` rows; a table recording's)
+    offsets: OffsetCovariance | None = None  # the offsets' covariance the segments showed (``fit.wander``), for the dwells
 
     @cached_property
     def labelled_fits(self) -> pl.DataFrame:
@@ -149,7 +150,13 @@ def segment_and_fit(ds: Dataset, config: RunConfig) -> Segmented:
                      tuple(timebase.warnings) + partial + (inferred.warnings if table else ()),
                      ds.notes + (inferred.notes if table else _static_route(inferred.route)),
                      sums={f.segment: f.sums for f in fitted if f.sums is not None},
-                     clock_factor=inferred.clock_factor if table else 1.0, unused=inferred.unused if table else None)
+                     clock_factor=inferred.clock_factor if table else 1.0, unused=inferred.unused if table else None,
+                     offsets=shared_offsets(fitted))
+
+
+def shared_offsets(fits: list[SegmentFit]) -> OffsetCovariance | None:
+    """The offsets' covariance the recording's segments showed (each ok fit holds the same), None where white."""
+    return next((f.offsets for f in fits if f.offsets is not None), None)
 
 
 def _static_route(evidence: str) -> tuple[str, ...]:
@@ -171,7 +178,7 @@ def _from_stream(ds: StreamedDataset, streamed: StreamedSegments) -> Segmented:
     return Segmented(inferred.samples, inferred.segments, fits, inferred.own_phase, inferred.dwells, True,
                      (Table("segments", inferred.segments), Table("fits", fits), Table("timebase", findings)),
                      tuple(ds.timebase.warnings) + inferred.warnings, ds.notes + inferred.notes, streamed,
-                     clock_factor=inferred.clock_factor, unused=inferred.unused)
+                     clock_factor=inferred.clock_factor, unused=inferred.unused, offsets=shared_offsets(streamed.fits))
 
 
 def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
@@ -190,7 +197,7 @@ def reduce(seg: Segmented, ds: Dataset) -> Reductions | Failure:
     phase_free = reduce_phase_free(seg.fits, seg.own_phase, g, u)
     single = frozenset(seg.segments.filter(pl.col("kind") == "pose")["segment"].to_list())
     dwells = reduce_dwells(seg.dwells, not any(r.rate_hz == 0 for r in labelled.results), g, u, single, seg.unused,
-                           seg.samples)
+                           seg.samples, seg.offsets)
     return Reductions(labelled.without(phase_free.rates | dwells.rates), (phase_free, dwells), None)
 
 
