@@ -146,16 +146,19 @@ def modelled_pose_table(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, sto
     return with_noise_model(pose_table(t_ns, y, starts, stops), t_ns, y, starts, stops)
 
 
-def _correlations(between: PoseCovariance) -> list[np.ndarray]:
+def _correlations(between: PoseCovariance, within_span: bool = False) -> list[np.ndarray]:
     """The wander's correlation between poses for each correlation time of
     the grid: exp(-|t_k - t_l| / T) for T log-spaced from half the shortest
     pose to ``TAU_SPANS`` times the poses' span, and a random walk from the
     record's start (min(t_k, t_l) / max t; the grid's last), which a
-    wander slower than the record resembles over it."""
+    wander slower than the record resembles over it; ``within_span``: T up
+    to the span alone (``channel_wander``'s slow terms)."""
     t = between.t_mid_s
     span = float(np.ptp(t)) if t.size else 0.0
     low = max(float(np.min(between.duration_s)) / 2, 1e-9) if t.size else 1.0
     lag = np.abs(t[:, None] - t[None, :])
+    if within_span:
+        return [np.exp(-lag / tau) for tau in np.geomspace(low, max(span, 2 * low), TAU_GRID)]
     since = t - (t - between.duration_s / 2).min()
     walk = np.minimum.outer(since, since) / max(float(since.max()), 1e-9)
     return [np.exp(-lag / tau) for tau in np.geomspace(low, max(TAU_SPANS * span, 2 * low), TAU_GRID)] + [walk]
@@ -186,7 +189,15 @@ def channel_wander(between: PoseCovariance, residual_basis: np.ndarray, means: n
     measured from the pose means ``means`` (n, 3) about a model linear in
     ``residual_basis`` (n, p; e.g. the known references and 1) per channel
     (``averaged_wander``), where the generalised Q rejects the model's
-    covariance at ``SIGNIFICANCE`` (per channel or pooled)."""
+    covariance at ``SIGNIFICANCE`` (per channel or pooled). A channel whose
+    model holds terms slower than a pose (``PoseCovariance.slow``: their
+    size read from a pose's few seconds, their correlation time beyond
+    what a pose shows) has them measured instead from the scatter, whatever
+    Q says, with correlation times up to the poses' span: a slow term
+    extrapolated from within poses takes them as nearly independent, and
+    their common offset moved with the wander (the mix's 300 s term: O's sd
+    of z 1.37 that way, 0.99 measured). A wander slower than the span is
+    the offset for this record."""
     n, p = residual_basis.shape
     if n - p < 1:
         return between
@@ -194,16 +205,17 @@ def channel_wander(between: PoseCovariance, residual_basis: np.ndarray, means: n
 
     q = np.array([generalised_q(means[:, r], between.channels[r], residual_basis) for r in range(3)])
     wanders = (q > chdtri(n - p, SIGNIFICANCE)) | (q.sum() > chdtri(3 * (n - p), SIGNIFICANCE))
-    if not wanders.any():
+    slow = np.zeros(3, bool) if between.slow is None else between.slow
+    if not wanders.any() and not slow.any():
         return between
-    corrs = _correlations(between)
     x = np.linalg.svd(residual_basis, full_matrices=False)[0]
     resid = means - x @ (x.T @ means)  # what the model leaves: REML sees only that, and it sizes the variance grid
-    added = np.zeros_like(between.channels)
-    for r in np.flatnonzero(wanders):
-        spread = max(float(np.var(resid[:, r])), float(np.mean(np.diag(between.channels[r]))))
-        added[r] = averaged_wander(resid[:, r], between.channels[r], corrs, spread, x)
-    return replace(between, channels=between.channels + added)
+    channels = between.channels.copy()
+    for r in np.flatnonzero(wanders | slow):
+        base = between.fast[r] if slow[r] and between.fast is not None else between.channels[r]
+        spread = max(float(np.var(resid[:, r])), float(np.mean(np.diag(base))))
+        channels[r] = base + averaged_wander(resid[:, r], base, _correlations(between, bool(slow[r])), spread, x)
+    return replace(between, channels=channels)
 
 
 def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray, design: np.ndarray) -> PoseCovariance:
@@ -213,20 +225,24 @@ def scalar_wander(between: PoseCovariance, residuals: np.ndarray, h: np.ndarray,
     orientation-free fit, whose scalars show less of it than a labelled
     fit's three channels): one wander variance (output units^2) common to
     the channels (``averaged_wander``), where the generalised Q rejects the
-    model's covariance at ``SIGNIFICANCE``."""
+    model's covariance at ``SIGNIFICANCE``; where the model holds terms
+    slower than a pose, measured in their place whatever Q says
+    (``channel_wander``)."""
     n, p = design.shape
     if n - p < 1:
         return between
     from scipy.special import chdtri  # here: scipy's import would slow every CLI start
 
-    base = between.projected(h)
+    slow = between.slow is not None and bool(between.slow.any())
+    kept = replace(between, channels=between.fast) if slow and between.fast is not None else between
+    base = kept.projected(h)
     x = np.linalg.svd(design, full_matrices=False)[0][:, : np.linalg.matrix_rank(design)]
-    if generalised_q(residuals, base, x) <= chdtri(n - x.shape[1], SIGNIFICANCE):
+    if not slow and generalised_q(residuals, base, x) <= chdtri(n - x.shape[1], SIGNIFICANCE):
         return between
-    corrs = _correlations(between)
-    spread = float(np.mean(np.einsum("rkk->rk", between.channels)))
+    corrs = _correlations(between, slow)
+    spread = float(np.mean(np.einsum("rkk->rk", kept.channels)))
     added = averaged_wander(residuals, base, corrs, spread, x, [(h @ h.T) * corr for corr in corrs])
-    return replace(between, channels=between.channels + added[None])
+    return replace(between, channels=kept.channels + added[None])
 
 
 def with_segment_offsets(poses: pl.DataFrame, between: PoseCovariance, offsets: OffsetCovariance) -> tuple[pl.DataFrame, PoseCovariance]:
@@ -244,7 +260,8 @@ def with_segment_offsets(poses: pl.DataFrame, between: PoseCovariance, offsets: 
     start, stop = (poses[c].to_numpy() / 1e9 for c in ("t_start_ns", "t_end_ns"))
     dt = float(np.median((stop - start) / np.maximum(poses["n_samples"].to_numpy() - 1, 1)))
     channels = np.stack(offsets.channels(start - dt / 2, stop + dt / 2, list(between.channels)))
-    wandering = replace(between, channels=channels, plain=False,
+    # the segments' model in place of the poses' slow terms (``channel_wander`` would measure them from the scatter)
+    wandering = replace(between, channels=channels, plain=False, fast=None, slow=None,
                         note="; ".join(filter(None, [between.note, SEGMENT_OFFSETS])))
     own = np.array(poses["cov_mean"].to_list(), float).reshape(-1, 3, 3)
     cov = with_pose_variances(own, wandering)

@@ -13,7 +13,10 @@ part 2 measures the segments' offsets', from the poses' scatter about the
 static model (``fit.means.channel_wander`` with known references,
 ``fit.means.scalar_wander`` from |a| - g without): a first-order Gauss-Markov wander, or a random walk
 from the record's start, where the generalised Cochran's Q of the
-residuals rejects the model's covariance at ``SIGNIFICANCE``, its
+residuals rejects the model's covariance at ``SIGNIFICANCE`` (and in place
+of the model's terms slower than a pose wherever it holds them: a pose's
+few seconds give their size poorly and their correlation time not at
+all, ``PoseCovariance.fast``), its
 correlation time and variance averaged by their restricted likelihood
 (``fit.means.averaged_wander``); the reductions then weigh the poses by generalised
 least squares with the full covariance, so the offsets carry the wander
@@ -30,7 +33,7 @@ own Allan variance (reduced chi-square beyond ``MISFIT``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -60,6 +63,10 @@ class PoseCovariance:
     modelled: np.ndarray
     note: str | None = None
     plain: bool = False  # each pose's own variances, no covariance between poses: white noise as it was
+    # per channel, the covariance without the model's terms slower than a pose (``slow``: the channels that had
+    # any); their size and correlation time the poses' scatter measures (``fit.means.channel_wander``)
+    fast: np.ndarray | None = None
+    slow: np.ndarray | None = None
 
     def projected(self, h: np.ndarray) -> np.ndarray:
         """The covariance (n, n) of the scalars sum_r h_kr m_kr of the pose
@@ -84,6 +91,7 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
     n = len(starts)
     channels = np.zeros((3, n, n))
     modelled, kept = np.zeros(3, bool), np.zeros(3, bool)
+    fast, slow = channels.copy(), np.zeros(3, bool)
     # each pose's variance of its mean as independent samples give it (the lag widening's and rounding's base)
     plain = np.array([y[a:b].var(axis=0, ddof=1) / (b - a) if b - a > 1 else np.full(3, np.nan) for a, b in zip(starts, stops)])
     pieces = [p for a, b in zip(starts, stops) if b - a >= 2
@@ -108,9 +116,15 @@ def pose_covariance(t_ns: np.ndarray, y: np.ndarray, starts: np.ndarray, stops: 
         # are a filter's or an autoregression's; a slower one enters only where the data show it
         # (``short_record_process``), the scatter between poses measures the rest (``fit.means.channel_wander``)
         channels[r] = window_mean_covariance(process, a0, a1, dt, record)
+        longest = float(noise.allan.tau_s[-1])
+        quick = replace(process, gauss_markov=tuple(t for t in process.gauss_markov if t[0] < longest), flicker_b=0.0)
+        if quick != process:
+            fast[r], slow[r] = window_mean_covariance(quick, a0, a1, dt, record), True
     missing = [c for c, ok in zip("uvw", modelled) if not ok]
     note = UNMODELLED.format(channels=", ".join(missing)) if missing else None
-    return PoseCovariance(channels, (a0 + a1) / 2, a1 - a0, modelled, note, bool(kept.all()))
+    fast = np.where(slow[:, None, None], fast, channels)
+    return PoseCovariance(channels, (a0 + a1) / 2, a1 - a0, modelled, note, bool(kept.all()),
+                          fast if slow.any() else None, slow if slow.any() else None)
 
 
 def with_pose_variances(cov: np.ndarray, between: PoseCovariance) -> np.ndarray:
