@@ -43,7 +43,9 @@ def test_what_the_poses_barely_determine_rests_on_the_prior(tmp_path):
     (none between u and v) leaves s_u and s_v to within about 20 %: with
     the sensitivity tolerance (3 %) their uncertainty is at most the
     prior's (u = 3 % / sqrt(3) of the nominal), they are named as resting
-    on it, and s_w, which the poses determine, is not."""
+    on it, and s_w, which the poses determine, is not (U(s_w) 5.4 counts
+    per g, a fifth of the prior's u, with its pose means widened by the
+    autoregression of their residuals; 2.8 by their lag-1 and lag-2 form)."""
     outcome = run_dataset(SUAREZ / "example_data_calibration.csv", tmp_path / "out", _config(tmp_path, False))
     baseline = pl.read_parquet(tmp_path / "out" / "intrinsic.parquet").filter(pl.col("model") == "baseline")
     rows = {r["parameter"]: r for r in baseline.iter_rows(named=True)}
@@ -51,7 +53,7 @@ def test_what_the_poses_barely_determine_rests_on_the_prior(tmp_path):
     for name in ("s_u", "s_v"):
         u = rows[name]["std_uncertainty"]
         assert u <= prior_u, (name, u, prior_u)
-    assert rows["s_w"]["expanded_uncertainty"] < 0.1 * prior_u
+    assert rows["s_w"]["expanded_uncertainty"] < 0.25 * prior_u
     assert any("s_u, s_v rest on the prior" in n for n in outcome.static.notes)
     assert abs(rows["s_w"]["value"] / suarez_parameters()[2] - 1) < 0.005
 

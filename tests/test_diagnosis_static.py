@@ -110,8 +110,8 @@ def test_real_static_recordings_show_nothing_and_say_how_small(tmp_path):
     xsens = run_dataset(REAL / "imu_tk_xsens", tmp_path / "xsens", REPO / "configs" / "imu_tk_xsens.toml")
     assert _found(xsens) == []
     print(xsens.diagnosis.limits)
-    np.testing.assert_allclose(_limits(xsens, "k3"), [1.5e-3, 1.3e-3, 1.8e-3], rtol=0.05)
-    np.testing.assert_allclose(_limits(xsens, "drift"), [0.0050, 0.0049, 0.0042], rtol=0.05)
+    np.testing.assert_allclose(_limits(xsens, "k3"), [1.44e-3, 1.23e-3, 1.71e-3], rtol=0.05)
+    np.testing.assert_allclose(_limits(xsens, "drift"), [0.0045, 0.0046, 0.0041], rtol=0.05)
     imucal = run_dataset(REAL / "imucal_session", tmp_path / "imucal", REPO / "configs" / "imucal_session.toml")
     # imucal's six faces determine the six parameters exactly (labels as approximate directions): no
     # residual degree of freedom is left to test an effect, and the recommendation says so
@@ -122,15 +122,16 @@ def test_real_static_recordings_show_nothing_and_say_how_small(tmp_path):
 @pytest.mark.parametrize("sensor", range(5))
 def test_mikoff_mpu9150_sessions_show_nothing_within_their_limits(sensor, tmp_path):
     """The five MPU-9150 hand-pose sessions (tests/data/corpus): no finding;
-    drift limits 3e-4 to 7.5e-4 m/s^2 per s, k3 limits 2.5e-3 to 7.5e-3
-    (3.7e-4 to 7.1e-4 and 2.9e-3 to 7.3e-3 measured, the pose means'
-    covariance from their noise model: seven of 23 in imu0 have lag-1
-    correlations up to 0.68)."""
+    drift limits 3e-4 to 1e-3 m/s^2 per s, k3 limits 2.5e-3 to 1.1e-2
+    (4.4e-4 to 9.1e-4 and 3.7e-3 to 1.0e-2 measured: their channels'
+    noise model misses its Allan variance, and the pose means are widened
+    by the autoregression of their pooled residuals; 3.7e-4 to 7.1e-4 and
+    2.9e-3 to 7.3e-3 by each pose's lag-1 and lag-2 form)."""
     outcome = run_dataset(MIKOFF / f"imu{sensor}.log", tmp_path, REPO / "configs" / "mikoff_mpu9150.toml")
     assert _found(outcome) == []
     drift, k3 = _limits(outcome, "drift"), _limits(outcome, "k3")
     print(drift, k3)
-    assert np.all((3e-4 < drift) & (drift < 7.5e-4)) and np.all((2.5e-3 < k3) & (k3 < 7.5e-3))
+    assert np.all((3e-4 < drift) & (drift < 1e-3)) and np.all((2.5e-3 < k3) & (k3 < 1.1e-2))
 
 
 @pytest.mark.parametrize("seed", [107, 118, 135])
