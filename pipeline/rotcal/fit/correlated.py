@@ -103,11 +103,15 @@ def autoregressive_density_ratio(pieces: list[np.ndarray], max_order: int = MAX_
     variance = float(x @ x) / x.size
     if variance <= 0:
         return 1.0
-    best, best_aic, best_v = np.zeros(0), y.size * np.log(max(float(y @ y) / y.size, 1e-300)), float(y @ y) / y.size
+    # every order's least squares from one Gram matrix of the lagged samples (a pass over them, not one per order)
+    gram, cross, total = past.T @ past, past.T @ y, float(y @ y)
+    best, best_aic, best_v = np.zeros(0), y.size * np.log(max(total / y.size, 1e-300)), total / y.size
     for p in range(1, max_order + 1):
-        a, *_ = np.linalg.lstsq(past[:, :p], y, rcond=None)
-        e = y - past[:, :p] @ a
-        v = float(e @ e) / y.size
+        try:
+            a = np.linalg.solve(gram[:p, :p], cross[:p])
+        except np.linalg.LinAlgError:
+            break
+        v = (total - float(a @ cross[:p])) / y.size
         if not np.isfinite(v) or v <= 0:
             break
         aic = y.size * np.log(v) + 2 * p
