@@ -35,6 +35,7 @@ from scipy.special import ndtr
 
 from rotcal.diagnose.fitting import chi2_sf
 from rotcal.diagnose.scans import Residuals, Unexplained, _describe, _segment_chi2, _segment_grams, _used_segments, normal_p, p_is
+from rotcal.fit.correlated import akaike_autoregression
 from rotcal.model.physics import CHANNELS
 
 # the largest variance of a least-squares slope over a record of duration T that a first-order
@@ -211,17 +212,7 @@ def residual_autoregression(res: Residuals, max_order: int = MAX_AR_ORDER) -> li
             out.append(np.zeros(0))
             continue
         lagged = np.stack([x[t - k] for k in range(1, max_order + 1)], axis=1)
-        y = x[t]
-        best, best_aic = np.zeros(0), t.size * np.log(max(float(y @ y) / t.size, 1e-300))
-        for p in range(1, max_order + 1):
-            a, *_ = np.linalg.lstsq(lagged[:, :p], y, rcond=None)
-            e = y - lagged[:, :p] @ a
-            v = float(e @ e) / t.size
-            if not np.isfinite(v) or v <= 0:
-                break
-            aic = t.size * np.log(v) + 2 * p
-            if aic < best_aic:
-                best, best_aic = a, aic
+        best, _ = akaike_autoregression(x[t], lagged)
         out.append(best)
     return out
 

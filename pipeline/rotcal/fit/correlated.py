@@ -103,10 +103,20 @@ def autoregressive_density_ratio(pieces: list[np.ndarray], max_order: int = MAX_
     variance = float(x @ x) / x.size
     if variance <= 0:
         return 1.0
-    # every order's least squares from one Gram matrix of the lagged samples (a pass over them, not one per order)
+    best, best_v = akaike_autoregression(y, past)
+    ratio = best_v / (1.0 - float(best.sum())) ** 2 / variance
+    return float(np.clip(ratio, 1.0, max(p.size for p in runs)))
+
+
+def akaike_autoregression(y: np.ndarray, past: np.ndarray) -> tuple[np.ndarray, float]:
+    """(a_1..a_p, the innovations' mean square v_p) of the autoregression
+    y_t = sum a_k y_t-k + e_t on the lagged samples ``past`` (rows, max
+    order: column k-1 holds y_t-k), of the order 0..max with the least
+    AIC = N log v_p + 2 p; every order's least squares from one Gram
+    matrix (one pass over the samples, not one per order)."""
     gram, cross, total = past.T @ past, past.T @ y, float(y @ y)
     best, best_aic, best_v = np.zeros(0), y.size * np.log(max(total / y.size, 1e-300)), total / y.size
-    for p in range(1, max_order + 1):
+    for p in range(1, past.shape[1] + 1):
         try:
             a = np.linalg.solve(gram[:p, :p], cross[:p])
         except np.linalg.LinAlgError:
@@ -117,5 +127,4 @@ def autoregressive_density_ratio(pieces: list[np.ndarray], max_order: int = MAX_
         aic = y.size * np.log(v) + 2 * p
         if aic < best_aic:
             best, best_aic, best_v = a, aic, v
-    ratio = best_v / (1.0 - float(best.sum())) ** 2 / variance
-    return float(np.clip(ratio, 1.0, max(p.size for p in runs)))
+    return best, best_v

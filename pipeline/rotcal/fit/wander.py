@@ -126,17 +126,11 @@ class OffsetCovariance:
         [start_s, stop_s]: the noise model's (its diagonal at least the
         windows' ``own``), ``own`` as given where the channel is white, plus
         the wander at the windows' mid-times."""
-        out = []
-        for r, base in enumerate(own):
-            if self.noise is not None and r < len(self.noise.processes) and self.coloured[r]:
-                modelled = window_mean_covariance(self.noise.processes[r], start_s, stop_s, self.noise.dt_s,
-                                                  self.noise.record_s)
-                modelled[np.diag_indices_from(modelled)] = np.maximum(np.diag(modelled), np.diag(base))
-                base = modelled
-            if self.wander is not None:
-                base = base + self.wander.s2[r] * self.wander.correlation((start_s + stop_s) / 2)
-            out.append(base)
-        return out
+        base = model_covariance(self.noise, own, start_s, stop_s, self.coloured)
+        if self.wander is None:
+            return base
+        corr = self.wander.correlation((start_s + stop_s) / 2)
+        return [b + s * corr for b, s in zip(base, self.wander.s2)]
 
 
 def restricted_loglik(c: np.ndarray, base: np.ndarray, corr: np.ndarray, s2: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -208,19 +202,20 @@ def generalised_q(c: np.ndarray, base: np.ndarray, x: np.ndarray) -> float:
     return float(np.sum((b - a @ np.linalg.lstsq(a, b, rcond=None)[0]) ** 2))
 
 
-def model_covariance(noise: RecordNoise | None, v: np.ndarray, start_s: np.ndarray, stop_s: np.ndarray,
+def model_covariance(noise: RecordNoise | None, own: list[np.ndarray], start_s: np.ndarray, stop_s: np.ndarray,
                      coloured: np.ndarray) -> list[np.ndarray]:
-    """Each channel's covariance of the offsets without a wander beyond the
-    noise model: the model's (part 1 of the module docstring), its diagonal
-    at least the fits' own variances ``v`` (segments, channels); those
-    alone without a model or where the channel is not ``coloured``."""
+    """Each channel's covariance of the means over the windows [start_s,
+    stop_s] without a wander beyond the noise model: the model's (part 1 of
+    the module docstring), its diagonal at least that of the windows' own
+    covariance ``own`` (per channel, n x n); ``own`` as given without a
+    model or where the channel is not ``coloured``."""
     out = []
-    for r in range(v.shape[1]):
+    for r, base in enumerate(own):
         if noise is None or r >= len(noise.processes) or not coloured[r]:
-            out.append(np.diag(v[:, r]))
+            out.append(base)
             continue
         cov = window_mean_covariance(noise.processes[r], start_s, stop_s, noise.dt_s, noise.record_s)
-        cov[np.diag_indices_from(cov)] = np.maximum(np.diag(cov), v[:, r])
+        cov[np.diag_indices_from(cov)] = np.maximum(np.diag(cov), np.diag(base))
         out.append(cov)
     return out
 
@@ -274,7 +269,7 @@ def offset_floor(fits: list[SegmentFit], t_mid_s: np.ndarray, duration_s: np.nda
     # white noise leaves the offsets as they were
     coloured = np.array([any(fits[k].noise_ratio is not None and fits[k].noise_ratio[0, r] > 1.0 for k in ok)
                          for r in range(c.shape[1])])
-    base = model_covariance(noise, v, t - half, t + half, coloured)
+    base = model_covariance(noise, [np.diag(v[:, r]) for r in range(v.shape[1])], t - half, t + half, coloured)
     total, flag, wander = base, None, None
     unmodelled = noise is None and bool(coloured.any()) and modelled
     if len(ok) < MIN_FLOOR_SEGMENTS:
