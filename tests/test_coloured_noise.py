@@ -12,7 +12,7 @@ import pytest
 
 from rotcal.config import FitConfig
 from rotcal.fit.segments import fit_segments, widened
-from rotcal.fit.wander import NOT_MODELLED, SLOWER_THAN_RECORD, UNIDENTIFIED
+from rotcal.fit.wander import NOT_MODELLED, SLOWER_THAN_RECORD, UNIDENTIFIED, wander_fit
 from rotcal.noise.means import NoiseProcess, window_mean_covariance
 from rotcal.simulate.noise import NoiseSpec, draw_channels
 
@@ -106,13 +106,17 @@ def group_mean_errors(noise: NoiseSpec, records: int, seed: int) -> tuple[np.nda
 def test_offsets_carry_a_slow_wander():
     """A Gauss-Markov wander of 4 counts with a time constant of 100 s
     under 8 counts of white noise, 30 records: each rate's combined offset
-    has normalised errors of sd 0.8 to 1.25 (0.84, 96 % within 2 u), and
-    each fit says how large the floor it carries is (median 4.5 counts)."""
+    has normalised errors of sd 0.75 to 1.25 and 90 to 99 % within 2 u
+    (0.77, 97.5 %), and each fit says how large the floor it carries is
+    (median 4.5 counts). Eight offsets leave the wander's variance seven
+    contrasts: its posterior mean (``fit.wander.wander_fit``) leans to the
+    conservative side here (0.84 with the likelihood's mode, which left the
+    default plan's random-walk offsets at 89 % within 2 u)."""
     noise = NoiseSpec(white_sd=8.0, gauss_markov=((100.0, 4.0),))
     z, fits = group_mean_errors(noise, 30, seed=12)
     sd = np.sqrt(np.mean(z**2))
-    assert 0.8 < sd < 1.25, sd
-    assert np.mean(np.abs(z) <= 2) >= 0.9
+    assert 0.75 < sd < 1.25, sd
+    assert 0.9 <= np.mean(np.abs(z) <= 2) <= 0.99
     floors = np.array([f.offset_floor for record in fits for f in record])
     assert 2.0 < np.median(floors) < 6.0, np.median(floors)
     assert {f.noise_note for record in fits for f in record} <= {None, SLOWER_THAN_RECORD}
@@ -189,3 +193,28 @@ def test_a_slow_rotation_reads_the_density_at_its_own_frequency():
     z = normalised_errors(noise, (0.01, 0.05), 4200, 60, seed=5)[0].reshape(60, 2, 9)[:, :, SINE]
     sd = np.sqrt(np.mean(z**2, axis=(0, 2)))
     assert np.all((sd > 0.8) & (sd < 1.15)), sd
+
+
+def test_the_wanders_size_is_its_posterior_mean():
+    """Twelve offsets 1000 s apart scattering independently by 3 counts
+    about one offset, each of its own noise 0.1 counts: at correlation times
+    far below their spacing the restricted likelihood of the wander's
+    variance s^2 is that of n - 1 = 11 independent residuals,
+    L ~ (0.01 + s^2)^(-11/2) exp(-SS / (2 (0.01 + s^2))). The size taken
+    is its mean under the log-uniform prior of the grid (about SS / 9 - 0.01,
+    an inverse gamma's mean), here by quadrature: within 2 %, where the
+    likelihood's mode, SS / 11 - 0.01, is 18 % below it (a variance from a
+    dozen offsets leans to larger values)."""
+    rng = np.random.default_rng(2)
+    c = 40.0 + 3.0 * rng.standard_normal((12, 1))
+    t = 1000.0 * np.arange(12)
+    s2, _, tau = wander_fit(c, [np.eye(12) * 0.01], t, (1.0, 10.0), np.ones((12, 1)), t + 500.0)
+    assert np.isfinite(tau)
+    ss = float(np.sum((c - c.mean()) ** 2))
+    spread = float(np.var(c, ddof=1))
+    v = np.geomspace(1e-4 * spread, 100 * spread, 200_001)  # the grid's range, the prior log-uniform on it
+    log_like = -5.5 * np.log(0.01 + v) - ss / (2 * (0.01 + v))
+    like = np.exp(log_like - log_like.max())
+    mean = float(np.sum(v * like) / np.sum(like))  # sums over a log-spaced grid: the prior dv / v
+    assert abs(s2[0] / mean - 1) < 0.02, (s2[0], mean)
+    assert (ss / 11 - 0.01) / mean < 0.85
