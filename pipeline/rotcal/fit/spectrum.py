@@ -42,8 +42,10 @@ BANDS_PER_OCTAVE = 4
 MIN_ORDINATES = 16
 # zero frequency: the lowest bins only (a wander's density rises steeply there), fewer ordinates
 MIN_ORDINATES_AT_ZERO = 8
-# the wider window that decides whether the noise is coloured where the narrow one holds few ordinates
-WIDE_ORDINATES = 64
+# the wider windows that decide whether the noise is coloured where the narrow one holds few ordinates: a
+# filter's mild colouring (a second-order low-pass at 0.4 of the sample rate: F = 1.27 below its corner) lies
+# within the white law's interval for 64 ordinates (up to 1.46) and outside it for 512 (1.15)
+WIDE_ORDINATES = (64, 512)
 NOTCH_BINS = 1.0
 # two-sided, per (segment group, channel): white noise keeps its uncertainties in 999 groups of 1000
 SIGNIFICANCE = 1e-3
@@ -155,18 +157,25 @@ def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, l
     holds ``MIN_ORDINATES``, and where coloured at least the power law
     fitted to those bands at f (``_local_slope``); zero frequency is read in [low/4, low], low
     the segment's 1 / T, from at least ``MIN_ORDINATES_AT_ZERO``. 1 where
-    white noise explains it (Gamma(m, 1/m)) there and in the window widened
-    to ``WIDE_ORDINATES``, which tests with more power; where only the wide
-    window departs, the larger of the two (the narrow one is then noisy)."""
+    white noise explains it (Gamma(m, 1/m)) there and in the windows widened
+    to each of ``WIDE_ORDINATES``, which test with more power; where only a
+    wide window departs, the largest of the windows' means up to it."""
     low, high = (f_hz / 2, 2 * f_hz) if f_hz > 0 else (low_hz / 4, low_hz)
     narrow, m, bands = _window(pooled, low, high, MIN_ORDINATES if f_hz > 0 else MIN_ORDINATES_AT_ZERO)
     if m == 0:
         return narrow
-    wide, m_wide, _ = _window(pooled, low, high, WIDE_ORDINATES)
-    on, on_wide = _coloured(narrow, m), _coloured(wide, m_wide)
+    on = _coloured(narrow, m)
+    # where the narrow window passes for white, wider ones test with more power: where one departs, the
+    # largest of the windows' means up to it (the narrow one is then noisy)
+    wide_ratio, on_wide, largest = np.ones_like(narrow), np.zeros(narrow.shape, bool), narrow
+    for enough in WIDE_ORDINATES:
+        wide, m_wide, _ = _window(pooled, low, high, enough)
+        largest = np.maximum(largest, wide)
+        newly = _coloured(wide, m_wide) & ~on_wide
+        wide_ratio, on_wide = np.where(newly, largest, wide_ratio), on_wide | newly
     if f_hz > 0 and (on | on_wide).any():  # coloured: the density at f itself where above the window's mean
         narrow = np.maximum(narrow, _local_slope(pooled, bands, f_hz, narrow))
-    return np.where(on, narrow, np.where(on_wide, np.maximum(narrow, wide), 1.0))
+    return np.where(on, narrow, np.where(on_wide, np.maximum(narrow, wide_ratio), 1.0))
 
 
 def spectrum_widened(fits: list[SegmentFit]) -> list[SegmentFit]:
