@@ -59,7 +59,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.special import chdtri  # chi-square isf; scipy.stats costs every batch worker 0.3 s to import
+from scipy.special import chdtri, logsumexp, softmax  # scipy.stats costs every batch worker 0.3 s to import
 
 from rotcal.noise.means import NoiseProcess, window_mean_covariance
 
@@ -190,14 +190,14 @@ def wander_fit(c: np.ndarray, base: list[np.ndarray], t_s: np.ndarray, tau_range
         corr = walk if np.isinf(tau) else np.exp(-lag / tau)
         ll = [restricted_loglik(c[:, r], base[r], corr, grids[r], x) for r in range(c.shape[1])]
         # each tau by its likelihood with s^2 integrated over the grid (its prior: log-uniform, and 0)
-        total = sum(float(x.max() + np.log(np.sum(np.exp(x - x.max())))) for x in ll)
+        total = sum(float(logsumexp(channel)) for channel in ll)
         if total > best[0]:
             best = (total, tau, ll)
     ll = best[2]
     # s^2 at its posterior mean, not its mode: a variance from a dozen offsets is uncertain and its likelihood
     # leans to larger values (the default plan's random-walk O at 0.1 and 0.5 Hz: 89 % within 2 u with the
     # mode and the profile's tau, 92 and 93 % with the mean and the integrated; docs/measured.md)
-    s2 = np.array([grids[r] @ np.exp(x - x.max()) / np.sum(np.exp(x - x.max())) for r, x in enumerate(ll)])
+    s2 = np.array([grids[r] @ softmax(channel) for r, channel in enumerate(ll)])
     # chi^2(1) 95 %: 3.84 / 2 below the profile's top
     upper = np.array([grids[r][np.flatnonzero(x >= x.max() - 1.92).max()] for r, x in enumerate(ll)])
     return s2, upper, float(best[1])
