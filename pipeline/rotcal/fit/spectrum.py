@@ -169,6 +169,8 @@ def density_ratio_at(pooled: dict[int, tuple[np.ndarray, float]], f_hz: float, l
     # largest of the windows' means up to it (the narrow one is then noisy)
     wide_ratio, on_wide, largest = np.ones_like(narrow), np.zeros(narrow.shape, bool), narrow
     for enough in WIDE_ORDINATES:
+        if (on | on_wide).all():  # every channel decided: a wider window changes nothing
+            break
         wide, m_wide, _ = _window(pooled, low, high, enough)
         largest = np.maximum(largest, wide)
         newly = _coloured(wide, m_wide) & ~on_wide

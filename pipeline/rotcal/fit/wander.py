@@ -199,7 +199,7 @@ def wander_fit(c: np.ndarray, base: list[np.ndarray], t_s: np.ndarray, tau_range
     # mode and the profile's tau, 92 and 93 % with the mean and the integrated; docs/measured.md)
     s2 = np.array([grids[r] @ softmax(channel) for r, channel in enumerate(ll)])
     # chi^2(1) 95 %: 3.84 / 2 below the profile's top
-    upper = np.array([grids[r][np.flatnonzero(x >= x.max() - 1.92).max()] for r, x in enumerate(ll)])
+    upper = np.array([grids[r][np.flatnonzero(channel >= channel.max() - 1.92).max()] for r, channel in enumerate(ll)])
     return s2, upper, float(best[1])
 
 
